@@ -1,0 +1,91 @@
+"""Trial records: what an agent hands to monitors after running trials.
+
+Agents run whole trials (in compiled code where they can) and return a :class:`TrialBatch`:
+per-trial summaries plus flat per-step arrays, indexed through ``offsets``. Monitors turn
+batches into table columns; writers persist them. No per-step Python is needed on this path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class TrialBatch:
+    """Records of ``n`` consecutive trials of one agent.
+
+    Attributes
+    ----------
+    start_state, end_state : (n,) int64
+        State at trial start and the state the trial ended in.
+    steps : (n,) int64
+        Number of steps (actions) taken in each trial ("escape latency").
+    reward : (n,) float64
+        Sum of rewards received in each trial.
+    terminated : (n,) bool
+        True if the trial ended in a terminal state, False if it hit ``max_steps``.
+    offsets : (n + 1,) int64
+        Trial ``i``'s steps are ``step_*[offsets[i]:offsets[i + 1]]``.
+    step_state, step_action, step_next_state : (total_steps,) int64
+        State in which each action was taken, the action, and the state it led to.
+    step_reward : (total_steps,) float64
+        Reward received on arriving in ``step_next_state``.
+    extra : dict
+        Agent-specific per-trial arrays (e.g. ``loss``), each of shape (n,).
+    """
+
+    start_state: np.ndarray
+    end_state: np.ndarray
+    steps: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    offsets: np.ndarray
+    step_state: np.ndarray
+    step_action: np.ndarray
+    step_next_state: np.ndarray
+    step_reward: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_trials(self) -> int:
+        return int(self.steps.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.offsets[-1])
+
+    def step_trial_index(self) -> np.ndarray:
+        """Index (0-based, within this batch) of the trial each step belongs to."""
+        return np.repeat(np.arange(self.n_trials, dtype=np.int64), self.steps)
+
+    def step_index(self) -> np.ndarray:
+        """1-based step number of each step within its trial."""
+        idx = np.arange(self.n_steps, dtype=np.int64)
+        return idx - np.repeat(self.offsets[:-1], self.steps) + 1
+
+    @classmethod
+    def from_trials(cls, trials: list[dict[str, np.ndarray]]) -> TrialBatch:
+        """Build a batch from per-trial dicts with keys ``states`` (n_steps + 1), ``actions``,
+        ``rewards`` (n_steps each) and ``terminated`` (bool): the slow path's format."""
+        steps = np.array([len(t["actions"]) for t in trials], dtype=np.int64)
+        offsets = np.zeros(len(trials) + 1, dtype=np.int64)
+        np.cumsum(steps, out=offsets[1:])
+
+        def cat(key: str, sl: slice, dtype: type) -> np.ndarray:
+            parts = [np.asarray(t[key], dtype=dtype)[sl] for t in trials]
+            return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+        return cls(
+            start_state=np.array([t["states"][0] for t in trials], dtype=np.int64),
+            end_state=np.array([t["states"][-1] for t in trials], dtype=np.int64),
+            steps=steps,
+            reward=np.array([float(np.sum(t["rewards"])) for t in trials], dtype=np.float64),
+            terminated=np.array([bool(t["terminated"]) for t in trials], dtype=bool),
+            offsets=offsets,
+            step_state=cat("states", slice(0, -1), np.int64),
+            step_action=cat("actions", slice(None), np.int64),
+            step_next_state=cat("states", slice(1, None), np.int64),
+            step_reward=cat("rewards", slice(None), np.float64),
+        )

@@ -1,0 +1,48 @@
+"""Gymnasium environments and tabular worlds.
+
+Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
+``cobel/DiscreteGridWorld-v0`` (string entry points, registered once).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
+from cobelrun.envs.world import (
+    World,
+    blodgett,
+    from_layout,
+    open_field,
+    t_maze,
+    tmaze_paper,
+)
+
+#: Environment ids registered by cobel, with their entry points.
+ENV_IDS: dict[str, str] = {
+    "cobel/GridWorld-v0": "cobelrun.envs.gridworld:GridWorldEnv",
+    "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
+}
+
+
+def register_envs() -> None:
+    """Register cobel's environments with gymnasium (safe to call more than once)."""
+    for env_id, entry_point in ENV_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point)
+
+
+register_envs()
+
+__all__ = [
+    "ENV_IDS",
+    "DiscreteGridWorldEnv",
+    "GridWorldEnv",
+    "World",
+    "blodgett",
+    "from_layout",
+    "open_field",
+    "register_envs",
+    "t_maze",
+    "tmaze_paper",
+]

@@ -1,0 +1,336 @@
+"""Gymnasium environments over a tabular :class:`~cobelrun.envs.world.World`."""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Iterable, Mapping
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from cobelrun.envs.world import World, tmaze_paper
+from cobelrun.errors import ConfigError, allowed_list, suggest
+
+_ARROWS = ("<", "^", ">", "v")
+
+
+class GridWorldEnv(gym.Env[int, int]):
+    """A tabular gridworld; the observation is the state index.
+
+    Description
+    -----------
+    The agent moves between the cells of a :class:`World` (``paper/FACTS.md``, "Conventions":
+    states numbered row-major from the top-left, ``state = row * width + col``). Moves into a
+    wall cell, off the grid or through a wall leave the agent in place. Worlds built with
+    ``slip > 0`` are stochastic.
+
+    Action Space
+    ------------
+    ``Discrete(4)``: 0 = left, 1 = up, 2 = right, 3 = down.
+
+    Observation Space
+    -----------------
+    ``Discrete(S)`` with ``S = width * height``: the index of the current state.
+
+    Rewards
+    -------
+    ``world.rewards[s']`` of the state ``s'`` the agent arrives in.
+
+    Starting State
+    --------------
+    One of ``world.starts``, drawn uniformly as ``starts[np_random.integers(0, len(starts))]``
+    (drawn even with a single start, so compiled agent kernels can replay the same draws).
+
+    Episode End
+    -----------
+    Terminated on arriving in a terminal state (``world.terminal``); truncated after
+    ``max_steps`` steps (if given).
+
+    Arguments
+    ---------
+    world : World, optional
+        The world (default: the paper's 7 x 7 T-maze, :func:`~cobelrun.envs.world.tmaze_paper`).
+        The env works on a copy; ``base_world`` keeps the state at construction.
+    max_steps : int, optional
+        Steps per episode before truncation (None: no limit).
+    render_mode : {"ansi", None}
+        ``"ansi"`` renders the grid as text.
+
+    ``info`` (from ``reset`` and ``step``) holds ``state``, ``x`` and ``y``.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi"], "render_fps": 4}
+
+    def __init__(
+        self,
+        world: World | None = None,
+        max_steps: int | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if world is None:
+            world = tmaze_paper()
+        if not isinstance(world, World):
+            raise ConfigError(
+                f"world must be a cobelrun World (e.g. _target_: cobelrun.envs.world.tmaze_paper), got {type(world).__name__}"
+            )
+        if max_steps is not None:
+            if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer):
+                raise ConfigError(
+                    f"max_steps must be a positive integer or null, got {max_steps!r}"
+                )
+            if max_steps < 1:
+                raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps}")
+            max_steps = int(max_steps)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ConfigError(
+                f"render_mode {render_mode!r} is not supported{suggest(str(render_mode), self.metadata['render_modes'])}; "
+                f"allowed: {allowed_list(self.metadata['render_modes'])}, None"
+            )
+        self._base_world = world.copy()
+        self._world = world.copy()
+        self.max_steps = max_steps
+        self.render_mode = render_mode
+        self.action_space = spaces.Discrete(world.n_actions)
+        self.observation_space = self._make_observation_space()
+        self._state = int(self._world.starts[0])
+        self._steps = 0
+
+    # ------------------------------------------------------------------ world access
+    @property
+    def world(self) -> World:
+        """The live world (changed by :meth:`apply_changes`)."""
+        return self._world
+
+    @property
+    def base_world(self) -> World:
+        """The world as it was at construction (a copy; do not modify)."""
+        return self._base_world
+
+    @property
+    def state(self) -> int:
+        """The current state index."""
+        return self._state
+
+    @property
+    def steps(self) -> int:
+        """Steps taken in the current episode."""
+        return self._steps
+
+    def reset_world(self) -> None:
+        """Restore the world to :attr:`base_world` (undo every :meth:`apply_changes`)."""
+        self._world = self._base_world.copy()
+
+    def apply_changes(
+        self,
+        rewards: Mapping[Any, float] | None = None,
+        terminals: Mapping[Any, bool] | None = None,
+        starts: Iterable[Any] | None = None,
+    ) -> None:
+        """Change the live world in place (e.g. at a protocol phase boundary).
+
+        Parameters
+        ----------
+        rewards : mapping state -> float, optional
+            New arrival rewards (see :meth:`World.set_rewards`).
+        terminals : mapping state -> bool, optional
+            Terminal flags to set (see :meth:`World.set_terminal`).
+        starts : list of states, optional
+            New start states (see :meth:`World.set_starts`).
+        """
+        if rewards is not None:
+            self._world.set_rewards(rewards)
+        if terminals is not None:
+            self._world.set_terminal(terminals)
+        if starts is not None:
+            self._world.set_starts(starts)
+
+    def action_mask(self) -> np.ndarray:
+        """(S, A) bool: True where an action has some probability of leaving the state."""
+        T = self._world.T
+        n = self._world.n_states
+        stay = T[np.arange(n), :, np.arange(n)]  # (S, A) probability of staying
+        return stay < 1.0
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Start an episode in a uniformly drawn start state."""
+        super().reset(seed=seed)
+        starts = self._world.starts
+        self._state = int(starts[self.np_random.integers(0, len(starts))])
+        self._steps = 0
+        return self._observe(self._state), self._info(self._state)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Take one action; returns ``(obs, reward, terminated, truncated, info)``."""
+        a = self._check_action(action)
+        world = self._world
+        s = self._state
+        ns = world.next_state
+        if ns is not None:
+            s2 = int(ns[s, a])
+        else:
+            u = self.np_random.random()
+            cum = np.cumsum(world.T[s, a])
+            s2 = min(int(np.searchsorted(cum, u, side="right")), world.n_states - 1)
+        self._state = s2
+        self._steps += 1
+        reward = float(world.rewards[s2])
+        terminated = bool(world.terminal[s2])
+        truncated = self.max_steps is not None and self._steps >= self.max_steps
+        return self._observe(s2), reward, terminated, truncated, self._info(s2)
+
+    def render(self) -> str | None:
+        """Return the grid as text (``render_mode="ansi"``): ``A`` agent, ``#`` wall,
+        ``G`` rewarded terminal, ``E`` other terminal, ``+`` rewarded state."""
+        if self.render_mode != "ansi":
+            return None
+        w = self._world
+        chars = []
+        for s in range(w.n_states):
+            if s == self._state:
+                ch = "A"
+            elif w.blocked[s]:
+                ch = "#"
+            elif w.terminal[s]:
+                ch = "G" if w.rewards[s] != 0 else "E"
+            elif w.rewards[s] != 0:
+                ch = "+"
+            else:
+                ch = "."
+            chars.append(ch)
+        rows = ["".join(chars[r * w.width : (r + 1) * w.width]) for r in range(w.height)]
+        return "\n".join(rows) + "\n"
+
+    # ------------------------------------------------------------------ hooks for subclasses
+    def _make_observation_space(self) -> spaces.Space:
+        return spaces.Discrete(self._world.n_states)
+
+    def _observe(self, s: int) -> Any:
+        return int(s)
+
+    def _info(self, s: int) -> dict[str, Any]:
+        x, y = self._world.coords[s]
+        return {"state": int(s), "x": float(x), "y": float(y)}
+
+    def _check_action(self, action: Any) -> int:
+        try:
+            if isinstance(action, np.ndarray):
+                if action.size != 1:
+                    raise TypeError
+                action = action.reshape(()).item()
+            if isinstance(action, bool | np.bool_):
+                raise TypeError
+            a = operator.index(action)
+        except TypeError:
+            raise ValueError(
+                f"invalid action {action!r}; allowed: integers 0..{self._world.n_actions - 1} "
+                "(0=left, 1=up, 2=right, 3=down)"
+            ) from None
+        if not 0 <= a < self._world.n_actions:
+            raise ValueError(
+                f"invalid action {a}; allowed: 0..{self._world.n_actions - 1} "
+                "(0=left, 1=up, 2=right, 3=down)"
+            )
+        return a
+
+
+class DiscreteGridWorldEnv(GridWorldEnv):
+    """A tabular gridworld with a feature vector per state (one-hot by default).
+
+    Description
+    -----------
+    Same dynamics as :class:`GridWorldEnv`; the agent observes ``observations[s]`` instead of
+    the state index (e.g. for deep agents such as Dyna-DSR on one-hot inputs, FACTS.md Fig. 7).
+
+    Action Space
+    ------------
+    ``Discrete(4)``: 0 = left, 1 = up, 2 = right, 3 = down.
+
+    Observation Space
+    -----------------
+    ``Box(low=min, high=max, shape=(d,), float32)`` over the rows of ``observations``.
+
+    Rewards
+    -------
+    ``world.rewards[s']`` of the state ``s'`` the agent arrives in.
+
+    Starting State
+    --------------
+    As :class:`GridWorldEnv`: ``starts[np_random.integers(0, len(starts))]``.
+
+    Episode End
+    -----------
+    Terminal state reached, or ``max_steps`` steps (truncation).
+
+    Arguments
+    ---------
+    world : World, optional
+        The world (default: the paper's 7 x 7 T-maze).
+    max_steps : int, optional
+        Steps per episode before truncation.
+    render_mode : {"ansi", None}
+        Text rendering.
+    observations : (S, d) array, "onehot" or "coords", optional
+        Observation of each state. Default ``"onehot"`` (identity, ``d = S``); ``"coords"`` gives
+        the ``(x, y)`` cell coordinates.
+
+    ``info`` holds ``state`` (the state index), ``x`` and ``y``.
+    """
+
+    OBSERVATION_KINDS: ClassVar[tuple[str, ...]] = ("onehot", "coords")
+
+    def __init__(
+        self,
+        world: World | None = None,
+        max_steps: int | None = None,
+        render_mode: str | None = None,
+        observations: np.ndarray | str | None = None,
+    ) -> None:
+        if world is None:
+            world = tmaze_paper()
+        self.observations = self._build_observations(world, observations)
+        super().__init__(world=world, max_steps=max_steps, render_mode=render_mode)
+
+    @classmethod
+    def _build_observations(cls, world: Any, observations: Any) -> np.ndarray:
+        n = world.n_states if isinstance(world, World) else 0
+        if observations is None:
+            observations = "onehot"
+        if isinstance(observations, str):
+            if observations == "onehot":
+                obs = np.eye(n, dtype=np.float32)
+            elif observations == "coords":
+                obs = world.coords.astype(np.float32)
+            else:
+                raise ConfigError(
+                    f"observations {observations!r} is unknown{suggest(observations, cls.OBSERVATION_KINDS)}; "
+                    f"allowed: {allowed_list(cls.OBSERVATION_KINDS)} or an (S, d) array"
+                )
+        else:
+            try:
+                obs = np.array(observations, dtype=np.float32)
+            except (TypeError, ValueError):
+                raise ConfigError(
+                    "observations must be an (S, d) array of numbers, 'onehot' or 'coords'"
+                ) from None
+            if obs.ndim != 2 or obs.shape[0] != n or obs.shape[1] < 1:
+                raise ConfigError(
+                    f"observations must have shape (S={n}, d), got {obs.shape}; one row per state"
+                )
+            if not np.all(np.isfinite(obs)):
+                raise ConfigError("observations must be finite numbers")
+        obs.setflags(write=False)
+        return obs
+
+    def _make_observation_space(self) -> spaces.Space:
+        obs = self.observations
+        return spaces.Box(
+            low=float(obs.min()), high=float(obs.max()), shape=(obs.shape[1],), dtype=np.float32
+        )
+
+    def _observe(self, s: int) -> np.ndarray:
+        return self.observations[s].copy()

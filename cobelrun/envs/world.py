@@ -679,7 +679,8 @@ def t_maze(
     rows += [side + "." + side for _ in range(stem_length - 1)]
     rows += [side + "S" + side]
     mid = arm_length
-    places = {"junction": mid, "left_arm": 0, "right_arm": width - 1}
+    start = stem_length * width + mid
+    places = {"start": start, "junction": mid, "left_arm": 0, "right_arm": width - 1}
     rewards = {} if goal is None else {f"{goal}_arm": goal_reward}
     world = from_layout("\n".join(rows), places=places)
     world.set_rewards(rewards)

@@ -1,0 +1,13 @@
+"""Writers for run folders: streamed Parquet tables, an MCAP stream for Foxglove, the manifest.
+
+Both stream writers flush in chunks (memory stays flat) and write to their final path; closing
+them (also from ``with`` on an exception or Ctrl-C) leaves complete, readable files.
+"""
+
+from __future__ import annotations
+
+from cobelrun.io.manifest import Manifest, config_hash
+from cobelrun.io.mcap import McapStreamWriter
+from cobelrun.io.parquet import ParquetStreamWriter
+
+__all__ = ["Manifest", "McapStreamWriter", "ParquetStreamWriter", "config_hash"]

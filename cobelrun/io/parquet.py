@@ -1,0 +1,199 @@
+"""Streaming Parquet writer: append numpy columns, flush fixed-size row groups.
+
+Memory stays flat however many rows are written: at most ``row_group_rows`` rows plus the rows
+of one :meth:`ParquetStreamWriter.write` call are buffered. The file is written at its final
+path; :meth:`ParquetStreamWriter.close` (called by ``__exit__`` also on exceptions and
+``KeyboardInterrupt``) writes the buffered rows and the footer, so the file is readable by
+``pandas.read_parquet`` afterwards.
+
+Measured append rate (``benchmarks``-style, 4 columns int64/int64/float64/bool, 20,000 rows per
+call, zstd): about 40-60 million rows/s on one core (see the report in ``tests/test_io.py``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+__all__ = ["ParquetStreamWriter"]
+
+
+class ParquetStreamWriter:
+    """Append rows to a Parquet file in row groups of ``row_group_rows`` rows.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file. Parent folders are created. An existing file is overwritten.
+    schema : pyarrow.Schema
+        Column names and types. Every :meth:`write` must give exactly these columns.
+    row_group_rows : int, default 65536
+        Rows per row group; a row group is written as soon as this many rows are buffered.
+    compression : str, default "zstd"
+        Parquet compression codec.
+
+    Examples
+    --------
+    >>> schema = pa.schema([("trial", pa.int64()), ("reward", pa.float64())])
+    >>> with ParquetStreamWriter("trials.parquet", schema) as w:  # doctest: +SKIP
+    ...     w.write({"trial": np.arange(10), "reward": np.zeros(10)})
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        schema: pa.Schema,
+        *,
+        row_group_rows: int = 65536,
+        compression: str = "zstd",
+    ) -> None:
+        if not isinstance(schema, pa.Schema):
+            raise TypeError(f"schema must be a pyarrow.Schema, got {type(schema).__name__}")
+        if int(row_group_rows) < 1:
+            raise ValueError(f"row_group_rows must be >= 1, got {row_group_rows}")
+        self.path = Path(path)
+        self.schema = schema
+        self.row_group_rows = int(row_group_rows)
+        self._names = list(schema.names)
+        self._name_set = frozenset(self._names)
+        self._batches: list[pa.RecordBatch] = []
+        self._buffered = 0
+        self._rows_written = 0
+        self._closed = False
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # Created eagerly so that even a run that writes no rows leaves a valid (empty) table.
+        self._writer: pq.ParquetWriter | None = pq.ParquetWriter(
+            str(self.path), schema, compression=compression
+        )
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def rows_written(self) -> int:
+        """Rows accepted by :meth:`write` so far (buffered rows included)."""
+        return self._rows_written + self._buffered
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run."""
+        return self._closed
+
+    # ------------------------------------------------------------------ writing
+    def write(self, columns: Mapping[str, Any]) -> None:
+        """Append rows.
+
+        Parameters
+        ----------
+        columns : Mapping[str, array-like]
+            One 1-D array per schema column, all of the same length. Scalars (0-d values) are
+            broadcast to the length of the array columns. Values are cast to the schema types.
+
+        Raises
+        ------
+        ValueError
+            If columns are missing or unknown, lengths differ, or a value cannot be cast.
+        RuntimeError
+            If the writer is closed.
+        """
+        if self._closed:
+            raise RuntimeError(f"ParquetStreamWriter for {self.path} is closed")
+        keys = columns.keys()
+        if keys != self._name_set:
+            missing = [n for n in self._names if n not in keys]
+            extra = [str(k) for k in keys if k not in self._name_set]
+            parts = []
+            if missing:
+                parts.append(f"missing columns {missing}")
+            if extra:
+                parts.append(f"unknown columns {extra}")
+            raise ValueError(
+                f"{self.path.name}: {' and '.join(parts)}; expected exactly {self._names}"
+            )
+        values = [np.asarray(columns[n]) for n in self._names]
+        n = None
+        for name, v in zip(self._names, values, strict=True):
+            if v.ndim > 1:
+                raise ValueError(f"{self.path.name}: column '{name}' must be 1-D, got {v.shape}")
+            if v.ndim == 1:
+                if n is None:
+                    n = v.shape[0]
+                elif v.shape[0] != n:
+                    raise ValueError(
+                        f"{self.path.name}: column '{name}' has {v.shape[0]} rows, "
+                        f"expected {n} (columns must have equal length)"
+                    )
+        if n is None:  # all scalars: one row
+            n = 1
+        if n == 0:
+            return
+        arrays = []
+        for field, v in zip(self.schema, values, strict=True):
+            if v.ndim == 0:
+                v = np.broadcast_to(v, (n,))
+            try:
+                arrays.append(pa.array(v, type=field.type, from_pandas=False))
+            except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+                raise ValueError(
+                    f"{self.path.name}: column '{field.name}' (dtype {v.dtype}) cannot be "
+                    f"stored as {field.type}: {exc}"
+                ) from exc
+        self._batches.append(pa.RecordBatch.from_arrays(arrays, schema=self.schema))
+        self._buffered += n
+        if self._buffered >= self.row_group_rows:
+            self._write_buffer(full_groups_only=True)
+
+    def _write_buffer(self, *, full_groups_only: bool) -> None:
+        if not self._batches or self._writer is None:
+            return
+        table = pa.Table.from_batches(self._batches, schema=self.schema)
+        n = table.num_rows
+        n_out = (n // self.row_group_rows) * self.row_group_rows if full_groups_only else n
+        if n_out == 0:
+            return
+        self._writer.write_table(table.slice(0, n_out), row_group_size=self.row_group_rows)
+        rest = table.slice(n_out)
+        # Copy the (small) remainder so the written batches' buffers can be freed.
+        self._batches = [rest.combine_chunks().to_batches()[0]] if rest.num_rows else []
+        self._buffered = rest.num_rows
+        self._rows_written += n_out
+
+    def flush(self) -> None:
+        """Write all buffered rows as a (possibly short) row group."""
+        if self._closed:
+            return
+        self._write_buffer(full_groups_only=False)
+
+    def close(self) -> None:
+        """Write buffered rows and the footer; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._write_buffer(full_groups_only=False)
+        finally:
+            writer, self._writer = self._writer, None
+            self._batches = []
+            if writer is not None:
+                writer.close()
+
+    # ------------------------------------------------------------------ context manager
+    def __enter__(self) -> ParquetStreamWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"ParquetStreamWriter({str(self.path)!r}, rows={self.rows_written}, {state})"

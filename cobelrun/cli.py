@@ -1,0 +1,138 @@
+"""The ``cobel`` command line.
+
+``cobel run`` hands its arguments to Hydra unchanged (single runs and ``-m`` multiruns); the
+other commands read configs or run folders. User errors print one line and exit 2; add
+``--debug`` (or set HYDRA_FULL_ERROR=1) for the traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cobelrun.errors import CobelError
+
+app = typer.Typer(
+    name="cobel",
+    help=(
+        "Config-driven experiments for neuroscience-oriented reinforcement learning "
+        "(CoBeL-RL rebuilt). Start with `cobel list` and `cobel run task=tmaze_extinction`."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def _debug() -> bool:
+    return os.environ.get("HYDRA_FULL_ERROR") == "1" or os.environ.get("COBEL_DEBUG") == "1"
+
+
+def fail(message: str, code: int = EXIT_USER_ERROR) -> None:
+    """Print one error line and exit (raise the original error instead when debugging)."""
+    if _debug() and sys.exc_info()[0] is not None:
+        raise
+    typer.echo(f"cobel: error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+RUN_HELP = """Run a task: `cobel run task=NAME [KEY=VALUE ...]` (Hydra overrides, passed unchanged).
+
+\b
+Examples:
+  cobel run task=tmaze_extinction
+  cobel run task=tmaze_extinction seed=3 task.runs=20 agent.epsilon=0.2
+  cobel run -m task=tmaze_extinction seed=1,2,3          # a sweep (multirun)
+  cobel run task=tmaze_extinction hydra.run.dir=out/x    # choose the output folder
+\b
+Hydra flags work as usual: -m/--multirun, --cfg job (print the config), --info, -c.
+Results go to results/<task>/<date>/<time>_<id>/ (COBEL_RESULTS changes the root).
+Add --debug for a full traceback on errors. `cobel list` shows tasks, envs and agents.
+"""
+
+
+@app.command(
+    "run",
+    help=RUN_HELP,
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+)
+def run_cmd(
+    ctx: typer.Context,
+    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks.")] = False,
+) -> None:
+    if debug:
+        os.environ["COBEL_DEBUG"] = "1"
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+    from cobelrun.hydra_app import launch
+
+    try:
+        code = launch(list(ctx.args))
+    except CobelError as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        fail("interrupted", EXIT_INTERRUPTED)
+    raise typer.Exit(code)
+
+
+@app.command("list")
+def list_cmd(
+    group: Annotated[
+        str | None, typer.Argument(help="task, env, agent or protocol (default: all of them).")
+    ] = None,
+) -> None:
+    """List the available tasks, environments, agents and protocols with one-line descriptions."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from cobelrun.config import describe, group_options
+    from cobelrun.errors import suggest
+
+    groups = ["task", "env", "agent", "protocol"]
+    if group is not None and group not in groups:
+        fail(f"unknown group {group!r}{suggest(group, groups)}; allowed: {', '.join(groups)}")
+    console = Console()
+    for g in [group] if group else groups:
+        table = Table(title=f"{g}  (choose with {g}=NAME)", title_justify="left", box=None)
+        table.add_column("name", style="bold cyan", no_wrap=True)
+        table.add_column("description")
+        for name, path in group_options(g).items():
+            table.add_row(name, describe(path))
+        console.print(table)
+        console.print()
+
+
+@app.command("plot")
+def plot_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="A run folder written by `cobel run`.")],
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Output PNG (default: RUN_DIR/plot.png).")
+    ] = None,
+) -> None:
+    """Plot a run: cumulative response and escape latency across runs (Fig. 6B style)."""
+    from cobelrun.figures.extinction import plot_run
+
+    try:
+        path = plot_run(run_dir, out)
+    except CobelError as exc:
+        fail(str(exc))
+    typer.echo(str(path))
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except CobelError as exc:  # errors raised outside a command body
+        typer.echo(f"cobel: error: {exc}", err=True)
+        sys.exit(EXIT_USER_ERROR)
+
+
+if __name__ == "__main__":
+    main()

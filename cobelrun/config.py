@@ -1,0 +1,176 @@
+"""Config helpers: where configs live, validated instantiation, run ids."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import secrets
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+
+#: config groups users pick from on the command line
+GROUPS = ("task", "env", "agent")
+
+
+def builtin_conf_dir() -> Path:
+    """The built-in ``conf/`` folder: inside the installed wheel, or at the source checkout's root."""
+    pkg = Path(__file__).resolve().parent
+    for candidate in (pkg / "conf", pkg.parent / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return candidate
+    raise ConfigError(f"cobel's built-in configs are missing (looked in {pkg / 'conf'})")
+
+
+def user_conf_dir(cwd: Path | None = None) -> Path | None:
+    """``./conf`` in the working directory, searched before the built-in configs."""
+    path = (cwd or Path.cwd()) / "conf"
+    return path if path.is_dir() else None
+
+
+def search_dirs() -> list[Path]:
+    """Config folders in search order (user first)."""
+    user = user_conf_dir()
+    return ([user] if user else []) + [builtin_conf_dir()]
+
+
+def group_options(group: str) -> dict[str, Path]:
+    """Available options of a config group, name -> file (the first in search order wins)."""
+    found: dict[str, Path] = {}
+    for root in search_dirs():
+        folder = root / group
+        if folder.is_dir():
+            for f in sorted(folder.rglob("*.yaml")):
+                name = f.relative_to(folder).with_suffix("").as_posix()
+                found.setdefault(name, f)
+    return found
+
+
+def describe(path: Path) -> str:
+    """The one-line description of a config file: its ``description:`` key or first comment."""
+    try:
+        cfg = OmegaConf.load(path)
+    except Exception:  # a broken file is reported when it is used, not when listed
+        return ""
+    for node in (cfg, cfg.get("task") if isinstance(cfg, DictConfig) else None):
+        if isinstance(node, DictConfig) and isinstance(node.get("description"), str):
+            return " ".join(node["description"].split())
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if line.startswith("#") and not line.startswith("# @package"):
+            return line.lstrip("# ").strip()
+    return ""
+
+
+def new_run_id() -> str:
+    """A short random id that makes run folders unique even within one second."""
+    return secrets.token_hex(4)
+
+
+def register_resolvers() -> None:
+    """Register cobel's OmegaConf resolvers (idempotent)."""
+    if not OmegaConf.has_resolver("cobel.id"):
+        OmegaConf.register_new_resolver("cobel.id", lambda: new_run_id(), use_cache=True)
+
+
+# -- validated instantiation ------------------------------------------------------------------
+
+_SCALARS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _target(where: str, node: Mapping[str, Any]) -> Any:
+    path = node.get("_target_")
+    if not isinstance(path, str) or "." not in path:
+        raise ConfigError(f"{where}._target_ must name a class or function, got {path!r}")
+    module, _, attr = path.rpartition(".")
+    try:
+        obj = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"{where}._target_ {path!r} cannot be imported: {exc}") from None
+    return obj
+
+
+def _check_type(where: str, value: Any, annotation: Any) -> None:
+    if annotation is inspect.Parameter.empty or value is None:
+        return
+    if isinstance(value, (DictConfig, ListConfig)):
+        return
+    origin = typing.get_origin(annotation)
+    options = (
+        typing.get_args(annotation) if origin in (typing.Union, types.UnionType) else (annotation,)
+    )
+    scalars = [o for o in options if o in _SCALARS]
+    if not scalars or len(scalars) != len(options):
+        return  # only plain scalar annotations are checked here; targets check the rest
+    for kind in scalars:
+        if kind is bool and isinstance(value, bool):
+            return
+        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return
+        if kind is int and isinstance(value, int) and not isinstance(value, bool):
+            return
+        if kind is str and isinstance(value, str):
+            return
+    wanted = " or ".join(_SCALARS[k] for k in scalars)
+    raise ConfigError(f"{where} must be {wanted}, got {value!r}")
+
+
+def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str] = ()) -> None:
+    """Check a ``_target_`` node's keys and scalar types against the target's signature.
+
+    Unknown keys (typos) and values of the wrong type become one-line ConfigErrors that name
+    the key and what is allowed. Nested ``_target_`` nodes are checked too.
+    """
+    target = _target(where, node)
+    sig = inspect.signature(target)
+    try:
+        hints = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+    except Exception:
+        hints = {}
+    params = {n: p for n, p in sig.parameters.items() if n != "self"}
+    takes_kwargs = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    allowed = [
+        n for n, p in params.items()
+        if p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+        and n not in provided
+    ]  # fmt: skip
+    for key, value in node.items():
+        if str(key).startswith("_"):
+            continue
+        if key not in params or key in provided:
+            if takes_kwargs:
+                continue
+            raise ConfigError(
+                f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: {allowed_list(allowed)}"
+            )
+        if isinstance(value, Mapping) and "_target_" in value:
+            validate_node(f"{where}.{key}", value)
+        else:
+            _check_type(f"{where}.{key}", value, hints.get(key, params[key].annotation))
+
+
+def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any) -> Any:
+    """Validate then instantiate a ``_target_`` node; errors become one-line ConfigErrors."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate as hydra_instantiate
+
+    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+    if not isinstance(plain, Mapping) or "_target_" not in plain:
+        raise ConfigError(f"{where} must be a config node with a _target_")
+    validate_node(where, plain, provided=list(kwargs))
+    try:
+        return hydra_instantiate(plain, **kwargs, _convert_="all")
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        if isinstance(cause, CobelError):
+            raise cause from None
+        msg = str(cause or exc).strip().splitlines()
+        raise ConfigError(f"cannot build {where}: {msg[-1] if msg else exc}") from exc

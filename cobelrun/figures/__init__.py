@@ -1,0 +1,1 @@
+"""Paper-style plots. Functions take data frames and a matplotlib ``ax``, never live objects."""

@@ -1,0 +1,104 @@
+"""Fig. 6B-style plots: cumulative response curve and escape latency, mean and spread over runs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from cobelrun.errors import CobelError
+
+
+def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
+    """(x position between trials, next phase name) for every phase change."""
+    first = trials[trials["run"] == trials["run"].min()].sort_values("trial")
+    change = first["phase"].ne(first["phase"].shift()) & (first["trial"] > first["trial"].min())
+    return [
+        (float(t) - 0.5, str(p))
+        for t, p in zip(first.loc[change, "trial"], first.loc[change, "phase"], strict=True)
+    ]
+
+
+def summarize(trials: pd.DataFrame, column: str) -> pd.DataFrame:
+    """Per trial: mean, std and 25th/75th percentile of ``column`` across runs."""
+    g = trials.groupby("trial")[column]
+    return pd.DataFrame(
+        {"mean": g.mean(), "std": g.std(ddof=0), "q25": g.quantile(0.25), "q75": g.quantile(0.75)}
+    )
+
+
+def _shade(ax, summary: pd.DataFrame, color: str, label: str) -> None:
+    x = summary.index.to_numpy()
+    ax.plot(x, summary["mean"], color=color, lw=1.5, label=label)
+    ax.fill_between(x, summary["q25"], summary["q75"], color=color, alpha=0.25, lw=0)
+
+
+def _mark_phases(ax, trials: pd.DataFrame) -> None:
+    for x, name in phase_boundaries(trials):
+        ax.axvline(x, color="0.3", ls="--", lw=1)
+        ax.annotate(name, (x, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -12),
+                    textcoords="offset points", fontsize=8, color="0.3")  # fmt: skip
+
+
+def plot_cumulative_response(trials: pd.DataFrame, ax) -> None:
+    """Cumulative response curve (mean, interquartile band across runs), phase boundaries."""
+    if "cumulative_response" not in trials:
+        raise CobelError("the trials table has no cumulative_response column (no response monitor)")
+    _shade(ax, summarize(trials, "cumulative_response"), "tab:blue", "cumulative responses")
+    _mark_phases(ax, trials)
+    ax.set_xlabel("trial")
+    ax.set_ylabel("cumulative responses")
+
+
+def plot_escape_latency(trials: pd.DataFrame, ax) -> None:
+    """Escape latency in steps (mean, interquartile band across runs), phase boundaries."""
+    if "steps" not in trials:
+        raise CobelError("the trials table has no steps column (no latency monitor)")
+    _shade(ax, summarize(trials, "steps"), "tab:red", "escape latency")
+    _mark_phases(ax, trials)
+    ax.set_xlabel("trial")
+    ax.set_ylabel("escape latency [steps]")
+
+
+def plot_extinction(trials: pd.DataFrame, title: str = ""):
+    """Fig. 6B: cumulative response (left) and escape latency (right); returns ``fig, axes``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), constrained_layout=True)
+    plot_cumulative_response(trials, axes[0])
+    plot_escape_latency(trials, axes[1])
+    n_runs = trials["run"].nunique()
+    what = f"{n_runs} runs: mean, band = 25th-75th percentile"
+    fig.suptitle(f"{title} ({what})" if title else what, fontsize=10)
+    for ax in axes:
+        ax.spines[["top", "right"]].set_visible(False)
+    return fig, axes
+
+
+def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``)."""
+    from cobelrun.results import load_manifest, load_trials
+
+    run_dir = Path(run_dir)
+    trials = load_trials(run_dir)
+    if trials.empty:
+        raise CobelError(f"{run_dir}/trials.parquet has no rows to plot")
+    try:
+        title = str(load_manifest(run_dir).get("task", ""))
+    except CobelError:
+        title = ""
+    fig, _ = plot_extinction(trials, title)
+    out = Path(out) if out is not None else run_dir / "plot.png"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=150)
+    except OSError as exc:
+        raise CobelError(f"cannot write {out}: {exc.strerror}") from None
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+    return out

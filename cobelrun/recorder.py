@@ -1,0 +1,206 @@
+"""RunRecorder: turns trial batches into table rows (through monitors) and streams them to disk.
+
+``trials.parquet`` gets one row per (run, trial); ``steps.parquet`` one row per recorded step;
+``run.mcap`` the agent's pose at every recorded step and trial start/end events, for replay in
+Foxglove. Everything is written in chunks as the run goes, so memory stays flat.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from cobelrun.errors import ConfigError
+from cobelrun.io.mcap import McapStreamWriter
+from cobelrun.io.parquet import ParquetStreamWriter
+from cobelrun.monitors import Monitor
+from cobelrun.records import TrialBatch
+
+#: simulated time per step in the MCAP stream (100 ms)
+STEP_NS = 100_000_000
+#: heading (radians) of the gridworld actions left, up, right, down
+ACTION_HEADING = np.array([np.pi, np.pi / 2, 0.0, -np.pi / 2])
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """What to write per step.
+
+    Attributes
+    ----------
+    steps
+        Write ``steps.parquet`` (needs a trajectory monitor).
+    mcap
+        Write ``run.mcap`` (pose stream and trial events).
+    runs
+        ``"all"`` or a list of run indices (0-based) whose steps are recorded.
+    trial_every
+        Record the steps of every N-th trial (1 = every trial). Trial 1 is always recorded.
+    """
+
+    steps: bool = True
+    mcap: bool = True
+    runs: str | Sequence[int] = "all"
+    trial_every: int = 1
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
+        cfg = dict(cfg or {})
+        allowed = ("steps", "mcap", "runs", "trial_every")
+        for key in cfg:
+            if key not in allowed:
+                raise ConfigError(f"unknown key 'record.{key}'; allowed: {', '.join(allowed)}")
+        runs = cfg.get("runs", "all")
+        if runs != "all" and (
+            isinstance(runs, str)
+            or not isinstance(runs, Sequence)
+            or not all(isinstance(r, int) and r >= 0 for r in runs)
+        ):
+            raise ConfigError(f"record.runs must be 'all' or a list of run indices, got {runs!r}")
+        every = cfg.get("trial_every", 1)
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(f"record.trial_every must be an integer >= 1, got {every!r}")
+        for key in ("steps", "mcap"):
+            if not isinstance(cfg.get(key, True), bool):
+                raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
+        return cls(
+            steps=cfg.get("steps", True),
+            mcap=cfg.get("mcap", True),
+            runs=runs if runs == "all" else tuple(runs),
+            trial_every=every,
+        )
+
+    def records_run(self, run: int) -> bool:
+        return self.runs == "all" or run in self.runs
+
+
+class RunRecorder:
+    """Collects monitor columns for each batch and streams them to the run folder."""
+
+    def __init__(
+        self,
+        run_dir: Path,
+        env: Any,
+        monitors: Mapping[str, Monitor],
+        record: RecordConfig,
+    ) -> None:
+        self.env = env
+        self.record_cfg = record
+        self.trial_monitors = [m for m in monitors.values() if m.table == "trials"]
+        self.step_monitors = [m for m in monitors.values() if m.table == "steps"]
+        for m in monitors.values():
+            m.setup(env)
+        trial_fields = [
+            pa.field("run", pa.int32()),
+            pa.field("trial", pa.int32()),
+            pa.field("phase", pa.string()),
+            pa.field("trial_in_phase", pa.int32()),
+            pa.field("start_state", pa.int64()),
+            pa.field("end_state", pa.int64()),
+            pa.field("terminated", pa.bool_()),
+        ]
+        for m in self.trial_monitors:
+            trial_fields += m.fields()
+        self._check_unique(trial_fields)
+        self.trials = ParquetStreamWriter(run_dir / "trials.parquet", pa.schema(trial_fields))
+        self.steps = None
+        if record.steps and self.step_monitors:
+            step_fields = [pa.field("run", pa.int32()), pa.field("trial", pa.int32())]
+            for m in self.step_monitors:
+                step_fields += m.fields()
+            self._check_unique(step_fields)
+            self.steps = ParquetStreamWriter(run_dir / "steps.parquet", pa.schema(step_fields))
+        self.mcap = McapStreamWriter(run_dir / "run.mcap") if record.mcap else None
+        self._clock = 0  # simulated ns
+
+    @staticmethod
+    def _check_unique(fields: list[pa.Field]) -> None:
+        names = [f.name for f in fields]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ConfigError(f"two monitors write the same column(s): {', '.join(dup)}")
+
+    def start_run(self, run: int) -> None:
+        for m in (*self.trial_monitors, *self.step_monitors):
+            m.start_run(run)
+
+    def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
+        """Write a batch of trials; ``first_trial`` is the 1-based trial number of its first."""
+        n = batch.n_trials
+        if n == 0:
+            return
+        trial = np.arange(first_trial, first_trial + n, dtype=np.int32)
+        cols: dict[str, Any] = {
+            "run": np.full(n, run, np.int32),
+            "trial": trial,
+            "phase": np.full(n, phase, dtype=object),
+            "trial_in_phase": np.arange(1, n + 1, dtype=np.int32),
+            "start_state": batch.start_state,
+            "end_state": batch.end_state,
+            "terminated": batch.terminated,
+        }
+        for m in self.trial_monitors:
+            cols.update(m.columns(batch, self.env))
+        self.trials.write(cols)
+
+        if not self.record_cfg.records_run(run):
+            self._clock += int(batch.n_steps + n) * STEP_NS
+            return
+        keep = (trial - 1) % self.record_cfg.trial_every == 0
+        if self.steps is not None:
+            step_keep = np.repeat(keep, batch.steps)
+            step_cols: dict[str, Any] = {
+                "run": np.full(int(step_keep.sum()), run, np.int32),
+                "trial": np.repeat(trial, batch.steps)[step_keep],
+            }
+            for m in self.step_monitors:
+                step_cols.update({k: v[step_keep] for k, v in m.columns(batch, self.env).items()})
+            self.steps.write(step_cols)
+        if self.mcap is not None:
+            self._write_mcap(run, phase, trial, batch, keep)
+        else:
+            self._clock += int(batch.n_steps + n) * STEP_NS
+
+    def _write_mcap(
+        self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, keep: np.ndarray
+    ) -> None:
+        n = batch.n_trials
+        # poses: per trial, the start state then every arrival state
+        n_poses = batch.n_steps + n
+        is_start = np.zeros(n_poses, bool)
+        start_pos = batch.offsets[:-1] + np.arange(n)
+        is_start[start_pos] = True
+        states = np.empty(n_poses, np.int64)
+        states[is_start] = batch.start_state
+        states[~is_start] = batch.step_next_state
+        heading = np.empty(n_poses)
+        heading[is_start] = np.pi / 2
+        n_actions = ACTION_HEADING.shape[0]
+        heading[~is_start] = ACTION_HEADING[np.clip(batch.step_action, 0, n_actions - 1)]
+        t = self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
+        pose_keep = np.repeat(keep, batch.steps + 1)
+        coords = self.env.unwrapped.world.coords[states]
+        self.mcap.write_poses(
+            t[pose_keep], coords[pose_keep, 0], coords[pose_keep, 1], heading[pose_keep]
+        )
+        end_pos = start_pos + batch.steps
+        for i in np.flatnonzero(keep):
+            common = {"run": run, "trial": int(trial[i]), "phase": phase}
+            self.mcap.write_trial_event(
+                int(t[start_pos[i]]), event="start", start_state=int(batch.start_state[i]), **common
+            )
+            self.mcap.write_trial_event(
+                int(t[end_pos[i]]), event="end", steps=int(batch.steps[i]),
+                reward=float(batch.reward[i]), end_state=int(batch.end_state[i]), **common,
+            )  # fmt: skip
+        self._clock += n_poses * STEP_NS
+
+    def close(self) -> None:
+        for w in (self.trials, self.steps, self.mcap):
+            if w is not None:
+                w.close()

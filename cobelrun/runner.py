@@ -1,0 +1,174 @@
+"""Run a composed task: build its parts, loop over runs and phases, hand batches to the recorder.
+
+The loop is short and does no I/O itself (acme's environment-loop style): agents run whole
+trials, the recorder (monitors + writers) persists them, the manifest records status.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from cobelrun.config import instantiate
+from cobelrun.errors import CobelError, ConfigError
+from cobelrun.io.manifest import Manifest
+from cobelrun.monitors import Monitor
+from cobelrun.protocol import Protocol
+from cobelrun.recorder import RecordConfig, RunRecorder
+
+DONE_MARKER = ".done"
+TASK_KEYS = ("name", "description", "runs", "protocol", "monitors", "record")
+
+
+class Interrupted(KeyboardInterrupt):
+    """Raised in the main thread when the process receives SIGTERM."""
+
+
+@dataclass
+class Task:
+    """A composed task: env + agent factory + protocol + monitors."""
+
+    name: str
+    env: Any
+    make_agent: Callable[..., Any]
+    protocol: Protocol
+    monitors: dict[str, Monitor]
+    record: RecordConfig
+    runs: int
+    seed: int
+
+
+def build_task(cfg: DictConfig) -> Task:
+    """Instantiate a composed config's parts, validating everything before any run starts."""
+    for key in ("task", "env", "agent", "seed"):
+        if key not in cfg:
+            raise ConfigError(f"the config has no '{key}'; pick one with {key}=NAME")
+    task_cfg = cfg.task
+    for key in task_cfg:
+        if key not in TASK_KEYS:
+            raise ConfigError(f"unknown key 'task.{key}'; allowed: {', '.join(TASK_KEYS)}")
+    seed = cfg.seed
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
+    runs = task_cfg.get("runs", 1)
+    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+        raise ConfigError(f"task.runs must be an integer >= 1, got {runs!r}")
+    protocol = Protocol.from_config(OmegaConf.to_container(task_cfg.protocol, resolve=True))
+    env = instantiate("env", cfg.env)
+    make_agent = instantiate("agent", cfg.agent, env=env, _partial_=True)
+    monitors: dict[str, Monitor] = {}
+    for name, node in (task_cfg.get("monitors") or {}).items():
+        if node is None:
+            continue  # a monitor switched off with task.monitors.NAME=null
+        monitor = instantiate(f"task.monitors.{name}", node)
+        if not isinstance(monitor, Monitor):
+            raise ConfigError(f"task.monitors.{name} does not build a Monitor")
+        monitors[str(name)] = monitor
+    record = RecordConfig.from_config(
+        OmegaConf.to_container(task_cfg.record, resolve=True) if "record" in task_cfg else None
+    )
+    return Task(
+        name=str(task_cfg.name),
+        env=env,
+        make_agent=make_agent,
+        protocol=protocol,
+        monitors=monitors,
+        record=record,
+        runs=runs,
+        seed=seed,
+    )
+
+
+def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.random.SeedSequence]]:
+    """(agent, environment) seed sequences of each run, all derived from the one ``seed``."""
+    return [tuple(child.spawn(2)) for child in np.random.SeedSequence(seed).spawn(runs)]
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Interrupted` so writers close and the manifest says so."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Interrupted(f"received signal {signum}")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
+    """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
+    env = task.env
+    base = env.unwrapped
+    recorder = RunRecorder(run_dir, env, task.monitors, task.record)
+    try:
+        for run, (agent_seed, env_seed) in enumerate(run_seeds(task.seed, task.runs)):
+            if hasattr(base, "reset_world"):
+                base.reset_world()
+            base.np_random = np.random.default_rng(env_seed)
+            agent = task.make_agent(seed=agent_seed)
+            recorder.start_run(run)
+            first = 1
+            for phase in task.protocol.phases:
+                task.protocol.apply(phase, env)
+                max_steps = phase.max_steps or task.protocol.max_steps
+                go = agent.train if phase.learning else agent.test
+                batch = go(phase.trials, max_steps)
+                recorder.record(run, phase.name, first, batch)
+                first += phase.trials
+            if progress is not None:
+                progress(run + 1, task.runs)
+    finally:
+        recorder.close()
+
+
+def run(cfg: DictConfig, run_dir: Path, *, progress: Any = None) -> Path:
+    """Build and execute a task into ``run_dir``; write config, manifest and done marker.
+
+    Returns the run folder. On Ctrl-C or SIGTERM the files written so far are closed properly,
+    the manifest says ``interrupted`` and :class:`KeyboardInterrupt` propagates.
+    """
+    run_dir = Path(run_dir)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CobelError(f"cannot create output folder {run_dir}: {exc.strerror}") from None
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(resolved, Mapping)
+    task = build_task(cfg)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    manifest = Manifest(run_dir)
+    manifest.start(config=dict(resolved), seed=task.seed, task=task.name,
+                   extra={"runs": task.runs, "trials": task.protocol.n_trials})  # fmt: skip
+    t0 = time.perf_counter()
+    with sigterm_as_interrupt():
+        try:
+            execute(task, run_dir, progress=progress)
+        except KeyboardInterrupt:
+            manifest.finish("interrupted")
+            raise
+        except BaseException as exc:
+            manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
+            raise
+    manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3))
+    (run_dir / DONE_MARKER).write_text("completed\n")
+    return run_dir
+
+
+def main_process_is_interactive() -> bool:
+    return sys.stderr.isatty()

@@ -1,0 +1,37 @@
+"""Shared fixtures: run the installed CLI in a subprocess, compose configs in-process."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def cobel_exe() -> list[str]:
+    exe = shutil.which("cobel", path=str(Path(sys.executable).parent)) or shutil.which("cobel")
+    return [exe] if exe else [sys.executable, "-m", "cobelrun.cli"]
+
+
+@pytest.fixture
+def cobel(tmp_path: Path):
+    """Run ``cobel ARGS`` in a temporary working directory; return the CompletedProcess."""
+
+    def _run(*args: str, cwd: Path | None = None, env: dict | None = None, timeout: float = 300):
+        full_env = {**os.environ, "COBEL_RESULTS": str(tmp_path / "results"), **(env or {})}
+        full_env.pop("HYDRA_FULL_ERROR", None)
+        return subprocess.run(
+            [*cobel_exe(), *args],
+            cwd=cwd or tmp_path,
+            env=full_env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+
+    return _run

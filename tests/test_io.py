@@ -219,15 +219,18 @@ def test_mcap_poses_and_trials(tmp_path: Path, bulk: bool) -> None:
     assert times == sorted([0, *t.tolist(), int(t[-1])])
 
 
-def test_mcap_bulk_and_per_message_paths_agree(tmp_path: Path) -> None:
+def test_mcap_bulk_and_per_message_paths_agree(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     t, x, y, h = _pose_data(500, seed=1)
     out = []
-    for bulk in (True, False):
-        path = tmp_path / f"{bulk}.mcap"
+    for bulk, batch in ((True, 1 << 16), (False, 1 << 16), (True, 37)):
+        monkeypatch.setattr("cobelrun.io.mcap._POSE_BATCH", batch)
+        path = tmp_path / f"{bulk}{batch}.mcap"
         with McapStreamWriter(path, chunk_size=4096, bulk_append=bulk, frame_id='a"b%d') as w:
             w.write_poses(t, x, y, h)
         out.append(_read_mcap(path))
-    assert out[0] == out[1]
+    assert out[0] == out[1] == out[2]
     assert out[0][0][4]["frame_id"] == 'a"b%d'
 
 

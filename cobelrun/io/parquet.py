@@ -6,8 +6,10 @@ path; :meth:`ParquetStreamWriter.close` (called by ``__exit__`` also on exceptio
 ``KeyboardInterrupt``) writes the buffered rows and the footer, so the file is readable by
 ``pandas.read_parquet`` afterwards.
 
-Measured append rate (``benchmarks``-style, 4 columns int64/int64/float64/bool, 20,000 rows per
-call, zstd): about 40-60 million rows/s on one core (see the report in ``tests/test_io.py``).
+Measured append rate (5 columns int64 x3 / float64 / bool, zstd, on a shared 2-core VM):
+about 13 million rows/s with 20,000-200,000 rows per call and 6.5 million rows/s with 2,000
+rows per call (per-call overhead ~0.3 ms); peak Arrow memory stayed at ~2 MB for 10 million
+rows written with the default row groups.
 """
 
 from __future__ import annotations

@@ -130,6 +130,8 @@ def main() -> None:
     try:
         app()
     except CobelError as exc:  # errors raised outside a command body
+        if _debug():
+            raise
         typer.echo(f"cobel: error: {exc}", err=True)
         sys.exit(EXIT_USER_ERROR)
 

@@ -8,7 +8,6 @@ folder is created.
 
 from __future__ import annotations
 
-import os
 import re
 import sys
 from pathlib import Path
@@ -16,36 +15,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from cobelrun.config import builtin_conf_dir, register_resolvers, user_conf_dir
+from cobelrun.config import builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 
 CHOICE_GROUPS = ("task", "env", "agent", "protocol")
-
-
-def _search_setup(overrides: list[str]) -> tuple[Path, list[str]]:
-    """Primary config dir and the overrides that put the built-in configs on the search path.
-
-    A ``./conf`` folder in the working directory is searched first (it becomes the primary
-    config path); the built-in configs follow, so users add or override tasks, envs and agents
-    without touching the package.
-    """
-    builtin = builtin_conf_dir()
-    user = user_conf_dir()
-    if user is None or user.resolve() == builtin.resolve():
-        return builtin, overrides
-    extra = f"file://{builtin}"
-    for i, o in enumerate(overrides):
-        if o.startswith("hydra.searchpath="):
-            inner = o.split("=", 1)[1].strip()
-            inner = inner[1:-1] if inner.startswith("[") and inner.endswith("]") else inner
-            items = [x for x in (inner, extra) if x]
-            overrides = [
-                *overrides[:i],
-                f"hydra.searchpath=[{','.join(items)}]",
-                *overrides[i + 1 :],
-            ]
-            return user, overrides
-    return user, [*overrides, f"hydra.searchpath=[{extra}]"]
 
 
 def _check_choices(parsed: list[Any]) -> None:
@@ -91,16 +64,22 @@ def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> s
 
 
 def _writable_root(path: Path) -> None:
+    """Fail early if results cannot be written under ``path`` (probe with a temporary folder)."""
+    import tempfile
+
     p = path if path.is_absolute() else Path.cwd() / path
     probe = p
-    while not probe.exists():
-        if probe.parent == probe:
-            break
+    while not probe.exists() and probe.parent != probe:
         probe = probe.parent
-    if probe.exists() and (not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK)):
-        what = "is not a folder" if not probe.is_dir() else "is not writable"
-        raise CobelError(f"cannot write results under {path}: {probe} {what}; "
-                         "choose another folder with hydra.run.dir=... or COBEL_RESULTS=...")  # fmt: skip
+    hint = "choose another folder with hydra.run.dir=... or COBEL_RESULTS=..."
+    if not probe.is_dir():
+        raise CobelError(f"cannot write results under {path}: {probe} is not a folder; {hint}")
+    try:
+        tempfile.TemporaryDirectory(dir=probe, prefix=".cobel-probe-").cleanup()
+    except OSError as exc:
+        raise CobelError(
+            f"cannot write results under {path}: {probe} is not writable ({exc.strerror}); {hint}"
+        ) from None
 
 
 def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConfig:
@@ -146,7 +125,7 @@ def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConf
         raise ConfigError(f"cannot resolve {run_dir_key}: {exc}") from None
     _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
-    build_task(job_cfg)
+    build_task(job_cfg, probe_agent=True)
     return job_cfg
 
 
@@ -184,8 +163,8 @@ def launch(args: list[str]) -> int:
     parser = get_args_parser()
     parser.prog = "cobel run"
     parsed = parser.parse_args(args)
-    config_dir, overrides = _search_setup(list(parsed.overrides))
-    parsed.overrides = overrides
+    # ./conf is put first on the search path by hydra_plugins/cobel_searchpath
+    config_dir, overrides = builtin_conf_dir(), list(parsed.overrides)
     informational = (
         parsed.help or parsed.hydra_help or parsed.cfg or parsed.info or parsed.shell_completion
     )

@@ -93,8 +93,6 @@ class RunRecorder:
         self.record_cfg = record
         self.trial_monitors = [m for m in monitors.values() if m.table == "trials"]
         self.step_monitors = [m for m in monitors.values() if m.table == "steps"]
-        for m in monitors.values():
-            m.setup(env)
         trial_fields = [
             pa.field("run", pa.int32()),
             pa.field("trial", pa.int32()),

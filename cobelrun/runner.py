@@ -47,8 +47,12 @@ class Task:
     seed: int
 
 
-def build_task(cfg: DictConfig) -> Task:
-    """Instantiate a composed config's parts, validating everything before any run starts."""
+def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
+    """Instantiate a composed config's parts, validating everything before any run starts.
+
+    With ``probe_agent`` one agent is constructed and dropped, so that errors in the agent's
+    parameters are reported before anything is written.
+    """
     for key in ("task", "env", "agent", "seed"):
         if key not in cfg:
             raise ConfigError(f"the config has no '{key}'; pick one with {key}=NAME")
@@ -72,7 +76,10 @@ def build_task(cfg: DictConfig) -> Task:
         monitor = instantiate(f"task.monitors.{name}", node)
         if not isinstance(monitor, Monitor):
             raise ConfigError(f"task.monitors.{name} does not build a Monitor")
+        monitor.setup(env)
         monitors[str(name)] = monitor
+    if probe_agent:
+        make_agent(seed=run_seed(seed, 0)[0])  # constructor errors surface before any output
     record = RecordConfig.from_config(
         OmegaConf.to_container(task_cfg.record, resolve=True) if "record" in task_cfg else None
     )
@@ -88,9 +95,18 @@ def build_task(cfg: DictConfig) -> Task:
     )
 
 
+def run_seed(seed: int, run: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+    """(agent, environment) seed sequences of run ``run``, derived from the one ``seed``.
+
+    Identical to ``SeedSequence(seed).spawn(runs)[run].spawn(2)`` but O(1) per run.
+    """
+    agent, env = np.random.SeedSequence(seed, spawn_key=(run,)).spawn(2)
+    return agent, env
+
+
 def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.random.SeedSequence]]:
-    """(agent, environment) seed sequences of each run, all derived from the one ``seed``."""
-    return [tuple(child.spawn(2)) for child in np.random.SeedSequence(seed).spawn(runs)]
+    """(agent, environment) seed sequences of every run."""
+    return [run_seed(seed, r) for r in range(runs)]
 
 
 @contextlib.contextmanager
@@ -117,7 +133,8 @@ def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
     base = env.unwrapped
     recorder = RunRecorder(run_dir, env, task.monitors, task.record)
     try:
-        for run, (agent_seed, env_seed) in enumerate(run_seeds(task.seed, task.runs)):
+        for run in range(task.runs):
+            agent_seed, env_seed = run_seed(task.seed, run)
             if hasattr(base, "reset_world"):
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)

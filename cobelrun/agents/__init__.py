@@ -1,7 +1,35 @@
 """Agents: one small base class, tabular agents with compiled trial loops, deep agents (lazy)."""
 
+import importlib
+from typing import Any
+
 from cobelrun.agents.base import Agent, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
+from cobelrun.errors import CobelError
 
-__all__ = ["Agent", "DynaQ", "TabularMemory", "TrialCallback"]
+#: deep and episodic agents, imported on first use (torch / stable-baselines3 / scipy stay lazy)
+_LAZY = {
+    "DQNAgent": "cobelrun.agents.dqn",
+    "DynaDQN": "cobelrun.agents.dyna_dqn",
+    "DynaDSR": "cobelrun.agents.dyna_dsr",
+    "MFEC": "cobelrun.agents.mfec",
+}
+
+__all__ = ["Agent", "DynaQ", "TabularMemory", "TrialCallback", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cobelrun.agents' has no attribute {name!r}")
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.split(".")[0] in ("torch", "stable_baselines3"):
+            raise CobelError(
+                f"agent {name} needs {exc.name}; install the deep extra: pip install 'cobelrun[deep]'"
+            ) from None
+        raise
+    return getattr(mod, name)
+

@@ -1,0 +1,208 @@
+"""Proportional prioritized experience replay (Schaul et al. 2016) for SB3's DQN.
+
+- :class:`SumTree`: a binary tree over priorities (sums and minima) with vectorised update and
+  prefix-sum search, O(log N) per item.
+- :class:`PrioritizedReplayBuffer`: an SB3 :class:`~stable_baselines3.common.buffers.ReplayBuffer`
+  that samples transition ``i`` with probability ``P(i) = p_i^alpha / sum_k p_k^alpha``
+  (stratified: one draw per equal slice of the total), returns importance-sampling weights
+  ``w_i = (N P(i))^-beta / max_j w_j`` (the max over the whole buffer, from the minimum
+  priority, as in the paper and OpenAI baselines) and anneals ``beta`` linearly to 1.
+  New transitions get the largest priority seen so far.
+- :class:`PrioritizedDQN`: :class:`~cobelrun.agents.dqn.TrialDQN` whose gradient step weights
+  each sample's Huber loss by ``w_i`` and sets ``p_i = |TD error_i| + epsilon``.
+
+Draws come from the buffer's own ``numpy.random.Generator`` (seeded by the agent).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+
+from cobelrun.agents.dqn import TrialDQN
+from cobelrun.errors import ConfigError
+
+
+class SumTree:
+    """Sums and minima of ``capacity`` non-negative leaf values in a complete binary tree."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self.size = 1 << max(int(np.ceil(np.log2(max(capacity, 1)))), 0)
+        self.sums = np.zeros(2 * self.size)
+        self.mins = np.full(2 * self.size, np.inf)
+
+    @property
+    def total(self) -> float:
+        return float(self.sums[1])
+
+    @property
+    def min(self) -> float:
+        return float(self.mins[1])
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        return self.sums[np.asarray(idx) + self.size]
+
+    def update(self, idx: np.ndarray, values: np.ndarray) -> None:
+        """Set leaves ``idx`` to ``values`` (later duplicates win) and refresh their ancestors."""
+        pos = np.asarray(idx, dtype=np.int64) + self.size
+        self.sums[pos] = values
+        self.mins[pos] = values
+        pos = np.unique(pos // 2)
+        while pos.size and pos[0] >= 1:
+            self.sums[pos] = self.sums[2 * pos] + self.sums[2 * pos + 1]
+            self.mins[pos] = np.minimum(self.mins[2 * pos], self.mins[2 * pos + 1])
+            if pos[0] == 1:
+                break
+            pos = np.unique(pos // 2)
+
+    def find(self, u: np.ndarray) -> np.ndarray:
+        """Leaf index ``i`` with ``prefix_sum(i) <= u < prefix_sum(i + 1)`` for each ``u``."""
+        u = np.array(u, dtype=np.float64)
+        node = np.ones(u.shape, dtype=np.int64)
+        while node[0] < self.size:
+            left = self.sums[2 * node]
+            right = u >= left
+            u -= left * right
+            node = 2 * node + right
+        return node - self.size
+
+
+class PrioritizedReplayBufferSamples(NamedTuple):
+    observations: torch.Tensor
+    actions: torch.Tensor
+    next_observations: torch.Tensor
+    dones: torch.Tensor
+    rewards: torch.Tensor
+    discounts: torch.Tensor | None
+    weights: torch.Tensor
+    indices: np.ndarray
+
+
+class PrioritizedReplayBuffer(ReplayBuffer):
+    """Proportional prioritized replay (Schaul et al. 2016, section 3.3) as an SB3 buffer.
+
+    Parameters
+    ----------
+    buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage,
+    handle_timeout_termination
+        As :class:`~stable_baselines3.common.buffers.ReplayBuffer` (one environment only).
+    alpha
+        Priority exponent (0: uniform; the paper's 0.6).
+    beta
+        Initial importance-sampling exponent (the paper's 0.4), annealed linearly to 1.
+    beta_steps
+        Number of :meth:`sample` calls over which beta reaches 1.
+    epsilon
+        Added to ``|TD error|`` so that no transition gets priority 0.
+    seed
+        Seed of the buffer's sampling generator.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: torch.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        *,
+        alpha: float = 0.6,
+        beta: float = 0.4,
+        beta_steps: int = 10_000,
+        epsilon: float = 1e-6,
+        seed: int | None = None,
+    ) -> None:
+        if n_envs != 1:
+            raise ConfigError("prioritized replay supports one environment (n_envs=1)")
+        if optimize_memory_usage:
+            raise ConfigError("prioritized replay does not support optimize_memory_usage")
+        super().__init__(buffer_size, observation_space, action_space, device, n_envs,
+                         optimize_memory_usage, handle_timeout_termination)  # fmt: skip
+        self.alpha, self.beta0, self.beta_steps = float(alpha), float(beta), int(beta_steps)
+        self.epsilon = float(epsilon)
+        self.tree = SumTree(self.buffer_size)
+        self.max_priority = 1.0
+        self.n_sampled = 0
+        self.rng = np.random.default_rng(seed)
+
+    @property
+    def beta(self) -> float:
+        frac = min(1.0, self.n_sampled / self.beta_steps)
+        return self.beta0 + frac * (1.0 - self.beta0)
+
+    def __len__(self) -> int:
+        return self.buffer_size if self.full else self.pos
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        idx = self.pos
+        super().add(*args, **kwargs)
+        self.tree.update(np.array([idx]), np.array([self.max_priority**self.alpha]))
+
+    def sample_indices(self, batch_size: int) -> np.ndarray:
+        """Stratified proportional draw of ``batch_size`` buffer indices."""
+        total = self.tree.total
+        u = (np.arange(batch_size) + self.rng.random(batch_size)) * (total / batch_size)
+        idx = self.tree.find(np.minimum(u, np.nextafter(total, 0.0)))
+        return np.minimum(idx, len(self) - 1)
+
+    def sample(self, batch_size: int, env: Any = None) -> PrioritizedReplayBufferSamples:  # type: ignore[override]
+        n = len(self)
+        idx = self.sample_indices(batch_size)
+        total, beta = self.tree.total, self.beta
+        probs = self.tree[idx] / total
+        max_weight = (n * self.tree.min / total) ** -beta
+        weights = (n * probs) ** -beta / max_weight
+        self.n_sampled += 1
+        data = self._get_samples(idx, env=env)
+        return PrioritizedReplayBufferSamples(
+            *data,
+            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            indices=idx,
+        )
+
+    def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
+        """Set ``p_i = |delta_i| + epsilon`` for the sampled transitions."""
+        p = np.abs(np.asarray(td_errors, dtype=np.float64).reshape(-1)) + self.epsilon
+        self.max_priority = max(self.max_priority, float(p.max()))
+        self.tree.update(indices, p**self.alpha)
+
+
+class PrioritizedDQN(TrialDQN):
+    """DQN whose gradient step applies PER's importance weights and refreshes priorities.
+
+    Reads top to bottom like SB3's ``DQN.train``; the differences are the per-sample weights on
+    the Huber loss and the priority update with ``|TD error|``.
+    """
+
+    replay_buffer: PrioritizedReplayBuffer
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        losses = []
+        for _ in range(gradient_steps):
+            data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
+            discounts = data.discounts if data.discounts is not None else self.gamma
+            with torch.no_grad():
+                next_q, _ = self.q_net_target(data.next_observations).max(dim=1)
+                target = data.rewards + (1 - data.dones) * discounts * next_q.reshape(-1, 1)
+            current = torch.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
+            td = target - current
+            loss = (data.weights * F.smooth_l1_loss(current, target, reduction="none")).mean()
+            losses.append(loss.item())
+            self.policy.optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+            self.policy.optimizer.step()
+            self.replay_buffer.update_priorities(data.indices, td.detach().cpu().numpy())
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/loss", np.mean(losses))

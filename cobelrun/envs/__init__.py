@@ -1,7 +1,7 @@
 """Gymnasium environments and tabular worlds.
 
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
-``cobel/DiscreteGridWorld-v0`` (string entry points, registered once).
+``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0`` (string entry points, registered once).
 """
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import gymnasium as gym
 
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
+from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
     World,
     blodgett,
@@ -22,6 +23,7 @@ from cobelrun.envs.world import (
 ENV_IDS: dict[str, str] = {
     "cobel/GridWorld-v0": "cobelrun.envs.gridworld:GridWorldEnv",
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
+    "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
 }
 
 
@@ -38,6 +40,7 @@ __all__ = [
     "ENV_IDS",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
+    "TopologyEnv",
     "World",
     "blodgett",
     "from_layout",

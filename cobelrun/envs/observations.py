@@ -1,0 +1,413 @@
+"""Observation modules for pose-based environments (paper section 2.2.3).
+
+A module turns the agent's pose (node, heading) into what the agent sees. It is *bound* to a
+:class:`~cobelrun.envs.topology.Topology` by the environment, which then calls
+:meth:`ObservationModule.observe` with the pose and the environment's random generator (so noise
+is seeded like every other draw of the environment).
+
+- :class:`PoseObservation`: ``(x, y, cos heading, sin heading)``.
+- :class:`ImageObservation`: camera images of the 3D scene, rendered online with pybullet or read
+  from the offline render cache (``render="offline"`` never imports pybullet).
+- :class:`NoisyObservation`: Gaussian or salt-and-pepper noise on another module's output.
+- :class:`MultiSensoryObservation`: a ``Dict`` of several modules (for SB3's MultiInputPolicy;
+  the keys name the network input each observation goes to).
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+
+__all__ = [
+    "ImageObservation",
+    "MultiSensoryObservation",
+    "NoisyObservation",
+    "ObservationModule",
+    "PoseObservation",
+]
+
+
+class ObservationModule(abc.ABC):
+    """Base class: :meth:`bind` to a topology, then :meth:`observe` poses."""
+
+    space: gym.Space
+    topology: Any = None
+
+    def bind(self, topology: Any) -> None:
+        """Attach to a topology and set :attr:`space`. Called once by the environment."""
+        self.topology = topology
+        self.space = self._make_space(topology)
+
+    @abc.abstractmethod
+    def _make_space(self, topology: Any) -> gym.Space: ...
+
+    @abc.abstractmethod
+    def observe(self, node: int, heading: int, rng: np.random.Generator) -> Any:
+        """Observation at pose ``(node, heading index)``; ``rng`` draws any noise."""
+
+    def image_modules(self) -> list[ImageObservation]:
+        """Image modules inside this module (for building render caches)."""
+        return []
+
+    def close(self) -> None:  # noqa: B027  (optional hook, nothing to release by default)
+        """Release resources (renderers)."""
+
+
+class PoseObservation(ObservationModule):
+    """The pose as ``(x, y, cos heading, sin heading)``, float32.
+
+    Parameters
+    ----------
+    normalize : bool
+        Scale ``x`` and ``y`` to [0, 1] over the extent of the graph's nodes (default True).
+    """
+
+    def __init__(self, normalize: bool = True) -> None:
+        self.normalize = bool(normalize)
+
+    def _make_space(self, topology: Any) -> gym.Space:
+        pos = np.asarray(topology.positions, dtype=np.float64)
+        self._lo = pos.min(axis=0)
+        span = pos.max(axis=0) - self._lo
+        self._span = np.where(span > 0, span, 1.0)
+        if self.normalize:
+            xy = (pos - self._lo) / self._span
+        else:
+            xy = pos
+        self._table = np.empty((topology.n_nodes, topology.n_directions, 4), np.float32)
+        self._table[..., :2] = xy[:, None, :]
+        self._table[..., 2] = np.cos(topology.directions)[None, :]
+        self._table[..., 3] = np.sin(topology.directions)[None, :]
+        low = np.array([*xy.min(axis=0), -1.0, -1.0], np.float32)
+        high = np.array([*xy.max(axis=0), 1.0, 1.0], np.float32)
+        return spaces.Box(low=low, high=high, dtype=np.float32)
+
+    def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
+        return self._table[node, heading].copy()
+
+
+#: Sources of images.
+RENDER_MODES: tuple[str, ...] = ("online", "offline")
+IMAGE_DTYPES: tuple[str, ...] = ("uint8", "float32")
+
+
+class ImageObservation(ObservationModule):
+    """Camera images of the 3D scene at the agent's pose.
+
+    The scene is built from the bound topology (walls around a gridworld's cells, or an open arena)
+    with pybullet (:mod:`cobelrun.render.scene`). Images are rendered at ``height x width``, or at
+    ``render_size`` and then resized (area average) to ``height x width``.
+
+    Parameters
+    ----------
+    height, width : int
+        Observation size in pixels (Fig. 6A: 84 x 84; Fig. 8: 12 x 48 panoramas).
+    fov : float
+        Horizontal field of view in degrees (the whole panorama when ``n_cameras > 1``).
+    n_cameras : int
+        Cameras stitched side by side (e.g. 4 for a 240 degree panorama, as Fig. 8).
+    eye_height, pitch : float
+        Camera height (cell units) and downward tilt (degrees).
+    channels_first : bool
+        ``(C, H, W)`` layout (default, what SB3's CnnPolicy expects) or ``(H, W, C)``.
+    dtype : {"uint8", "float32"}
+        ``uint8`` in [0, 255] (default: SB3's CnnPolicy recognises it as an image and divides by
+        255 itself, and replay memories stay 4x smaller); ``float32`` normalised to [0, 1]
+        (use SB3 with ``policy_kwargs={"normalize_images": False}``).
+    grayscale : bool
+        One luminance channel instead of RGB.
+    render : {"online", "offline"}
+        ``online``: render every step with pybullet. ``offline``: read the render cache built by
+        ``cobel render-cache`` (pybullet is not imported).
+    renderer : {"tiny", "egl"}
+        pybullet renderer for online rendering and cache building.
+    scene : mapping, optional
+        Scene style (:class:`~cobelrun.render.scene.SceneStyle`: wall colours, texture, cues,
+        lighting).
+    render_size : [h, w], optional
+        Render at this size, then resize to ``height x width``.
+    cache_dir : str, optional
+        Render-cache folder (default ``$COBEL_CACHE`` or ``~/.cache/cobel/render``).
+    """
+
+    def __init__(
+        self,
+        height: int = 84,
+        width: int = 84,
+        fov: float = 90.0,
+        n_cameras: int = 1,
+        eye_height: float = 0.3,
+        pitch: float = 0.0,
+        channels_first: bool = True,
+        dtype: str = "uint8",
+        grayscale: bool = False,
+        render: str = "online",
+        renderer: str = "tiny",
+        scene: Mapping[str, Any] | None = None,
+        render_size: Sequence[int] | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
+        from cobelrun.render.scene import RENDERERS, CameraSpec, SceneStyle
+
+        for key, value, allowed in (
+            ("render", render, RENDER_MODES),
+            ("dtype", dtype, IMAGE_DTYPES),
+            ("renderer", renderer, RENDERERS),
+        ):
+            if value not in allowed:
+                raise ConfigError(
+                    f"observation {key} {value!r} is unknown{suggest(str(value), allowed)}; allowed: {allowed_list(allowed)}"
+                )
+        for key, value in (("height", height), ("width", width)):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise ConfigError(f"observation {key} must be a positive integer, got {value!r}")
+        self.height, self.width = int(height), int(width)
+        if render_size is None:
+            rh, rw = self.height, self.width
+        else:
+            if len(render_size) != 2:
+                raise ConfigError(
+                    f"observation render_size must be [height, width], got {render_size!r}"
+                )
+            rh, rw = (int(v) for v in render_size)
+            if rh < self.height or rw < self.width:
+                raise ConfigError(
+                    f"observation render_size {[rh, rw]} must be at least the image size {[self.height, self.width]}"
+                )
+        self.camera = CameraSpec(height=rh, width=rw, fov=float(fov), n_cameras=int(n_cameras),
+                                 eye_height=float(eye_height), pitch=float(pitch))  # fmt: skip
+        self.style = SceneStyle.from_config(scene)
+        self.channels_first = bool(channels_first)
+        self.dtype = dtype
+        self.grayscale = bool(grayscale)
+        self.render = render
+        self.renderer = renderer
+        self.cache_dir = None if cache_dir is None else str(cache_dir)
+        self._scene: Any = None
+        self._images: np.ndarray | None = None  # offline: (N, D, H, W, 3) uint8
+        self._obs_table: np.ndarray | None = None  # offline: processed observations
+
+    # ------------------------------------------------------------------ binding
+    def bind(self, topology: Any) -> None:
+        from cobelrun.render.scene import SceneSpec
+
+        super().bind(topology)
+        self.scene_spec = SceneSpec.from_topology(topology, self.style)
+        if self.render == "offline":
+            from cobelrun.render import cache
+
+            if not cache.building():
+                self._images = cache.load(self.cache_request())
+                self._obs_table = self.process(self._images)
+
+    def cache_request(self) -> Any:
+        """The render-cache request (scene, camera, poses, renderer) of this module."""
+        from cobelrun.render.cache import CacheRequest
+
+        t = self.topology
+        if t is None:
+            raise CobelError("the image observation is not bound to a topology yet")
+        return CacheRequest(
+            scene=self.scene_spec,
+            camera=self.camera,
+            positions=np.asarray(t.positions),
+            directions=np.asarray(t.directions),
+            renderer=self.renderer,
+            cache_dir=None if self.cache_dir is None else Path(self.cache_dir),
+        )
+
+    def _make_space(self, topology: Any) -> gym.Space:
+        c = 1 if self.grayscale else 3
+        shape = (
+            (c, self.height, self.width) if self.channels_first else (self.height, self.width, c)
+        )
+        if self.dtype == "uint8":
+            return spaces.Box(low=0, high=255, shape=shape, dtype=np.uint8)
+        return spaces.Box(low=0.0, high=1.0, shape=shape, dtype=np.float32)
+
+    # ------------------------------------------------------------------ images
+    def process(self, rgb: np.ndarray) -> np.ndarray:
+        """Raw renders ``(..., h, w, 3)`` uint8 -> observations (resize, grey, layout, dtype)."""
+        img = rgb
+        rh, rw = img.shape[-3], img.shape[-2]
+        if (rh, rw) != (self.height, self.width):
+            img = _resize_area(img, self.height, self.width)
+        if self.grayscale:
+            lum = img.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+            img = np.clip(np.rint(lum), 0, 255).astype(np.uint8)[..., None]
+        if self.channels_first:
+            img = np.moveaxis(img, -1, -3)
+        if self.dtype == "float32":
+            img = img.astype(np.float32) * np.float32(1.0 / 255.0)
+        return np.ascontiguousarray(img)
+
+    def render_raw(self, node: int, heading: int) -> np.ndarray:
+        """Render pose ``(node, heading)`` online: ``(h, w, 3)`` uint8 at the camera size."""
+        if self._scene is None:
+            from cobelrun.render.scene import Scene
+
+            self._scene = Scene(self.scene_spec, renderer=self.renderer)
+        x, y = self.topology.positions[node]
+        return self._scene.render(x, y, float(self.topology.directions[heading]), self.camera)
+
+    def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
+        if self._obs_table is not None:
+            return self._obs_table[node, heading].copy()
+        if self.render == "offline":
+            from cobelrun.render import cache
+
+            self._images = cache.load(self.cache_request())
+            self._obs_table = self.process(self._images)
+            return self._obs_table[node, heading].copy()
+        return self.process(self.render_raw(node, heading))
+
+    def image_modules(self) -> list[ImageObservation]:
+        return [self]
+
+    def close(self) -> None:
+        if self._scene is not None:
+            self._scene.close()
+            self._scene = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_scene"] = None  # a pybullet connection does not travel
+        return state
+
+
+def _resize_area(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Area-average resize of ``(..., H, W, C)`` uint8 to ``(..., h, w, C)`` (downscaling)."""
+    x = _bin_mean(img.astype(np.float32), h, img.ndim - 3)
+    x = _bin_mean(x, w, img.ndim - 2)
+    return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
+
+def _bin_mean(x: np.ndarray, n: int, axis: int) -> np.ndarray:
+    size = x.shape[axis]
+    starts = np.searchsorted((np.arange(size) * n) // size, np.arange(n))
+    counts = np.diff(np.append(starts, size)).astype(np.float32)
+    shape = [1] * x.ndim
+    shape[axis] = n
+    return np.add.reduceat(x, starts, axis=axis) / counts.reshape(shape)
+
+
+NOISE_KINDS: tuple[str, ...] = ("gaussian", "salt_pepper")
+
+
+class NoisyObservation(ObservationModule):
+    """Noise on another module's observations (imprecise biological senses).
+
+    Parameters
+    ----------
+    base : ObservationModule
+        The module whose output is corrupted (a Box space).
+    kind : {"gaussian", "salt_pepper"}
+        ``gaussian``: add N(0, std^2) in units of the observation's [low, high] range.
+        ``salt_pepper``: set a fraction ``amount`` of the entries to low or high.
+    std : float
+        Gaussian noise standard deviation as a fraction of the value range (default 0.05).
+    amount : float
+        Fraction of entries hit by salt-and-pepper noise (default 0.02).
+
+    Noise is drawn from the environment's ``np_random``, so it is seeded with the environment.
+    Results are clipped to the space and keep its dtype.
+    """
+
+    def __init__(
+        self,
+        base: ObservationModule,
+        kind: str = "gaussian",
+        std: float = 0.05,
+        amount: float = 0.02,
+    ) -> None:
+        if not isinstance(base, ObservationModule):
+            raise ConfigError(
+                f"noise base must be an observation module, got {type(base).__name__}"
+            )
+        if kind not in NOISE_KINDS:
+            raise ConfigError(
+                f"noise kind {kind!r} is unknown{suggest(str(kind), NOISE_KINDS)}; allowed: {allowed_list(NOISE_KINDS)}"
+            )
+        if not float(std) >= 0 or not 0 <= float(amount) <= 1:
+            raise ConfigError(f"noise needs std >= 0 and amount in [0, 1], got {std}, {amount}")
+        self.base, self.kind, self.std, self.amount = base, kind, float(std), float(amount)
+
+    def bind(self, topology: Any) -> None:
+        self.base.bind(topology)
+        super().bind(topology)
+
+    def _make_space(self, topology: Any) -> gym.Space:
+        space = self.base.space
+        if not isinstance(space, spaces.Box):
+            raise ConfigError(
+                f"noise needs a Box observation to corrupt, got {type(space).__name__}"
+            )
+        self._low = space.low.astype(np.float32)
+        self._high = space.high.astype(np.float32)
+        return space
+
+    def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
+        clean = self.base.observe(node, heading, rng)
+        x = clean.astype(np.float32)
+        if self.kind == "gaussian":
+            x = x + rng.standard_normal(x.shape, dtype=np.float32) * (
+                self.std * (self._high - self._low)
+            )
+        else:
+            hit = rng.random(x.shape) < self.amount
+            salt = rng.random(x.shape) < 0.5
+            x = np.where(hit, np.where(salt, self._high, self._low), x)
+        x = np.clip(x, self._low, self._high)
+        if np.issubdtype(self.space.dtype, np.integer):
+            x = np.rint(x)
+        return x.astype(self.space.dtype)
+
+    def image_modules(self) -> list[ImageObservation]:
+        return self.base.image_modules()
+
+    def close(self) -> None:
+        self.base.close()
+
+
+class MultiSensoryObservation(ObservationModule):
+    """Several modules at once: a ``Dict`` observation (e.g. ``{image: ..., pose: ...}``).
+
+    Parameters
+    ----------
+    modules : mapping name -> ObservationModule
+        The keys name the inputs (SB3's MultiInputPolicy routes each to its own extractor).
+    """
+
+    def __init__(self, modules: Mapping[str, ObservationModule]) -> None:
+        if not isinstance(modules, Mapping) or not modules:
+            raise ConfigError("multisensory observation needs a non-empty mapping name -> module")
+        for name, m in modules.items():
+            if not isinstance(m, ObservationModule):
+                raise ConfigError(f"multisensory module {name!r} is not an observation module")
+        self.modules = {str(k): v for k, v in modules.items()}
+
+    def bind(self, topology: Any) -> None:
+        for m in self.modules.values():
+            m.bind(topology)
+        super().bind(topology)
+
+    def _make_space(self, topology: Any) -> gym.Space:
+        return spaces.Dict({k: m.space for k, m in self.modules.items()})
+
+    def observe(self, node: int, heading: int, rng: np.random.Generator) -> dict[str, Any]:
+        return {k: m.observe(node, heading, rng) for k, m in self.modules.items()}
+
+    def image_modules(self) -> list[ImageObservation]:
+        return [im for m in self.modules.values() for im in m.image_modules()]
+
+    def close(self) -> None:
+        for m in self.modules.values():
+            m.close()

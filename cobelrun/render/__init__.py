@@ -1,0 +1,1 @@
+"""Rendering: pybullet scenes from maze specs (online) and the offline render cache."""

@@ -12,6 +12,8 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV"
 fi
 PIP=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
+# some machines list pip index folders that do not exist; pip warns once per package about them
+quiet_pip() { "${PIP[@]}" "$@" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2); }
 
 # Fast route for torch: where pip's find-links folder holds a CPU build of torch (as on our
 # CI machines), install that file first so that resolving the deep extras does not download
@@ -37,8 +39,8 @@ PY
 )
 if [ -n "$local_torch" ] && ! "$VENV/bin/python" -c "import torch" 2>/dev/null; then
   echo "setup: installing local CPU torch wheel $(basename "$local_torch")"
-  "${PIP[@]}" install "$local_torch"
+  quiet_pip install "$local_torch"
 fi
 
-"${PIP[@]}" install -e ".[${EXTRAS}]" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+quiet_pip install -e ".[${EXTRAS}]"
 echo "setup: ready ($VENV/bin/cobel)"

@@ -125,6 +125,11 @@ def plot_cmd(
     typer.echo(str(path))
 
 
+from cobelrun.commands.render_cache import register as _register_render_cache  # noqa: E402
+
+_register_render_cache(app)
+
+
 def main() -> None:
     """Console-script entry point."""
     try:

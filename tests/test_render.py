@@ -152,3 +152,15 @@ def test_stale_cache_names_the_command(cache_dir, monkeypatch):
     path.rename(path.with_name("pybullet-0.0.1.npy"))
     with pytest.raises(CobelError, match=r"stale .*pybullet 0\.0\.1.*rebuild it with"):
         image_env(render="offline")
+
+
+def test_render_cache_cli_builds_verifies_and_offline_run_reads(cobel, tmp_path):
+    env = {"COBEL_CACHE": str(tmp_path / "c")}
+    small = ["env=tmaze_3d", "env.observation.height=20", "env.observation.width=80"]
+    out = cobel("render-cache", *small, "--verify", "--jobs", "2", env=env)
+    assert out.returncode == 0, out.stderr
+    assert "rendered 48 views" in out.stdout and "identical" in out.stdout
+    again = cobel("render-cache", *small, env=env)
+    assert "up to date" in again.stdout
+    bad = cobel("render-cache", "env=tmaze_paper", env=env)
+    assert bad.returncode == 2 and "no image observation" in bad.stderr

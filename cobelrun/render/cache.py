@@ -180,9 +180,13 @@ def load(request: CacheRequest) -> np.ndarray:
 _WORKER_SCENE: Any = None
 
 
-def _init_worker(scene: SceneSpec, renderer: str) -> None:
+def _init_worker(scene: SceneSpec, renderer: str, quiet: bool = False) -> None:
     global _WORKER_SCENE
     from cobelrun.render.scene import Scene
+
+    if quiet:  # worker processes: pybullet's C-level banner must not reach the terminal
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
 
     _WORKER_SCENE = Scene(scene, renderer=renderer)
 
@@ -236,7 +240,7 @@ def render_all(
             max_workers=jobs,
             mp_context=mp.get_context(method),
             initializer=_init_worker,
-            initargs=(request.scene, request.renderer),
+            initargs=(request.scene, request.renderer, True),
         ) as pool:
             futures = [pool.submit(_render_chunk, c, poses[c], cam) for c in chunks if len(c)]
             for fut in as_completed(futures):

@@ -155,7 +155,10 @@ class ConvFeatures(BaseFeaturesExtractor):
         layers: list[torch.nn.Module] = []
         channels = observation_space.shape[0]
         for out, kernel, stride in convs:
-            layers += [torch.nn.Conv2d(channels, int(out), int(kernel), int(stride)), torch.nn.ReLU()]
+            layers += [
+                torch.nn.Conv2d(channels, int(out), int(kernel), int(stride)),
+                torch.nn.ReLU(),
+            ]
             channels = int(out)
         layers.append(torch.nn.Flatten())
         self.cnn = torch.nn.Sequential(*layers)

@@ -1,0 +1,374 @@
+"""Dyna-DQN: Dyna-Q's structure with a neural Q-function (CoBeL-RL, paper section 2.1.3).
+
+The agent acts in a tabular environment (a :class:`~cobelrun.envs.GridWorldEnv` or one of its
+variants) but sees each state through an observation vector: the environment's
+``observations`` matrix (``DiscreteGridWorldEnv``; one-hot by default) or, for an environment
+that only gives state indices, a one-hot code generated here (as the original did when no
+observations were given). Experience goes into a :class:`~cobelrun.agents.memory.TabularMemory`
+(the Dyna model); learning replays batches from it.
+
+One step, top to bottom:
+
+1. pick ``a`` in ``s`` from ``Q(o_s)`` (epsilon-greedy with random tie-break, or softmax(beta);
+   optionally only among actions that move the agent);
+2. observe ``r, s'``; store ``(s, a) -> (r, s', terminal)`` in the model memory;
+3. replay: the current experience plus ``replay_batch`` experiences sampled from the memory,
+   one gradient step on ``(y - Q(o_s)[a])^2`` with ``y = r + gamma * max_a' Q_target(o_s')[a']``
+   (no bootstrap from terminal states unless ``always_bootstrap``);
+4. soft target update ``theta_target <- tau * theta + (1 - tau) * theta_target``.
+
+:class:`DynaDeepAgent` holds what Dyna-DQN and Dyna-DSR share (trial loop, memory, policy,
+observations, persistence); subclasses implement :meth:`~DynaDeepAgent.q_values` and
+:meth:`~DynaDeepAgent.update`.
+"""
+
+from __future__ import annotations
+
+import abc
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.dqn import set_torch_threads
+from cobelrun.agents.memory import TabularMemory
+from cobelrun.agents.networks import Network, build_network
+from cobelrun.errors import ConfigError, allowed_list
+from cobelrun.records import TrialBatch
+
+POLICIES = ("epsilon_greedy", "softmax")
+
+
+def allowed_next(mask: np.ndarray, states: np.ndarray) -> np.ndarray:
+    """Allowed actions of ``states`` for the max; a state with none (a wall cell) allows all."""
+    rows = mask[states]
+    return rows | ~rows.any(axis=1, keepdims=True)
+
+
+class DynaDeepAgent(Agent):
+    """Shared machinery of the deep Dyna agents (see the module docstring).
+
+    Parameters
+    ----------
+    env
+        A tabular environment (has ``world``): ``Discrete`` (state index) or ``Box``
+        (``DiscreteGridWorldEnv``) observations.
+    epsilon, beta, policy
+        Exploration: epsilon-greedy (default) or softmax with inverse temperature ``beta``.
+    gamma
+        Discount factor.
+    learning_rate
+        Adam learning rate of the networks.
+    hidden, activation
+        Hidden layers of the networks (Fig. 7: [64, 64], tanh).
+    target_tau
+        Soft target update rate (Fig. 7: 0.01); 1 copies the online network every step.
+    replay_batch
+        Experiences replayed from the model memory per step, besides the current one.
+    always_bootstrap
+        Bootstrap from terminal states too (Fig. 7's Dyna-DSR does).
+    action_mask
+        Choose only among actions that can move the agent.
+    memory_sampling, memory_reward_rate
+        :class:`~cobelrun.agents.memory.TabularMemory` settings (``"all"``: the original's).
+    observations
+        (S, d) observation of each state; default: the environment's, else one-hot.
+    backend
+        Network backend (:data:`cobelrun.agents.networks.BACKENDS`; ``"torch"``).
+    torch_threads
+        torch intra-op threads (default 1).
+    seed
+        Seed of exploration, replay sampling and weight initialisation.
+    """
+
+    observation_spaces = (gym.spaces.Discrete, gym.spaces.Box)
+    action_spaces = (gym.spaces.Discrete,)
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        epsilon: float = 0.3,
+        beta: float = 5.0,
+        policy: str = "epsilon_greedy",
+        gamma: float = 0.9,
+        learning_rate: float = 1e-3,
+        hidden: Sequence[int] = (64, 64),
+        activation: str = "tanh",
+        target_tau: float = 0.01,
+        replay_batch: int = 32,
+        always_bootstrap: bool = False,
+        action_mask: bool = False,
+        memory_sampling: str = "all",
+        memory_reward_rate: float = 0.9,
+        observations: Any = None,
+        backend: str = "torch",
+        torch_threads: int | None = 1,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, seed=seed)
+        base = env.unwrapped
+        if not hasattr(base, "world"):
+            raise ConfigError(
+                f"agent {type(self).__name__} needs a tabular environment with states "
+                f"(GridWorldEnv, DiscreteGridWorldEnv); got {type(base).__name__}"
+            )
+        for name, value, lo, hi in (
+            ("epsilon", epsilon, 0.0, 1.0),
+            ("gamma", gamma, 0.0, 1.0),
+            ("target_tau", target_tau, 0.0, 1.0),
+        ):
+            if not lo <= value <= hi:
+                raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
+        if policy not in POLICIES:
+            raise ConfigError(
+                f"agent.policy {policy!r} is not known; allowed: {allowed_list(POLICIES)}"
+            )
+        if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
+            raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
+        set_torch_threads(torch_threads)
+        self.epsilon, self.beta, self.policy = float(epsilon), float(beta), policy
+        self.gamma, self.learning_rate = float(gamma), float(learning_rate)
+        self.hidden, self.activation = [int(h) for h in hidden], activation
+        self.target_tau, self.replay_batch = float(target_tau), int(replay_batch)
+        self.always_bootstrap, self.use_mask = bool(always_bootstrap), bool(action_mask)
+        self.backend = backend
+        self.n_states = int(base.world.n_states)
+        self.n_actions = int(env.action_space.n)
+        self.obs = self._observation_matrix(env, observations)
+        self.memory = TabularMemory(
+            self.n_states, self.n_actions, reward_rate=memory_reward_rate, sampling=memory_sampling
+        )
+        self._net_seeds = [int(s) for s in self.seed_sequence.generate_state(4)]
+        self.build_networks()
+
+    # -- construction helpers ----------------------------------------------------------------
+    def _observation_matrix(self, env: gym.Env, observations: Any) -> np.ndarray:
+        base = env.unwrapped
+        if observations is None:
+            observations = getattr(base, "observations", None)
+        if observations is None:
+            return np.eye(self.n_states, dtype=np.float32)
+        obs = np.asarray(observations, dtype=np.float32)
+        if obs.ndim != 2 or obs.shape[0] != self.n_states:
+            raise ConfigError(
+                f"agent.observations must have shape (S={self.n_states}, d), got {obs.shape}"
+            )
+        return obs
+
+    def network(self, output_dim: int, n_heads: int = 1, seed_index: int = 0, **kw: Any) -> Network:
+        """A network of the agent's backend, hidden layers and learning rate."""
+        kwargs: dict[str, Any] = {"hidden": self.hidden, "activation": self.activation,
+                                  "learning_rate": self.learning_rate, "n_heads": n_heads,
+                                  "seed": self._net_seeds[seed_index]}  # fmt: skip
+        kwargs.update(kw)
+        return build_network(self.backend, self.obs.shape[1], output_dim, **kwargs)
+
+    def _mask(self) -> np.ndarray:
+        if self.use_mask:
+            return np.asarray(self.env.unwrapped.action_mask(), dtype=bool)
+        return np.ones((self.n_states, self.n_actions), dtype=bool)
+
+    # -- what subclasses define ---------------------------------------------------------------
+    @abc.abstractmethod
+    def build_networks(self) -> None:
+        """Create the online and target networks."""
+
+    @abc.abstractmethod
+    def q_values(self, states: np.ndarray) -> np.ndarray:
+        """Action values ``(n, A)`` of states (indices)."""
+
+    @abc.abstractmethod
+    def update(
+        self, s: np.ndarray, a: np.ndarray, r: np.ndarray, s2: np.ndarray, terminal: np.ndarray,
+        mask: np.ndarray,
+    ) -> None:  # fmt: skip
+        """One learning step on a batch of experiences (state indices)."""
+
+    @abc.abstractmethod
+    def networks(self) -> dict[str, Network]:
+        """The agent's networks by name (saved, and used for activations)."""
+
+    # -- acting ---------------------------------------------------------------------------------
+    def select_action(self, q: np.ndarray, allowed: np.ndarray) -> int:
+        """Epsilon-greedy with random tie-break, or softmax(beta), over allowed actions."""
+        idx = np.flatnonzero(allowed) if allowed.any() else np.arange(q.shape[0])
+        qa = q[idx]
+        if self.policy == "softmax":
+            p = np.exp(self.beta * (qa - qa.max()))
+            return int(idx[self.rng.choice(idx.size, p=p / p.sum())])
+        if self.rng.random() < self.epsilon:
+            return int(idx[self.rng.integers(idx.size)])
+        best = np.flatnonzero(qa == qa.max())
+        return int(idx[best[self.rng.integers(best.size)]])
+
+    # -- trials -----------------------------------------------------------------------------------
+    def train(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    ) -> TrialBatch:
+        return self._run(n_trials, max_steps, True, callbacks)
+
+    def test(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    ) -> TrialBatch:
+        return self._run(n_trials, max_steps, False, callbacks)
+
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        if n_trials < 0 or max_steps < 1:
+            raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
+        env, mem = self.env, self.memory
+        mask = self._mask()
+        trials = []
+        for trial in range(n_trials):
+            _, info = env.reset()
+            s = int(info["state"])
+            for cb in callbacks:
+                cb.on_trial_start(self, trial, s)
+            states, actions, rewards = [s], [], []
+            terminated = False
+            for step in range(1, max_steps + 1):
+                a = self.select_action(self.q_values(np.array([s]))[0], mask[s])
+                _, r, terminated, _, info = env.step(a)
+                s2, r = int(info["state"]), float(r)
+                if learn:
+                    mem.store(s, a, r, s2, terminated)
+                    self._learn(s, a, mask)
+                states.append(s2)
+                actions.append(a)
+                rewards.append(r)
+                keep = True
+                if callbacks:
+                    transition = {"state": s, "action": a, "reward": r, "next_state": s2,
+                                  "terminated": terminated}  # fmt: skip
+                    keep = all([cb.on_step(self, trial, step, transition) for cb in callbacks])
+                s = s2
+                if terminated or not keep:
+                    break
+            record = {"states": states, "actions": actions, "rewards": rewards,
+                      "terminated": terminated}  # fmt: skip
+            for cb in callbacks:
+                cb.on_trial_end(self, trial, record)
+            trials.append(record)
+        return TrialBatch.from_trials(trials)
+
+    def _learn(self, s: int, a: int, mask: np.ndarray) -> None:
+        """Replay the current experience plus ``replay_batch`` from the model memory."""
+        mem = self.memory
+        rs, ra = mem.sample(self.rng, self.replay_batch)
+        S = np.concatenate([[s], rs]).astype(np.int64)
+        A = np.concatenate([[a], ra]).astype(np.int64)
+        self.update(S, A, mem.reward[S, A], mem.next_state[S, A], mem.terminal[S, A], mask)
+
+    # -- inference -------------------------------------------------------------------------------
+    def _states_of(self, observations: np.ndarray) -> np.ndarray | None:
+        obs = np.asarray(observations)
+        if obs.ndim == 1 and np.issubdtype(obs.dtype, np.integer):
+            return obs.astype(np.int64)
+        return None
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """Q values ``(n, A)`` of a batch of observation vectors (or state indices)."""
+        states = self._states_of(observations)
+        if states is not None:
+            return self.q_values(states)
+        return self.q_from_observations(np.asarray(observations, dtype=np.float32).reshape(
+            -1, self.obs.shape[1]))  # fmt: skip
+
+    @abc.abstractmethod
+    def q_from_observations(self, obs: np.ndarray) -> np.ndarray:
+        """Action values ``(n, A)`` of observation vectors."""
+
+    def layer_names(self) -> list[str]:
+        return [f"{net}/{layer}" for net, n in self.networks().items() for layer in n.layer_names()]
+
+    def activations(self, observations: np.ndarray, layers: Sequence[str]) -> dict[str, np.ndarray]:
+        """Layer outputs ``(n, units)`` of the named layers (``"NETWORK/LAYER"``)."""
+        states = self._states_of(observations)
+        x = self.obs[states] if states is not None else np.asarray(observations, np.float32)
+        nets = self.networks()
+        out = {}
+        for name in layers:
+            net, _, layer = name.partition("/")
+            if net not in nets or layer not in nets[net].layer_names():
+                raise ConfigError(
+                    f"unknown layer {name!r}; allowed: {', '.join(self.layer_names())}"
+                )
+            out[name] = nets[net].activations(x, [layer])[layer]
+        return out
+
+    # -- persistence -------------------------------------------------------------------------------
+    def hyperparameters(self) -> dict[str, Any]:
+        return {
+            "epsilon": self.epsilon, "beta": self.beta, "policy": self.policy, "gamma": self.gamma,
+            "learning_rate": self.learning_rate, "hidden": self.hidden,
+            "activation": self.activation, "target_tau": self.target_tau,
+            "replay_batch": self.replay_batch, "always_bootstrap": self.always_bootstrap,
+            "action_mask": self.use_mask, "memory_sampling": self.memory.sampling,
+        }  # fmt: skip
+
+    def _all_networks(self) -> dict[str, Network]:
+        """Networks to save: :meth:`networks` plus their targets."""
+        return self.networks()
+
+    def save(self, path: str | Path) -> Path:
+        """Write network weights and the model memory to ``PATH.npz`` (no pickle)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(".npz")
+        arrays: dict[str, np.ndarray] = {}
+        for name, net in self._all_networks().items():
+            arrays.update({f"{name}.{k}": v for k, v in net.get_weights().items()})
+        np.savez_compressed(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
+                            **arrays, **self.memory.state_dict())  # fmt: skip
+        return path
+
+    def load(self, path: str | Path) -> None:
+        try:
+            data = np.load(path, allow_pickle=False)
+        except OSError as exc:
+            raise ConfigError(f"cannot load agent from {path}: {exc}") from None
+        with data:
+            for name, net in self._all_networks().items():
+                prefix = f"{name}."
+                net.set_weights(
+                    {k[len(prefix) :]: data[k] for k in data.files if k.startswith(prefix)}
+                )
+            self.memory.load_state_dict({k: data[k] for k in self.memory.state_dict()})
+
+
+class DynaDQN(DynaDeepAgent):
+    """Dyna-DQN: a Q network over observations, trained by replay from a tabular model memory.
+
+    Parameters are those of :class:`DynaDeepAgent`.
+    """
+
+    def build_networks(self) -> None:
+        self.q_net = self.network(self.n_actions, seed_index=0)
+        self.q_target = self.q_net.clone()
+
+    def networks(self) -> dict[str, Network]:
+        return {"q": self.q_net}
+
+    def _all_networks(self) -> dict[str, Network]:
+        return {"q": self.q_net, "q_target": self.q_target}
+
+    def q_from_observations(self, obs: np.ndarray) -> np.ndarray:
+        return self.q_net.predict(obs)[0]
+
+    def q_values(self, states: np.ndarray) -> np.ndarray:
+        return self.q_net.predict(self.obs[states])[0]
+
+    def update(self, s, a, r, s2, terminal, mask) -> None:  # type: ignore[override]
+        q_next = self.q_target.predict(self.obs[s2])[0]
+        if self.use_mask:
+            q_next = np.where(allowed_next(mask, s2), q_next, -np.inf)
+        cont = np.ones_like(r) if self.always_bootstrap else 1.0 - terminal
+        y = r + self.gamma * q_next.max(axis=1) * cont
+        self.q_net.train_step(self.obs[s], y, columns=a)
+        self.q_target.blend_from(self.q_net, self.target_tau)

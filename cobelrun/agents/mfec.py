@@ -1,0 +1,291 @@
+"""Model-free episodic control (Blundell et al. 2016), as CoBeL-RL's MFEC agent (FACTS.md).
+
+- Observations are flattened and projected to ``projection_dim`` dimensions with a fixed
+  Gaussian random matrix (entries N(0, 1 / projection_dim)); ``projection: none`` keeps them.
+- One episodic buffer per action holds (key, value) pairs, at most ``capacity`` of them.
+- Estimate of ``Q(o, a)``: the stored value if the key is already in buffer ``a`` (exact match);
+  else the mean value of its ``k`` nearest keys (Euclidean, ``scipy.spatial.cKDTree``); if the
+  buffer holds fewer than ``k`` keys the estimate is 0 (as the original; with non-negative
+  rewards an untried action is then never preferred over one that has paid).
+- Action: epsilon-greedy over the estimates, ties broken at random.
+- Learning, at the end of each trial: discounted returns ``R_t = r_t + gamma * R_{t+1}``
+  (computed backwards over the trial; a truncated trial is not bootstrapped); for each visited
+  ``(o_t, a_t)`` an existing key keeps ``max(old, R_t)``, a new key is inserted, evicting the
+  *oldest inserted* key when the buffer is full.
+
+Where this differs from a literal port, on purpose (documented, not copied):
+
+- Exact matches are found through a hash of the key bytes, which is always current; the
+  KD-tree is only used for the k-NN estimate and is rebuilt lazily, the first time a buffer is
+  queried after it changed. A stale tree can therefore never produce duplicate keys.
+- Eviction is strictly first-in-first-out over insertion time; updating a key's value does not
+  make it "new". (Least-recently-used eviction is a variant of Blundell et al.; FACTS.md says
+  the oldest entry is evicted.)
+- A key that occurs twice within one trial is updated with the larger of its returns, in
+  one pass, whatever the order.
+
+Numpy and scipy only; no torch.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.errors import ConfigError
+from cobelrun.records import TrialBatch
+
+PROJECTIONS = ("gaussian", "none")
+
+
+class EpisodicBuffer:
+    """Keys and values of one action; FIFO eviction; exact-match hash; lazily rebuilt KD-tree."""
+
+    def __init__(self, capacity: int, dim: int) -> None:
+        self.capacity, self.dim = capacity, dim
+        self.keys = np.zeros((capacity, dim))
+        self.values = np.zeros(capacity)
+        self.times = np.zeros(capacity, np.int64)  # insertion time (for FIFO eviction)
+        self.size = 0
+        self.clock = 0
+        self.index: dict[bytes, int] = {}
+        self._tree: cKDTree | None = None
+
+    def lookup(self, key: np.ndarray) -> int | None:
+        return self.index.get(key.tobytes())
+
+    def estimate(self, key: np.ndarray, k: int) -> float:
+        slot = self.lookup(key)
+        if slot is not None:
+            return float(self.values[slot])
+        if self.size < k:
+            return 0.0
+        if self._tree is None:
+            self._tree = cKDTree(self.keys[: self.size])
+        _, idx = self._tree.query(key, k=k)
+        return float(np.mean(self.values[np.atleast_1d(idx)]))
+
+    def update(self, key: np.ndarray, value: float) -> None:
+        slot = self.lookup(key)
+        if slot is not None:
+            self.values[slot] = max(self.values[slot], value)
+            return
+        if self.size < self.capacity:
+            slot = self.size
+            self.size += 1
+        else:
+            slot = int(np.argmin(self.times))
+            del self.index[self.keys[slot].tobytes()]
+        self.keys[slot] = key
+        self.values[slot] = value
+        self.times[slot] = self.clock
+        self.clock += 1
+        self.index[self.keys[slot].tobytes()] = slot
+        self._tree = None
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"keys": self.keys[: self.size], "values": self.values[: self.size],
+                "times": self.times[: self.size], "clock": np.array(self.clock)}  # fmt: skip
+
+    def load(self, state: dict[str, np.ndarray]) -> None:
+        n = len(state["values"])
+        if n > self.capacity or state["keys"].shape[1:] != (self.dim,):
+            raise ConfigError(
+                f"saved MFEC buffer ({n} keys of shape {state['keys'].shape[1:]}) does not fit "
+                f"capacity {self.capacity} and key size {self.dim}"
+            )
+        self.size = n
+        self.keys[:n], self.values[:n], self.times[:n] = (
+            state["keys"],
+            state["values"],
+            state["times"],
+        )
+        self.clock = int(state["clock"])
+        self.index = {self.keys[i].tobytes(): i for i in range(n)}
+        self._tree = None
+
+
+class MFEC(Agent):
+    """Model-free episodic control agent.
+
+    Parameters
+    ----------
+    env
+        Environment with ``Box`` (any shape, flattened) or ``Discrete`` (one-hot coded)
+        observations and ``Discrete`` actions.
+    epsilon
+        Exploration rate (FACTS.md: 0.1).
+    gamma
+        Discount factor of the returns (0.97).
+    k
+        Nearest neighbours averaged for an unseen key (3).
+    capacity
+        Keys per action buffer (2000); the oldest is evicted when full.
+    projection
+        ``"gaussian"`` random projection (default) or ``"none"``.
+    projection_dim
+        Dimension of the projected keys (256).
+    seed
+        Seed of the projection matrix and of exploration.
+    """
+
+    observation_spaces = (gym.spaces.Box, gym.spaces.Discrete)
+    action_spaces = (gym.spaces.Discrete,)
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        epsilon: float = 0.1,
+        gamma: float = 0.97,
+        k: int = 3,
+        capacity: int = 2000,
+        projection: str = "gaussian",
+        projection_dim: int = 256,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, seed=seed)
+        for name, value in (("epsilon", epsilon), ("gamma", gamma)):
+            if not 0.0 <= value <= 1.0:
+                raise ConfigError(f"agent.{name} must be in [0, 1], got {value}")
+        for name, value in (("k", k), ("capacity", capacity), ("projection_dim", projection_dim)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"agent.{name} must be an integer >= 1, got {value!r}")
+        if projection not in PROJECTIONS:
+            raise ConfigError(
+                f"agent.projection {projection!r} is not known; allowed: 'gaussian', 'none'"
+            )
+        self.epsilon, self.gamma, self.k, self.capacity = float(epsilon), float(gamma), k, capacity
+        self.projection = projection
+        space = env.observation_space
+        self.discrete_obs = isinstance(space, gym.spaces.Discrete)
+        self.obs_dim = int(space.n) if self.discrete_obs else int(np.prod(space.shape))
+        self.n_actions = int(env.action_space.n)
+        proj_rng = np.random.default_rng(self.seed_sequence.spawn(1)[0])
+        if projection == "gaussian":
+            self.matrix = proj_rng.normal(0.0, 1.0 / np.sqrt(projection_dim),
+                                          size=(self.obs_dim, projection_dim))  # fmt: skip
+            self.key_dim = projection_dim
+        else:
+            self.matrix = None
+            self.key_dim = self.obs_dim
+        self.buffers = [EpisodicBuffer(capacity, self.key_dim) for _ in range(self.n_actions)]
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return {"epsilon": self.epsilon, "gamma": self.gamma, "k": self.k,
+                "capacity": self.capacity, "projection": self.projection,
+                "key_dim": self.key_dim}  # fmt: skip
+
+    # -- keys and estimates ---------------------------------------------------------------------
+    def keys(self, observations: Any) -> np.ndarray:
+        """Projected keys ``(n, key_dim)`` of a batch of observations."""
+        if self.discrete_obs:
+            idx = np.asarray(observations, dtype=np.int64).reshape(-1)
+            x = np.eye(self.obs_dim)[idx]
+        else:
+            x = np.asarray(observations, dtype=np.float64).reshape(-1, self.obs_dim)
+        return x @ self.matrix if self.matrix is not None else x
+
+    def _q(self, key: np.ndarray) -> np.ndarray:
+        return np.array([b.estimate(key, self.k) for b in self.buffers])
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """Q estimates ``(n, A)`` of a batch of observations."""
+        return np.array([self._q(key) for key in self.keys(observations)])
+
+    def _act(self, q: np.ndarray) -> int:
+        if self.rng.random() < self.epsilon:
+            return int(self.rng.integers(self.n_actions))
+        best = np.flatnonzero(q == q.max())
+        return int(best[self.rng.integers(best.size)])
+
+    # -- trials -----------------------------------------------------------------------------------
+    def train(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    ) -> TrialBatch:
+        return self._run(n_trials, max_steps, True, callbacks)
+
+    def test(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    ) -> TrialBatch:
+        return self._run(n_trials, max_steps, False, callbacks)
+
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        if n_trials < 0 or max_steps < 1:
+            raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
+        env = self.env
+        trials = []
+        for trial in range(n_trials):
+            obs, info = env.reset()
+            s = int(info.get("state", -1))
+            for cb in callbacks:
+                cb.on_trial_start(self, trial, s)
+            states, actions, rewards, keys = [s], [], [], []
+            terminated = False
+            for step in range(1, max_steps + 1):
+                key = self.keys(obs)[0]
+                a = self._act(self._q(key))
+                obs, r, terminated, truncated, info = env.step(a)
+                s2 = int(info.get("state", -1))
+                keys.append(key)
+                states.append(s2)
+                actions.append(a)
+                rewards.append(float(r))
+                keep = True
+                if callbacks:
+                    transition = {"state": states[-2], "action": a, "reward": float(r),
+                                  "next_state": s2, "terminated": bool(terminated)}  # fmt: skip
+                    keep = all([cb.on_step(self, trial, step, transition) for cb in callbacks])
+                if terminated or truncated or not keep:
+                    break
+            if learn:
+                self._update(keys, actions, rewards)
+            record = {"states": states, "actions": actions, "rewards": rewards,
+                      "terminated": bool(terminated)}  # fmt: skip
+            for cb in callbacks:
+                cb.on_trial_end(self, trial, record)
+            trials.append(record)
+        return TrialBatch.from_trials(trials)
+
+    def _update(self, keys: list[np.ndarray], actions: list[int], rewards: list[float]) -> None:
+        ret = 0.0
+        for key, a, r in zip(reversed(keys), reversed(actions), reversed(rewards), strict=True):
+            ret = r + self.gamma * ret
+            self.buffers[a].update(key, ret)
+
+    # -- persistence ------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the projection and every buffer to ``PATH.npz`` (no pickle)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(".npz")
+        arrays: dict[str, np.ndarray] = {}
+        if self.matrix is not None:
+            arrays["projection"] = self.matrix
+        for a, buf in enumerate(self.buffers):
+            arrays.update({f"a{a}.{k}": v for k, v in buf.state().items()})
+        np.savez_compressed(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
+                            **arrays)  # fmt: skip
+        return path
+
+    def load(self, path: str | Path) -> None:
+        try:
+            data = np.load(path, allow_pickle=False)
+        except OSError as exc:
+            raise ConfigError(f"cannot load agent from {path}: {exc}") from None
+        with data:
+            if self.matrix is not None:
+                if "projection" not in data or data["projection"].shape != self.matrix.shape:
+                    raise ConfigError(f"saved MFEC agent {path} has a different projection")
+                self.matrix = data["projection"].copy()
+            for a, buf in enumerate(self.buffers):
+                buf.load({k: data[f"a{a}.{k}"] for k in ("keys", "values", "times", "clock")})

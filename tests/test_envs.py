@@ -12,6 +12,7 @@ from cobelrun.envs import DiscreteGridWorldEnv, GridWorldEnv, from_layout, tmaze
 from cobelrun.errors import ConfigError, LayoutError
 
 COBEL_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("cobel/"))
+NON_SPATIAL = {"cobel/TwoAFC-v0"}
 
 
 def test_registry_has_cobel_envs() -> None:
@@ -30,7 +31,7 @@ def rollout(env: gym.Env, seed: int, n: int = 200) -> list:
     obs, info = env.reset(seed=seed)
     out.append((np.asarray(obs).tolist(), info["state"]))
     for _ in range(n):
-        obs, r, term, trunc, info = env.step(int(rng.integers(4)))
+        obs, r, term, trunc, info = env.step(int(rng.integers(env.action_space.n)))
         out.append((np.asarray(obs).tolist(), r, term, trunc, info["state"]))
         if term or trunc:
             obs, info = env.reset()
@@ -42,8 +43,10 @@ def rollout(env: gym.Env, seed: int, n: int = 200) -> list:
 @pytest.mark.parametrize("slip", [0.0, 0.3])
 def test_same_seed_same_rollout(env_id: str, slip: float) -> None:
     world = from_layout("S...\n.#..\nS..G", slip=slip)
-    a = gym.make(env_id, world=world, max_steps=15)
-    b = gym.make(env_id, world=world, max_steps=15)
+    # non-spatial envs (no world) are built with their defaults
+    kwargs = {} if env_id in NON_SPATIAL else {"world": world, "max_steps": 15}
+    a = gym.make(env_id, **kwargs)
+    b = gym.make(env_id, **kwargs)
     assert rollout(a, 7) == rollout(b, 7)
     assert rollout(a, 7) != rollout(a, 8)
 

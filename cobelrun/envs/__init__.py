@@ -1,13 +1,14 @@
 """Gymnasium environments and tabular worlds.
 
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
-``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0`` (string entry points, registered once).
+``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0`` (string entry points, registered once).
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 
+from cobelrun.envs.choice import TwoAFCEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
@@ -24,6 +25,7 @@ ENV_IDS: dict[str, str] = {
     "cobel/GridWorld-v0": "cobelrun.envs.gridworld:GridWorldEnv",
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
+    "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
 }
 
 
@@ -41,6 +43,7 @@ __all__ = [
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
     "TopologyEnv",
+    "TwoAFCEnv",
     "World",
     "blodgett",
     "from_layout",

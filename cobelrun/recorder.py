@@ -114,6 +114,14 @@ class RunRecorder:
             self._check_unique(step_fields)
             self.steps = ParquetStreamWriter(run_dir / "steps.parquet", pa.schema(step_fields))
         self.mcap = McapStreamWriter(run_dir / "run.mcap") if record.mcap else None
+        # monitors with table "activity" take their own snapshots (ActivityMonitor)
+        self.activity_monitors = [m for m in monitors.values() if m.table == "activity"]
+        self.activity = None
+        if self.activity_monitors:
+            schema = pa.schema(self.activity_monitors[0].fields())
+            self.activity = ParquetStreamWriter(run_dir / "activity.parquet", schema)
+            for m in self.activity_monitors:
+                m.bind(self.activity.write)
         self._clock = 0  # simulated ns
 
     @staticmethod
@@ -126,6 +134,23 @@ class RunRecorder:
     def start_run(self, run: int) -> None:
         for m in (*self.trial_monitors, *self.step_monitors):
             m.start_run(run)
+
+    # -- activity snapshots (monitors that look at the agent, not at trial records) ---------
+    def start_agent(self, run: int, agent: Any) -> None:
+        """A run's agent was built: activity monitors check it and take their first snapshot."""
+        for m in self.activity_monitors:
+            m.start_agent(run, agent)
+
+    def phase_callbacks(self, first_trial: int) -> list[Any]:
+        """Trial callbacks to pass to ``agent.train/test`` for a phase starting at ``first_trial``."""
+        for m in self.activity_monitors:
+            m.begin_phase(first_trial)
+        return list(self.activity_monitors)
+
+    def end_agent(self, agent: Any, last_trial: int) -> None:
+        """A run is over: activity monitors take their final snapshot."""
+        for m in self.activity_monitors:
+            m.end_agent(agent, last_trial)
 
     def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
         """Write a batch of trials; ``first_trial`` is the 1-based trial number of its first."""
@@ -199,6 +224,6 @@ class RunRecorder:
         self._clock += n_poses * STEP_NS
 
     def close(self) -> None:
-        for w in (self.trials, self.steps, self.mcap):
+        for w in (self.trials, self.steps, self.mcap, self.activity):
             if w is not None:
                 w.close()

@@ -1,0 +1,134 @@
+"""Unit activity of deep agents: layer activations for fixed probe observations.
+
+The monitor takes snapshots at the start of each run (trial 0), after every ``every``-th
+trial and after the run's last trial. A snapshot feeds the probe observations (by default the
+observation of every state of the environment) through the agent's network and records the
+outputs of the named layers. The ``activity`` table (``activity.parquet``) is long format:
+one row per (run, trial, layer, unit, probe) with the activation ``value``.
+
+Agents opt in by offering ``activations(observations, layers) -> {layer: (n_probes, units)}``
+and ``layer_names()`` (DQNAgent, DynaDQN, DynaDSR). The snapshots are taken through a
+:class:`~cobelrun.agents.base.TrialCallback`, at the end of the trial; for tabular agents that
+means the per-step Python path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from cobelrun.agents.base import TrialCallback
+from cobelrun.errors import ConfigError
+from cobelrun.monitors import Monitor
+from cobelrun.records import TrialBatch
+
+
+class ActivityMonitor(Monitor, TrialCallback):
+    """Record activations of named layers for probe observations every ``every`` trials.
+
+    Parameters
+    ----------
+    layers
+        Layer names (see the agent's ``layer_names()``); default: all of them.
+    every
+        Snapshot after every N-th trial (trial numbers count across phases, from 1).
+    probes
+        (n, ...) probe observations; default: the environment's ``observations`` (one per
+        state), or the state indices of an environment that observes indices.
+    """
+
+    table = "activity"
+
+    def __init__(
+        self, layers: Sequence[str] | None = None, every: int = 10, probes: Any = None
+    ) -> None:
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(f"activity monitor 'every' must be an integer >= 1, got {every!r}")
+        self.layers = None if layers is None else [str(x) for x in layers]
+        self.every = every
+        self.probes = None if probes is None else np.asarray(probes)
+        self._sink: Callable[[dict[str, Any]], None] | None = None
+        self._run = 0
+        self._first = 1
+        self._last = -1
+
+    # -- wiring ------------------------------------------------------------------------------
+    def setup(self, env: Any) -> None:
+        if self.probes is not None:
+            return
+        base = env.unwrapped
+        obs = getattr(base, "observations", None)
+        if obs is not None:
+            self.probes = np.asarray(obs)
+        elif hasattr(base, "world"):
+            self.probes = np.arange(base.world.n_states)
+        else:
+            raise ConfigError(
+                f"activity monitor: {type(base).__name__} has no per-state observations; "
+                "give probe observations with 'probes'"
+            )
+
+    def bind(self, sink: Callable[[dict[str, Any]], None]) -> None:
+        """Where snapshots go (the recorder's ``activity`` writer)."""
+        self._sink = sink
+
+    def fields(self) -> list[pa.Field]:
+        return [
+            pa.field("run", pa.int32()),
+            pa.field("trial", pa.int32()),
+            pa.field("layer", pa.string()),
+            pa.field("unit", pa.int32()),
+            pa.field("probe", pa.int32()),
+            pa.field("value", pa.float32()),
+        ]
+
+    def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
+        return {}
+
+    # -- timing ------------------------------------------------------------------------------
+    def start_agent(self, run: int, agent: Any) -> None:
+        """A new agent (run): check it exposes activations and take the trial-0 snapshot."""
+        if not hasattr(agent, "activations"):
+            raise ConfigError(
+                f"activity monitor: agent {type(agent).__name__} exposes no layer activations "
+                "(deep agents do: DQNAgent, DynaDQN, DynaDSR)"
+            )
+        self._run, self._last = run, -1
+        if self.layers is None:
+            self.layers = list(agent.layer_names())
+        self.snapshot(agent, 0)
+
+    def begin_phase(self, first_trial: int) -> None:
+        """The next trials passed to the callback are numbered from ``first_trial``."""
+        self._first = first_trial
+
+    def _on_trial_end(self, agent: Any, trial: int, record: dict[str, Any]) -> None:
+        t = self._first + trial
+        if t % self.every == 0:
+            self.snapshot(agent, t)
+
+    def end_agent(self, agent: Any, last_trial: int) -> None:
+        """The run is over: snapshot its last trial unless that was just done."""
+        if self._last != last_trial:
+            self.snapshot(agent, last_trial)
+
+    def snapshot(self, agent: Any, trial: int) -> None:
+        assert self.layers is not None and self.probes is not None
+        acts = agent.activations(self.probes, self.layers)
+        cols: dict[str, list[np.ndarray]] = {f.name: [] for f in self.fields()}
+        for layer, arr in acts.items():
+            arr = np.asarray(arr, dtype=np.float32).reshape(len(self.probes), -1)
+            n_probes, n_units = arr.shape
+            n = arr.size
+            cols["run"].append(np.full(n, self._run, np.int32))
+            cols["trial"].append(np.full(n, trial, np.int32))
+            cols["layer"].append(np.full(n, layer, dtype=object))
+            cols["unit"].append(np.tile(np.arange(n_units, dtype=np.int32), n_probes))
+            cols["probe"].append(np.repeat(np.arange(n_probes, dtype=np.int32), n_units))
+            cols["value"].append(arr.ravel())
+        self._last = trial
+        if self._sink is not None and cols["run"]:
+            self._sink({k: np.concatenate(v) for k, v in cols.items()})

@@ -10,7 +10,7 @@ The update rule, top to bottom (one step):
    (after every step, once at trial end, or never).
 
 On tabular environments (``GridWorldEnv`` and its variants) whole trials run in compiled code
-(:func:`run_trials`); with callbacks, or on other environments with discrete observations,
+(:func:`cobelrun.agents.kernels.run_trials`); with callbacks, or on other environments with discrete observations,
 trials run step by step in Python through the gymnasium API. Both paths call the same compiled
 building blocks in the same order, so they give identical results for the same seeds.
 """
@@ -23,7 +23,6 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
-from numba import njit
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.kernels import (
@@ -32,11 +31,11 @@ from cobelrun.agents.kernels import (
     REPLAY_STEP,
     REPLAY_TRIAL_END,
     q_update,
+    replay,
+    run_trials,
     select_action,
-    start_state,
-    transition,
 )
-from cobelrun.agents.memory import TabularMemory, memory_store, replay
+from cobelrun.agents.memory import TabularMemory
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -320,52 +319,3 @@ class DynaQ(Agent):
                 )
             self.Q[...] = data["Q"]
             self.memory.load_state_dict({k: data[k] for k in self.memory.state_dict()})
-
-
-@njit(cache=True)
-def run_trials(
-    rng, env_rng, Q, mask, use_mask,
-    m_next, m_reward, m_terminal, visited, visited_list, n_visited, reward_rate,
-    deterministic, next_state, T_cum, R, terminal, starts,
-    policy, epsilon, beta, lr, gamma, replay_mode, replay_batch, sampling,
-    n_trials, max_steps, learn,
-    out_state, out_action, out_next, out_reward, out_steps, out_term, out_start,
-):  # fmt: skip
-    """Run ``n_trials`` Dyna-Q trials; fill the step buffers; return the total number of steps.
-
-    Makes exactly the draws of ``DynaQ._run_python`` (agent draws from ``rng``, start states and
-    stochastic transitions from the environment's ``env_rng``) in the same order.
-    """
-    k = 0
-    for trial in range(n_trials):
-        s = start_state(env_rng, starts)
-        out_start[trial] = s
-        done = False
-        n = 0
-        while n < max_steps:
-            a = select_action(rng, Q[s], mask[s], use_mask, policy, epsilon, beta)
-            s2 = transition(env_rng, deterministic, next_state, T_cum, s, a)
-            r = R[s2]
-            done = terminal[s2]
-            if learn:
-                q_update(Q, mask, use_mask, s, a, r, s2, done, lr, gamma)
-                memory_store(m_next, m_reward, m_terminal, visited, visited_list, n_visited,
-                             reward_rate, s, a, r, s2, done)  # fmt: skip
-                if replay_mode == REPLAY_STEP:
-                    replay(rng, Q, mask, use_mask, m_next, m_reward, m_terminal, visited_list,
-                           n_visited, sampling, replay_batch, lr, gamma)  # fmt: skip
-            out_state[k] = s
-            out_action[k] = a
-            out_next[k] = s2
-            out_reward[k] = r
-            k += 1
-            n += 1
-            s = s2
-            if done:
-                break
-        if learn and replay_mode == REPLAY_TRIAL_END:
-            replay(rng, Q, mask, use_mask, m_next, m_reward, m_terminal, visited_list,
-                   n_visited, sampling, replay_batch, lr, gamma)  # fmt: skip
-        out_steps[trial] = n
-        out_term[trial] = done
-    return k

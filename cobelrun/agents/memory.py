@@ -1,14 +1,25 @@
-"""Tabular model memory for Dyna-style replay (the component behind Dyna-Q, Dyna-DQN, Dyna-DSR)."""
+"""Tabular model memory for Dyna-style replay (the component behind Dyna-Q, Dyna-DQN, Dyna-DSR).
+
+Its compiled store/sample/replay routines live in :mod:`cobelrun.agents.kernels` (re-exported
+here), next to the trial loop that inlines them.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from numba import njit
 
-from cobelrun.agents.kernels import SAMPLE_ALL, SAMPLING, q_update
+from cobelrun.agents.kernels import (
+    SAMPLING,
+    memory_sample,
+    memory_sample_batch,
+    memory_store,
+    replay,
+)
 from cobelrun.errors import ConfigError, allowed_list, suggest
+
+__all__ = ["TabularMemory", "memory_sample", "memory_sample_batch", "memory_store", "replay"]
 
 
 class TabularMemory:
@@ -95,57 +106,3 @@ class TabularMemory:
 
     def save(self, path: str | Path) -> None:
         np.savez(path, **self.state_dict())
-
-
-@njit(cache=True)
-def memory_store(
-    m_next, m_reward, m_terminal, visited, visited_list, n_visited, rate, s, a, r, s2, terminal
-):
-    m_next[s, a] = s2
-    m_reward[s, a] += rate * (r - m_reward[s, a])
-    m_terminal[s, a] = terminal
-    if not visited[s, a]:
-        visited[s, a] = True
-        visited_list[n_visited[0]] = s * m_next.shape[1] + a
-        n_visited[0] += 1
-
-
-@njit(cache=True)
-def memory_sample(rng, visited_list, n_visited, n_pairs, sampling):
-    if sampling == SAMPLE_ALL or n_visited[0] == 0:
-        return rng.integers(0, n_pairs)
-    return visited_list[rng.integers(0, n_visited[0])]
-
-
-@njit(cache=True)
-def memory_sample_batch(rng, visited_list, n_visited, n_pairs, sampling, n):
-    out = np.empty(n, np.int64)
-    for i in range(n):
-        out[i] = memory_sample(rng, visited_list, n_visited, n_pairs, sampling)
-    return out
-
-
-@njit(cache=True)
-def replay(
-    rng,
-    Q,
-    mask,
-    use_mask,
-    m_next,
-    m_reward,
-    m_terminal,
-    visited_list,
-    n_visited,
-    sampling,
-    n,
-    lr,
-    gamma,
-):
-    """``n`` sequential Q updates from experiences sampled out of the model memory."""
-    n_actions = Q.shape[1]
-    n_pairs = Q.shape[0] * n_actions
-    for _ in range(n):
-        idx = memory_sample(rng, visited_list, n_visited, n_pairs, sampling)
-        s = idx // n_actions
-        a = idx % n_actions
-        q_update(Q, mask, use_mask, s, a, m_reward[s, a], m_next[s, a], m_terminal[s, a], lr, gamma)

@@ -130,6 +130,105 @@ from cobelrun.commands.render_cache import register as _register_render_cache  #
 _register_render_cache(app)
 
 
+STATUS_STYLE = {
+    "done": "green",
+    "failed": "bold red",
+    "interrupted": "yellow",
+    "running": "cyan",
+    "queued": "cyan",
+    "missing": "dim",
+}
+
+
+@app.command("status")
+def status_cmd(
+    sweep_dir: Annotated[Path, typer.Argument(help="A sweep folder written by `cobel run -m`.")],
+    problems: Annotated[
+        bool, typer.Option("--problems", "-p", help="List only jobs that are not done.")
+    ] = False,
+) -> None:
+    """List a sweep's jobs: done, failed (with the error), running and missing.
+
+    Rebuilds the sweep's job index (SWEEP_DIR/jobs.csv). Exits 1 when a job is not done.
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from cobelrun.sweep import index, read_sweep, summary
+
+    try:
+        sweep = read_sweep(sweep_dir)
+        df = index(sweep_dir)
+    except CobelError as exc:
+        fail(str(exc))
+    console = Console()
+    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
+    table.add_column("job", justify="right")
+    for key in sweep["swept"]:
+        table.add_column(key, style="cyan")
+    table.add_column("status")
+    table.add_column("time [s]", justify="right")
+    table.add_column("error", overflow="fold")
+    for row in df.itertuples(index=False):
+        r = dict(zip(df.columns, row, strict=True))
+        if problems and r["status"] == "done":
+            continue
+        dur = r["duration_s"]
+        table.add_row(
+            str(r["job"]),
+            *[str(r[k]) for k in sweep["swept"]],
+            f"[{STATUS_STYLE[r['status']]}]{r['status']}[/]",
+            "" if dur is None or dur != dur else f"{float(dur):.1f}",
+            "" if not isinstance(r["error"], str) else r["error"],
+        )
+    console.print(table)
+    counts = summary(df)
+    parts = [f"{n} {s}" for s, n in counts.items() if n]
+    console.print(f"{len(df)} jobs: " + ", ".join(parts))
+    if counts["done"] < len(df):
+        console.print(f"resume (runs only what is not done): {sweep.get('command', '')}")
+        raise typer.Exit(1)
+
+
+@app.command("collect")
+def collect_cmd(
+    sweep_dir: Annotated[Path, typer.Argument(help="A sweep folder written by `cobel run -m`.")],
+    tables: Annotated[
+        str, typer.Option("--tables", help="Comma-separated tables to collect.")
+    ] = "trials,steps",
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Output folder (default SWEEP_DIR/collected)."),
+    ] = None,
+) -> None:
+    """Combine a sweep's done jobs into one Parquet file per table, swept params as columns.
+
+    Writes SWEEP_DIR/collected/trials.parquet and steps.parquet (streamed: memory stays flat),
+    with `job` and one column per swept key; load with pandas.read_parquet or
+    cobelrun.results.load_collected.
+    """
+    from cobelrun.progress import counter_progress
+    from cobelrun.sweep import collect, index, summary
+
+    try:
+        with counter_progress("collect", total=0, unit="files") as update:
+            written = collect(
+                sweep_dir, [t for t in tables.split(",") if t], out_dir=out, progress=update
+            )
+        counts = summary(index(sweep_dir, write=False))
+    except CobelError as exc:
+        fail(str(exc))
+    total = sum(counts.values())
+    if counts["done"] < total:
+        typer.echo(
+            f"cobel: collected {counts['done']} of {total} jobs; the others are not done "
+            f"(see cobel status {sweep_dir})",
+            err=True,
+        )
+    for path in written.values():
+        typer.echo(str(path))
+
+
 def main() -> None:
     """Console-script entry point."""
     try:

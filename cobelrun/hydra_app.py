@@ -8,6 +8,7 @@ folder is created.
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 from pathlib import Path
@@ -83,7 +84,10 @@ def _writable_root(path: Path) -> None:
 
 
 def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConfig:
-    """Compose (first sweep combination) and build everything once; raise one-line errors."""
+    """Compose (first sweep combination) and build everything once; raise one-line errors.
+
+    Returns the composed config of the first combination, ``hydra`` node included.
+    """
     from hydra import compose, initialize_config_dir
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.global_hydra import GlobalHydra
@@ -118,15 +122,15 @@ def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConf
                 raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
     finally:
         GlobalHydra.instance().clear()
-    run_dir_key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
-    try:
-        out = OmegaConf.select(cfg, run_dir_key)
-    except Exception as exc:  # interpolation errors in the output folder pattern
-        raise ConfigError(f"cannot resolve {run_dir_key}: {exc}") from None
-    _writable_root(Path(str(out)))
+    if not multirun:
+        try:
+            out = OmegaConf.select(cfg, "hydra.run.dir")
+        except Exception as exc:  # interpolation errors in the output folder pattern
+            raise ConfigError(f"cannot resolve hydra.run.dir: {exc}") from None
+        _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     build_task(job_cfg, probe_agent=True)
-    return job_cfg
+    return cfg
 
 
 def job(cfg: DictConfig) -> str:
@@ -136,27 +140,126 @@ def job(cfg: DictConfig) -> str:
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
 
+    register_resolvers()
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
-    multirun = str(hc.mode) == "RunMode.MULTIRUN"
+    if str(hc.mode) == "RunMode.MULTIRUN":
+        return sweep_job(cfg, hc, run_dir)
     try:
-        with run_progress(f"{cfg.task.name}", enabled=not multirun) as progress:
+        with run_progress(f"{cfg.task.name}") as progress:
             run(cfg, run_dir, progress=progress)
     except CobelError as exc:
-        if multirun:
-            raise
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)
         sys.exit(130)
-    if not multirun:
-        print(run_dir)
+    print(run_dir)
     return str(run_dir)
+
+
+def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
+    """One job of a sweep: skip it when done, else run it; record failures, never raise them.
+
+    The job's ``job.json`` says running / completed / failed (with the error and traceback) /
+    interrupted. Errors are recorded and the function returns normally, so the launcher runs
+    every other job; ``cobel run`` then reports how many failed.
+    """
+    import traceback
+
+    from cobelrun.runner import run
+    from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
+    from cobelrun.sweep import write_job_status as status
+
+    subdir = str(hc.sweep.subdir)
+    num = int(subdir) if subdir.isdigit() else int(hc.job.num)
+    fields = {"job": num, "overrides": list(hc.overrides.task)}
+    try:
+        chash = job_config_hash(cfg)
+        if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
+            return str(run_dir)
+        clear_outputs(run_dir)
+        status(run_dir, "running", config_hash=chash, **fields)
+        run(cfg, run_dir)
+    except KeyboardInterrupt:
+        status(run_dir, "interrupted", **fields)
+        raise
+    except Exception as exc:
+        status(run_dir, "failed", error=one_line(exc), traceback=traceback.format_exc(), **fields)
+        print(f"cobel: job {num} failed: {one_line(exc)}", file=sys.stderr)
+        return "failed"
+    status(run_dir, "completed", **fields)
+    return str(run_dir)
+
+
+def _quote(value: str) -> str:
+    """Quote a string for a Hydra override value."""
+    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _joblib_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is not None
+
+
+def default_launcher(overrides: list[str]) -> list[str]:
+    """``hydra/launcher=joblib`` (one worker per core) unless a launcher is chosen or joblib
+    is not installed (then Hydra's basic launcher runs the jobs one after another)."""
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    if "hydra/launcher" not in keys and _joblib_available():
+        return ["hydra/launcher=joblib"]
+    return []
+
+
+def sweep_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path]:
+    """The sweep folder, and the override that sets it when the user did not.
+
+    Unless ``hydra.sweep.dir`` is given, it is ``$COBEL_RESULTS/<task>/sweeps/<id>`` where
+    ``<id>`` hashes the jobs' overrides (``cobelrun.sweep.sweep_id``), so the same sweep
+    command always uses the same folder and resumes it.
+    """
+    from cobelrun.sweep import plan, sweep_id
+
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    if "hydra.sweep.dir" in keys:
+        return [], Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
+    _, jobs = plan(overrides)
+    root = Path(os.environ.get("COBEL_RESULTS") or "results")
+    sweep_dir = (root / str(cfg.task.name) / "sweeps" / sweep_id(jobs)).absolute()
+    return [f"hydra.sweep.dir={_quote(str(sweep_dir))}"], sweep_dir
+
+
+def report_sweep(sweep_dir: Path) -> int:
+    """Print the sweep's outcome; return the exit code (1 when a job failed or is missing)."""
+    from cobelrun.sweep import index, read_json, summary
+
+    try:
+        df = index(sweep_dir)
+    except CobelError as exc:
+        print(f"cobel: error: {exc}", file=sys.stderr)
+        return 1
+    counts = summary(df)
+    total = len(df)
+    bad = total - counts["done"]
+    launched = (read_json(sweep_dir / "sweep.json") or {}).get("launches", 1)
+    if bad:
+        what = f"{counts['failed']} of {total} jobs failed" if counts["failed"] else ""
+        other = bad - counts["failed"]
+        if other:
+            what = (what + "; " if what else "") + f"{other} of {total} jobs did not finish"
+        print(f"cobel: error: {what}; see cobel status {sweep_dir}", file=sys.stderr)
+        return 1
+    note = f" (launch {launched})" if launched > 1 else ""
+    print(f"cobel: {total} of {total} jobs done{note}", file=sys.stderr)
+    print(sweep_dir)
+    return 0
 
 
 def launch(args: list[str]) -> int:
     """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code."""
+    import shlex
+
     from hydra._internal.utils import _run_hydra, get_args_parser
 
     register_resolvers()
@@ -168,8 +271,18 @@ def launch(args: list[str]) -> int:
     informational = (
         parsed.help or parsed.hydra_help or parsed.cfg or parsed.info or parsed.shell_completion
     )
+    multirun = bool(parsed.multirun)
+    sweep_dir: Path | None = None
+    if multirun:
+        overrides = [*default_launcher(overrides), *overrides]
+        parsed.overrides = overrides
     if not informational:
-        validate(config_dir, overrides, bool(parsed.multirun))
+        cfg = validate(config_dir, overrides, multirun)
+        if multirun:
+            extra, sweep_dir = sweep_folder(overrides, cfg)
+            _writable_root(sweep_dir)
+            parsed.overrides = [*overrides, *extra]
+            os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])
     _run_hydra(
         args=parsed,
         args_parser=parser,
@@ -177,4 +290,9 @@ def launch(args: list[str]) -> int:
         config_path=str(config_dir),
         config_name="config",
     )
+    if sweep_dir is not None:
+        return report_sweep(sweep_dir)
     return 0
+
+
+register_resolvers()  # also in worker processes that unpickle `job`

@@ -1,4 +1,8 @@
-"""Load run folders written by ``cobel run``."""
+"""Load results: run folders (``cobel run``), sweeps (``cobel run -m``) and collected sweeps.
+
+``load_run`` (one run), ``load_sweep`` (every done job of a sweep, swept params as columns),
+``load_collected`` (the Parquet files of ``cobel collect``), ``load_jobs`` (a sweep's job index).
+"""
 
 from __future__ import annotations
 
@@ -43,3 +47,78 @@ def load_manifest(path: str | Path) -> dict[str, Any]:
     if not p.is_file():
         raise CobelError(f"{p.parent} has no manifest.json")
     return json.loads(p.read_text())
+
+
+def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:
+    """One table (``trials`` or ``steps``) of a run folder.
+
+    Examples
+    --------
+    >>> trials = load_run("results/tmaze_extinction/2024-05-01/12-00-00_ab12cd34")  # doctest: +SKIP
+    """
+    if table == "trials":
+        return load_trials(path)
+    if table == "steps":
+        return load_steps(path)
+    raise CobelError(f"unknown table {table!r}; allowed: 'trials', 'steps'")
+
+
+def load_jobs(sweep_dir: str | Path) -> pd.DataFrame:
+    """The job index of a sweep folder: job, swept params, status, error, config hash, run dir."""
+    from cobelrun.sweep import index
+
+    return index(sweep_dir, write=False)
+
+
+def load_sweep(sweep_dir: str | Path, table: str = "trials") -> pd.DataFrame:
+    """One table of every done job of a sweep, with ``job`` and the swept params as columns.
+
+    Reads ``SWEEP_DIR/collected/<table>.parquet`` when it is up to date (written by
+    ``cobel collect`` after the last job ended), else combines the job folders in memory.
+    For sweeps too large for memory, run ``cobel collect`` and use :func:`load_collected` with
+    ``columns`` / ``filters``.
+    """
+    from cobelrun.sweep import COLLECTED_DIR, collect, index
+
+    sweep_dir = Path(sweep_dir)
+    jobs = index(sweep_dir, write=False)
+    done = jobs[jobs["status"] == "done"]
+    if done.empty:
+        raise CobelError(f"no job of {sweep_dir} is done yet; see `cobel status {sweep_dir}`")
+    collected = sweep_dir / COLLECTED_DIR / f"{table}.parquet"
+    newest = max(
+        (Path(d) / ".done").stat().st_mtime for d in done["run_dir"] if (Path(d) / ".done").exists()
+    )
+    if collected.is_file() and collected.stat().st_mtime >= newest:
+        frame = pd.read_parquet(collected)
+        if set(frame["job"].unique()) == set(done["job"].astype(int)):
+            return frame
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix=".cobel-collect-", dir=sweep_dir) as tmp:
+        files = collect(sweep_dir, [table], out_dir=tmp)
+        if table not in files:
+            raise CobelError(f"no done job of {sweep_dir} has a {table} table")
+        return pd.read_parquet(files[table])
+
+
+def load_collected(
+    path: str | Path,
+    table: str = "trials",
+    *,
+    columns: list[str] | None = None,
+    filters: Any = None,
+) -> pd.DataFrame:
+    """A table written by ``cobel collect``: ``path`` is the sweep folder, its ``collected/``
+    folder or the Parquet file. ``columns`` and ``filters`` (pyarrow syntax, e.g.
+    ``[("seed", "==", 3)]``) read only what is needed."""
+    from cobelrun.sweep import COLLECTED_DIR
+
+    p = Path(path)
+    if p.is_dir() and (p / COLLECTED_DIR).is_dir():
+        p = p / COLLECTED_DIR
+    if p.is_dir():
+        p = p / f"{table}.parquet"
+    if not p.is_file():
+        raise CobelError(f"{p} does not exist; run `cobel collect SWEEP_DIR` first")
+    return pd.read_parquet(p, columns=columns, filters=filters)

@@ -148,8 +148,11 @@ def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
                 batch = go(phase.trials, max_steps)
                 recorder.record(run, phase.name, first, batch)
                 first += phase.trials
-            if progress is not None:
-                progress(run + 1, task.runs)
+                if progress is not None:  # trials over all runs; phases are the finest grain
+                    per_run = task.protocol.n_trials
+                    progress(
+                        run * per_run + first - 1, task.runs * per_run, run=run, runs=task.runs
+                    )
     finally:
         recorder.close()
 

@@ -123,9 +123,9 @@ def test_help_is_useful(cobel):
 
 
 def test_multirun_basic_launcher(cobel, tmp_path):
-    proc = cobel("run", "-m", "task=tmaze_extinction", "seed=1,2", *TINY)
+    proc = cobel("run", "-m", "hydra/launcher=basic", "task=tmaze_extinction", "seed=1,2", *TINY)
     assert proc.returncode == 0, proc.stderr
-    done = list((tmp_path / "results" / "tmaze_extinction" / "multirun").rglob(".done"))
+    done = list((tmp_path / "results" / "tmaze_extinction" / "sweeps").rglob(".done"))
     assert len(done) == 2
 
 

@@ -1,0 +1,398 @@
+"""Sweep folders: job status files, the job index, completion checks and ``cobel collect``.
+
+A sweep folder (``cobel run -m ...``) looks like this::
+
+    SWEEP_DIR/
+      sweep.json        what the sweep is: command, swept keys, every job's overrides and params
+      multirun.yaml     Hydra's sweep config
+      jobs.csv          the job index (job, params, status, error, config hash, run dir), rebuilt
+                        from the job folders by the launcher and by `cobel status`/`cobel collect`
+      0/ 1/ 2/ ...      one run folder per job (config.yaml, manifest.json, trials.parquet, ...)
+        job.json        the job's own status file: running / completed / failed (+ error)
+        .done           written last by the runner, only when the job completed
+      collected/        `cobel collect`: trials.parquet, steps.parquet with params as columns
+
+Every job writes only inside its own folder; ``sweep.json`` is written by the launcher process
+before any job starts, and ``jobs.csv`` is (re)built from the folders by one process at a time
+(the launcher when the sweep ends, or ``cobel status``). No file has two concurrent writers.
+
+A job counts as *done* when its ``.done`` marker exists and its manifest's ``config_hash``
+equals the hash of the job's composed config; re-running the same sweep skips done jobs and
+runs the rest.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import socket
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from cobelrun.errors import CobelError
+from cobelrun.io.manifest import _write_json_atomic, config_hash
+
+SWEEP_FILE = "sweep.json"
+INDEX_FILE = "jobs.csv"
+JOB_FILE = "job.json"
+DONE_MARKER = ".done"
+COLLECTED_DIR = "collected"
+#: what a re-run removes from a job folder before starting again (stale outputs)
+RUN_OUTPUTS = ("trials.parquet", "steps.parquet", "run.mcap", "manifest.json", "plot.png")
+#: statuses shown by `cobel status`
+STATUSES = ("done", "failed", "interrupted", "running", "queued", "missing")
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat()
+
+
+def one_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (just the message for cobel's own errors)."""
+    text = str(exc).strip().splitlines()
+    msg = text[0] if text else ""
+    if isinstance(exc, CobelError):
+        return msg or type(exc).__name__
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+# -- jobs -------------------------------------------------------------------------------------
+
+
+def job_config_hash(cfg: Any) -> str:
+    """The config hash the runner records for a composed job config (its ``hydra`` node dropped)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig):
+        if "hydra" in cfg:
+            cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    return config_hash(dict(cfg))
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """A JSON file's content, or None when missing or unreadable (e.g. being replaced)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def is_complete(run_dir: str | os.PathLike[str], config_hash: str | None = None) -> bool:
+    """True when ``run_dir`` holds a completed run (done marker) of the config ``config_hash``."""
+    run_dir = Path(run_dir)
+    if not (run_dir / DONE_MARKER).is_file():
+        return False
+    manifest = read_json(run_dir / "manifest.json")
+    if manifest is None or manifest.get("status") != "completed":
+        return False
+    return config_hash is None or manifest.get("config_hash") == config_hash
+
+
+def clear_outputs(run_dir: Path) -> None:
+    """Remove the done marker first, then stale outputs of an earlier attempt."""
+    for name in (DONE_MARKER, *RUN_OUTPUTS):
+        try:
+            (run_dir / name).unlink()
+        except FileNotFoundError:
+            pass
+
+
+def write_job_status(run_dir: Path, status: str, **fields: Any) -> dict[str, Any]:
+    """Write (atomically) the job's ``job.json``: queued -> running -> completed/failed/interrupted.
+
+    ``queued`` starts a fresh record; later statuses keep the earlier fields (job number,
+    overrides, config hash) and add their own.
+    """
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if status == "queued":
+        data: dict[str, Any] = {"queued_at": _now()}
+    else:
+        data = read_json(run_dir / JOB_FILE) or {}
+        for stale in ("ended_at", "duration_s", "error", "traceback"):
+            data.pop(stale, None)
+    if status == "running":
+        data.update(started_at=_now(), host=socket.gethostname(), pid=os.getpid())
+    elif status != "queued":
+        data["ended_at"] = _now()
+        if "started_at" in data:
+            start = _dt.datetime.fromisoformat(data["started_at"])
+            data["duration_s"] = round((_dt.datetime.now(_dt.UTC) - start).total_seconds(), 3)
+    data.update(fields)
+    data["status"] = status
+    _write_json_atomic(run_dir / JOB_FILE, data)
+    return data
+
+
+# -- the sweep definition ---------------------------------------------------------------------
+
+
+def override_key(override: Any) -> str:
+    """Column name for a parsed Hydra override (``agent.epsilon``, ``seed``, ``agent``)."""
+    key = str(override.key_or_group)
+    return f"{key}@{override.package}" if override.package else key
+
+
+def is_hydra_key(key: str) -> bool:
+    k = key.lstrip("+~")
+    return k == "hydra" or k.startswith(("hydra.", "hydra/"))
+
+
+def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str], list[dict]]:
+    """Expand sweep overrides into jobs: (swept keys, [{job, overrides, params}, ...]).
+
+    Jobs come in Hydra's BasicSweeper order (cartesian product, last key fastest); ``params``
+    holds each job's value of every swept key, typed (int, float, str, bool, None, list, dict).
+    """
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    parsed = parser.parse_overrides([*extra, *overrides])
+    swept = []
+    for o in parsed:
+        if o.is_sweep_override() and not is_hydra_key(o.key_or_group):
+            swept.append(override_key(o))
+    combos = [j for batch in BasicSweeper.split_arguments(parsed, None) for j in batch]
+    jobs = []
+    for i, combo in enumerate(combos):
+        params: dict[str, Any] = {}
+        for o in parser.parse_overrides(list(combo)):
+            key = override_key(o)
+            if key in swept:
+                params[key] = _plain_value(o.value())
+        jobs.append({"job": i, "overrides": list(combo), "params": params})
+    return swept, jobs
+
+
+def _plain_value(value: Any) -> Any:
+    from omegaconf import OmegaConf
+
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value)
+    if isinstance(value, Mapping):
+        return {str(k): _plain_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain_value(v) for v in value]
+    return value
+
+
+def sweep_id(jobs: Iterable[Mapping[str, Any]]) -> str:
+    """A short hash naming a sweep: the same jobs (overrides, order) give the same id.
+
+    Hydra settings (``hydra.*``, ``hydra/launcher=...``) are left out, so changing the launcher or
+    the number of workers resumes the same sweep.
+    """
+    norm = [sorted(o for o in j["overrides"] if not is_hydra_key(o.split("=", 1)[0])) for j in jobs]
+    return hashlib.sha256(json.dumps(norm).encode()).hexdigest()[:10]
+
+
+def write_sweep(sweep_dir: Path, *, command: str, swept: list[str], jobs: list[dict]) -> None:
+    """Write ``sweep.json`` (the launcher does this before any job starts)."""
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    old = read_json(sweep_dir / SWEEP_FILE) or {}
+    data = {
+        "command": command,
+        "swept": swept,
+        "n_jobs": len(jobs),
+        "created_at": old.get("created_at", _now()),
+        "updated_at": _now(),
+        "launches": int(old.get("launches", 0)) + 1,
+        "jobs": jobs,
+    }
+    _write_json_atomic(sweep_dir / SWEEP_FILE, data)
+
+
+def read_sweep(sweep_dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """The sweep definition (``sweep.json``) of a sweep folder."""
+    p = Path(sweep_dir)
+    if not p.is_dir():
+        raise CobelError(f"sweep folder {p} does not exist")
+    data = read_json(p / SWEEP_FILE)
+    if data is None:
+        raise CobelError(
+            f"{p} is not a cobel sweep folder (no {SWEEP_FILE}; made by `cobel run -m`)"
+        )
+    return data
+
+
+# -- the index --------------------------------------------------------------------------------
+
+
+def job_state(run_dir: Path) -> dict[str, Any]:
+    """Status of one job folder: status, error, config_hash, duration_s, started_at."""
+    job = read_json(run_dir / JOB_FILE) or {}
+    manifest = read_json(run_dir / "manifest.json") or {}
+    if job.get("status") == "queued":
+        status = "queued"
+    elif is_complete(run_dir):
+        status = "done"
+    elif job.get("status") == "failed" or manifest.get("status") == "failed":
+        status = "failed"
+    elif job.get("status") == "interrupted" or manifest.get("status") == "interrupted":
+        status = "interrupted"
+    elif job or manifest:
+        status = "running"
+    else:
+        status = "missing"
+    error = (job.get("error") or manifest.get("error")) if status == "failed" else None
+    return {
+        "status": status,
+        "error": error,
+        "config_hash": manifest.get("config_hash") or job.get("config_hash"),
+        "duration_s": manifest.get("duration_s", job.get("duration_s")),
+        "host": job.get("host", manifest.get("hostname")),
+        "ended_at": job.get("ended_at", manifest.get("ended_at")),
+    }
+
+
+def job_dir(sweep_dir: Path, job: int) -> Path:
+    return sweep_dir / str(job)
+
+
+def index(sweep_dir: str | os.PathLike[str], *, write: bool = True):
+    """The job index of a sweep folder as a data frame (and ``jobs.csv`` when ``write``).
+
+    Columns: ``job``, one column per swept key, ``status`` (done / failed / interrupted /
+    running / missing), ``error``, ``config_hash``, ``duration_s``, ``run_dir``, ``overrides``.
+    """
+    import pandas as pd
+
+    sweep_dir = Path(sweep_dir)
+    sweep = read_sweep(sweep_dir)
+    rows = []
+    for j in sweep["jobs"]:
+        d = job_dir(sweep_dir, j["job"])
+        row: dict[str, Any] = {"job": j["job"]}
+        row.update({k: _cell(j["params"].get(k)) for k in sweep["swept"]})
+        row.update(job_state(d))
+        row["run_dir"] = str(d)
+        row["overrides"] = " ".join(j["overrides"])
+        rows.append(row)
+    columns = ["job", *sweep["swept"], "status", "error", "config_hash", "duration_s", "host",
+               "ended_at", "run_dir", "overrides"]  # fmt: skip
+    df = pd.DataFrame(rows, columns=columns)
+    if write:
+        tmp = sweep_dir / f".{INDEX_FILE}.{os.getpid()}.tmp"
+        df.to_csv(tmp, index=False)
+        os.replace(tmp, sweep_dir / INDEX_FILE)
+    return df
+
+
+def _cell(value: Any) -> Any:
+    return json.dumps(value) if isinstance(value, list | dict) else value
+
+
+def summary(df) -> dict[str, int]:
+    """Counts of each status in an index frame."""
+    counts = df["status"].value_counts().to_dict()
+    return {s: int(counts.get(s, 0)) for s in STATUSES}
+
+
+# -- collect ----------------------------------------------------------------------------------
+
+
+def _param_type(values: list[Any]):
+    import pyarrow as pa
+
+    if any(isinstance(v, list | dict) for v in values):
+        return pa.string(), [None if v is None else json.dumps(v) for v in values]
+    try:
+        arr = pa.array(values)
+    except (pa.ArrowInvalid, pa.ArrowTypeError):
+        return pa.string(), [None if v is None else str(v) for v in values]
+    if pa.types.is_null(arr.type):
+        return pa.string(), values
+    return arr.type, values
+
+
+def collect(
+    sweep_dir: str | os.PathLike[str],
+    tables: Sequence[str] = ("trials", "steps"),
+    *,
+    out_dir: str | os.PathLike[str] | None = None,
+    batch_rows: int = 65_536,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Path]:
+    """Stream the tables of every done job into one Parquet file per table.
+
+    The output (``SWEEP_DIR/collected/<table>.parquet``) has ``job`` and one column per swept
+    key in front of the run's own columns. Files are read and written in record batches of at
+    most ``batch_rows`` rows, so memory stays flat however large the sweep. Jobs that are not
+    done are left out (``cobel status`` lists them). Columns missing in some jobs are null there.
+
+    Returns the written files by table name (tables no done job has are skipped).
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    sweep_dir = Path(sweep_dir)
+    df = index(sweep_dir)
+    sweep = read_sweep(sweep_dir)
+    done = df[df["status"] == "done"]
+    if done.empty:
+        raise CobelError(f"no job of {sweep_dir} is done yet; see `cobel status {sweep_dir}`")
+    out = Path(out_dir) if out_dir is not None else sweep_dir / COLLECTED_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    params = {j["job"]: j["params"] for j in sweep["jobs"]}
+    jobs = [int(j) for j in done["job"]]
+    ptypes: dict[str, Any] = {}
+    pvalues: dict[str, dict[int, Any]] = {}
+    for key in sweep["swept"]:
+        t, vals = _param_type([params[j].get(key) for j in jobs])
+        ptypes[key] = t
+        pvalues[key] = dict(zip(jobs, vals, strict=True))
+    written: dict[str, Path] = {}
+    total = sum(
+        1 for t in tables for j in jobs if (job_dir(sweep_dir, j) / f"{t}.parquet").is_file()
+    )
+    n = 0
+    for table in tables:
+        files = [(j, job_dir(sweep_dir, j) / f"{table}.parquet") for j in jobs]
+        files = [(j, f) for j, f in files if f.is_file()]
+        if not files:
+            continue
+        try:
+            data_schema = pa.unify_schemas(
+                [pq.read_schema(f) for _, f in files], promote_options="permissive"
+            )
+        except (pa.ArrowInvalid, pa.ArrowTypeError, OSError) as exc:
+            raise CobelError(f"cannot combine the {table} tables of {sweep_dir}: {exc}") from None
+        taken = set(data_schema.names)
+        names = {k: (k if k not in taken and k != "job" else f"param:{k}") for k in ptypes}
+        fields = [pa.field("job", pa.int32())]
+        fields += [pa.field(names[k], t) for k, t in ptypes.items()]
+        fields += [f.with_metadata(None) for f in data_schema]
+        schema = pa.schema(fields, metadata={
+            b"cobel.swept": json.dumps({names[k]: k for k in ptypes}).encode(),
+            b"cobel.sweep_dir": str(sweep_dir.resolve()).encode(),
+        })  # fmt: skip
+        target = out / f"{table}.parquet"
+        tmp = out / f".{table}.parquet.{os.getpid()}.tmp"
+        try:
+            with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
+                for j, f in files:
+                    pf = pq.ParquetFile(f)
+                    for batch in pf.iter_batches(batch_size=batch_rows):
+                        rows = batch.num_rows
+                        cols = [pa.array([j] * rows, pa.int32())]
+                        cols += [pa.array([pvalues[k][j]] * rows, t) for k, t in ptypes.items()]
+                        for field in data_schema:
+                            i = batch.schema.get_field_index(field.name)
+                            if i < 0:
+                                cols.append(pa.nulls(rows, field.type))
+                            else:
+                                cols.append(batch.column(i).cast(field.type))
+                        writer.write_batch(pa.RecordBatch.from_arrays(cols, schema=schema))
+                    n += 1
+                    if progress is not None:
+                        progress(n, total)
+            os.replace(tmp, target)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        written[table] = target
+    return written

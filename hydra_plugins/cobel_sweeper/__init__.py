@@ -1,0 +1,1 @@
+"""Hydra sweeper plugin ``cobel``: resumable, failure-tolerant cartesian sweeps (see cobel_sweeper)."""

@@ -1,0 +1,191 @@
+"""cobel's Hydra sweeper: Hydra's cartesian sweep, made resumable and failure-tolerant.
+
+Hydra only instantiates plugins defined under ``hydra_plugins``, hence its home here. Selected in
+``conf/config.yaml`` (``override hydra/sweeper: cobel``). It expands the sweep like
+Hydra's BasicSweeper (same job order, same override syntax), then, before launching anything:
+
+* writes ``sweep.json`` (command, swept keys, every job's overrides and params);
+* composes every job's config and skips jobs whose folder is complete for that exact config
+  (done marker + matching config hash), so re-running a sweep only runs what is missing;
+* marks the other jobs ``queued`` and hands only them to the launcher (joblib, submitit, basic,
+  ...), each with ``hydra.sweep.subdir=<job number>`` so a job keeps its folder whatever else
+  is skipped.
+
+Jobs record their own failures (``job.json``) and return normally, so one failing job never
+stops the others; the sweeper shows a progress bar of finished jobs while the launcher works
+and rebuilds the index (``jobs.csv``) at the end.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from omegaconf import OmegaConf
+
+log = logging.getLogger(__name__)
+
+FINAL = ("completed", "failed", "interrupted")
+
+
+class CobelSweeper(BasicSweeper):
+    """Hydra's cartesian sweeper with resume (skip done jobs) and per-job failure records.
+
+    Parameters
+    ----------
+    max_batch_size : int, optional
+        Launch at most this many jobs at a time (None: all pending jobs in one launch).
+    params : dict, optional
+        Extra sweep overrides from the config (``hydra.sweeper.params``), as in BasicSweeper.
+    skip_done : bool
+        Skip jobs whose folder is complete for the same config (default True). Set
+        ``hydra.sweeper.skip_done=false`` to run every job again.
+    """
+
+    def __init__(
+        self,
+        max_batch_size: int | None = None,
+        params: dict[str, str] | None = None,
+        skip_done: bool = True,
+    ) -> None:
+        super().__init__(max_batch_size=max_batch_size, params=params)
+        self.skip_done = skip_done
+        #: filled by :meth:`sweep`: job numbers launched and reused in this call
+        self.launched: list[int] = []
+        self.reused: list[int] = []
+
+    def sweep(self, arguments: list[str]) -> Any:
+        from hydra.core.utils import JobStatus
+
+        from cobelrun.config import register_resolvers
+        from cobelrun.sweep import (
+            clear_outputs,
+            index,
+            is_complete,
+            job_config_hash,
+            job_dir,
+            one_line,
+            plan,
+            write_job_status,
+            write_sweep,
+        )
+
+        assert self.config is not None and self.launcher is not None
+        assert self.hydra_context is not None
+        register_resolvers()
+        swept, jobs = plan(arguments, extra=self._parse_config())
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+        command = os.environ.get("COBEL_COMMAND") or " ".join(sys.argv)
+        write_sweep(sweep_dir, command=command, swept=swept, jobs=jobs)
+
+        loader = self.hydra_context.config_loader
+        pending: list[list[str]] = []
+        for j in jobs:
+            num, d = j["job"], job_dir(sweep_dir, j["job"])
+            try:
+                cfg = loader.load_sweep_config(self.config, list(j["overrides"]))
+            except Exception as exc:  # composition error in one combination: record, go on
+                write_job_status(d, "queued", job=num, overrides=j["overrides"])
+                write_job_status(d, "failed", error=one_line(exc))
+                continue
+            try:
+                chash: str | None = job_config_hash(cfg)
+            except Exception:  # e.g. interpolations only a running job can resolve
+                chash = None
+            if self.skip_done and chash is not None and is_complete(d, chash):
+                self.reused.append(num)
+                continue
+            clear_outputs(d)
+            write_job_status(d, "queued", job=num, overrides=j["overrides"], config_hash=chash)
+            pending.append([*j["overrides"], f"hydra.sweep.subdir={num}"])
+            self.launched.append(num)
+
+        if self.reused:
+            log.info(f"{len(self.reused)} of {len(jobs)} jobs already done, skipped")
+        batches = (
+            list(self.split_overrides_to_chunks(pending, self.max_batch_size)) if pending else []
+        )
+        watcher = _Watcher(
+            [job_dir(sweep_dir, n) for n in self.launched], len(jobs), len(self.reused)
+        )
+        returns = []
+        watcher.start()
+        try:
+            first = 0
+            for batch in batches:
+                try:
+                    results = self.launcher.launch(batch, initial_job_idx=first)
+                except Exception as exc:  # the launcher itself failed (e.g. a killed SLURM job)
+                    log.error(f"launcher error: {one_line(exc)}")
+                    _fail_unfinished(sweep_dir, self.launched, f"launcher error: {one_line(exc)}")
+                    results = []
+                for r in results:
+                    if r.status == JobStatus.FAILED:  # raised outside cobel's job function
+                        num = _job_num(r)
+                        if num is not None:
+                            write_job_status(
+                                job_dir(sweep_dir, num), "failed", error=one_line(r._return_value)
+                            )
+                returns.append(results)
+                first += len(batch)
+        finally:
+            watcher.stop()
+            index(sweep_dir)
+        return returns
+
+
+def _job_num(r: Any) -> int | None:
+    try:
+        return int(str(r.hydra_cfg.hydra.sweep.subdir))
+    except Exception:
+        return None
+
+
+def _fail_unfinished(sweep_dir: Path, nums: list[int], error: str) -> None:
+    from cobelrun.sweep import JOB_FILE, job_dir, read_json, write_job_status
+
+    for n in nums:
+        d = job_dir(sweep_dir, n)
+        state = read_json(d / JOB_FILE) or {}
+        if state.get("status") not in FINAL:
+            write_job_status(d, "failed", error=error)
+
+
+class _Watcher:
+    """A progress bar of finished jobs, driven by their ``job.json`` files (terminal only)."""
+
+    def __init__(self, dirs: list[Path], total: int, reused: int) -> None:
+        self.dirs, self.total, self.reused = dirs, total, reused
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.dirs and sys.stderr.isatty() and os.environ.get("COBEL_PROGRESS", "1") != "0":
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        from cobelrun.progress import counter_progress
+        from cobelrun.sweep import JOB_FILE, read_json
+
+        with counter_progress("jobs", total=self.total, unit="jobs") as update:
+            while True:
+                states = [(read_json(d / JOB_FILE) or {}).get("status") for d in self.dirs]
+                done = sum(s in FINAL for s in states)
+                failed = sum(s == "failed" for s in states)
+                note = f"{failed} failed" if failed else ""
+                update(self.reused + done, self.total, note)
+                if self._stop.wait(0.5):
+                    break

@@ -7,6 +7,7 @@ Foxglove. Everything is written in chunks as the run goes, so memory stays flat.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -212,16 +213,57 @@ class RunRecorder:
             t[pose_keep], coords[pose_keep, 0], coords[pose_keep, 1], heading[pose_keep]
         )
         end_pos = start_pos + batch.steps
-        for i in np.flatnonzero(keep):
-            common = {"run": run, "trial": int(trial[i]), "phase": phase}
-            self.mcap.write_trial_event(
-                int(t[start_pos[i]]), event="start", start_state=int(batch.start_state[i]), **common
-            )
-            self.mcap.write_trial_event(
-                int(t[end_pos[i]]), event="end", steps=int(batch.steps[i]),
-                reward=float(batch.reward[i]), end_state=int(batch.end_state[i]), **common,
-            )  # fmt: skip
+        idx = np.flatnonzero(keep)
+        if idx.size:
+            self._write_trial_events(run, phase, trial, batch, idx, t[start_pos], t[end_pos])
         self._clock += n_poses * STEP_NS
+
+    def _write_trial_events(
+        self,
+        run: int,
+        phase: str,
+        trial: np.ndarray,
+        batch: TrialBatch,
+        idx: np.ndarray,
+        t_start: np.ndarray,
+        t_end: np.ndarray,
+    ) -> None:
+        """Start and end ``cobel.TrialEvent`` of the trials ``idx``, built with one %-format per
+        kind and written in one batch (the bytes ``write_trial_event`` writes, field order
+        included; ~20x faster than one ``json.dumps`` + ``add_message`` per event)."""
+        reward = batch.reward[idx]
+        if not np.isfinite(reward).all():
+            raise ValueError("trial rewards must be finite to be written to run.mcap")
+        tail = ',"run":%d,"trial":%d,"phase":' + json.dumps(phase).replace("%", "%%") + "}"
+        start_fmt = '{"event":"start","start_state":%d' + tail
+        end_fmt = '{"event":"end","steps":%d,"reward":%r,"end_state":%d' + tail
+        n = idx.size
+        runs = [int(run)] * n
+        trials = trial[idx].tolist()
+        starts = "\n".join([start_fmt] * n) % tuple(
+            x
+            for row in zip(batch.start_state[idx].tolist(), runs, trials, strict=True)
+            for x in row
+        )
+        ends = "\n".join([end_fmt] * n) % tuple(
+            x
+            for row in zip(
+                batch.steps[idx].tolist(),
+                reward.tolist(),
+                batch.end_state[idx].tolist(),
+                runs,
+                trials,
+                strict=True,
+            )
+            for x in row
+        )
+        messages = [None] * (2 * n)
+        messages[0::2] = starts.encode().split(b"\n")
+        messages[1::2] = ends.encode().split(b"\n")
+        times = np.empty(2 * n, np.int64)
+        times[0::2] = t_start[idx]
+        times[1::2] = t_end[idx]
+        self.mcap.write_json_batch(self.mcap.TRIAL_TOPIC, times, messages)
 
     def close(self) -> None:
         for w in (self.trials, self.steps, self.mcap, self.activity):

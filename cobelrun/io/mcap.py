@@ -237,36 +237,55 @@ class _BulkAppender:
         except AttributeError:
             return None
 
+    _HEADER = np.dtype(
+        [("op", "u1"), ("len", "<u8"), ("channel", "<u2"), ("seq", "<u4"), ("log", "<u8"),
+         ("pub", "<u8")]
+    )  # fmt: skip
+
     def add(self, channel_id: int, seq0: int, t: np.ndarray, rows: np.ndarray) -> None:
+        """Messages of equal length: the rows of a uint8 matrix."""
         n, width = rows.shape
-        rec = np.empty(
-            n,
-            dtype=np.dtype(
-                [
-                    ("op", "u1"),
-                    ("len", "<u8"),
-                    ("channel", "<u2"),
-                    ("seq", "<u4"),
-                    ("log", "<u8"),
-                    ("pub", "<u8"),
-                    ("data", "u1", (width,)),
-                ]
-            ),
-        )
-        rec["op"] = int(Opcode.MESSAGE)
-        rec["len"] = 22 + width
-        rec["channel"] = channel_id
-        rec["seq"] = (seq0 + np.arange(n, dtype=np.int64)) & 0xFFFFFFFF
-        rec["log"] = t
-        rec["pub"] = t
+        rec = np.empty(n, dtype=np.dtype([*self._HEADER.descr, ("data", "u1", (width,))]))
+        self._fill_header(rec, channel_id, seq0, t, width)
         rec["data"] = rows
         size = rec.dtype.itemsize
-        blob = memoryview(rec.tobytes())
+        self._append(channel_id, t, memoryview(rec.tobytes()), size * np.arange(n + 1))
+
+    def add_var(self, channel_id: int, seq0: int, t: np.ndarray, datas: list[bytes]) -> None:
+        """Messages of any length (one bytes object each)."""
+        n = len(datas)
+        lens = np.fromiter(map(len, datas), dtype=np.int64, count=n)
+        hdr = np.empty(n, dtype=self._HEADER)
+        self._fill_header(hdr, channel_id, seq0, t, lens)
+        hb = hdr.tobytes()
+        h = self._HEADER.itemsize
+        heads = [hb[k : k + h] for k in range(0, n * h, h)]
+        blob = b"".join([x for pair in zip(heads, datas, strict=True) for x in pair])
+        starts = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(lens + h, out=starts[1:])
+        self._append(channel_id, t, memoryview(blob), starts)
+
+    @staticmethod
+    def _fill_header(rec: np.ndarray, channel_id: int, seq0: int, t: np.ndarray, width) -> None:
+        rec["op"] = int(Opcode.MESSAGE)
+        rec["len"] = 22 + np.asarray(width)
+        rec["channel"] = channel_id
+        rec["seq"] = (seq0 + np.arange(rec.shape[0], dtype=np.int64)) & 0xFFFFFFFF
+        rec["log"] = t
+        rec["pub"] = t
+
+    def _append(self, channel_id: int, t: np.ndarray, blob: memoryview, starts: np.ndarray) -> None:
+        """Append records ``blob[starts[i]:starts[i+1]]`` to the current chunk, finalizing
+        chunks exactly where ``Writer.add_message`` would (after the record that makes the
+        chunk exceed ``chunk_size``)."""
+        n = t.shape[0]
         cb, st = self._cb, self._stats
         i = 0
         while i < n:
             count = cb.count
-            k = min(n - i, max(1, (self._chunk_size - count) // size + 1))
+            # smallest k such that count + bytes(k records) > chunk_size (or all the rest)
+            k = int(np.searchsorted(starts[i + 1 :] - starts[i], self._chunk_size - count, "right"))
+            k = min(n - i, k + 1)
             tk = t[i : i + k]
             tmin, tmax = int(tk.min()), int(tk.max())
             cb.message_start_time = (
@@ -278,10 +297,10 @@ class _BulkAppender:
                 index = cb.message_indices[channel_id] = _PackedMessageIndex(
                     channel_id=channel_id, records=[]
                 )
-            offsets = count + size * np.arange(k, dtype=np.int64)
+            offsets = count + (starts[i : i + k] - starts[i])
             index.records.extend(zip(tk.tolist(), offsets.tolist(), strict=True))
             cb.num_messages += k
-            cb.record_writer.write(blob[i * size : (i + k) * size])
+            cb.record_writer.write(blob[starts[i] : starts[i + k]])
             st.message_start_time = (
                 tmin if st.message_count == 0 else min(st.message_start_time, tmin)
             )
@@ -448,6 +467,23 @@ class McapStreamWriter:
         )
         self._sequence[topic] = seq + 1
 
+    def write_json_batch(self, topic: str, t_ns: np.ndarray, messages: list[bytes]) -> None:
+        """Write many pre-serialised JSON messages (one ``bytes`` each) in one go.
+
+        The same file as calling :meth:`write_json` for each message, but without the
+        per-message Python of ``Writer.add_message`` (~10x faster for small messages).
+        """
+        self._check_open()
+        self._channel(topic)
+        t = np.asarray(t_ns, dtype=np.int64).ravel()
+        if t.shape[0] != len(messages):
+            raise ValueError(f"write_json_batch: {t.shape[0]} times for {len(messages)} messages")
+        if t.shape[0] == 0:
+            return
+        if t.min() < 0:
+            raise ValueError("write_json_batch: t_ns must be >= 0")
+        self._add_rows(topic, t, list(messages))
+
     def write_trial_event(self, t_ns: int, **fields: Any) -> None:
         """Write a ``cobel.TrialEvent`` on ``/trial``.
 
@@ -584,6 +620,8 @@ class McapStreamWriter:
         n = t.shape[0]
         if isinstance(rows, np.ndarray) and self._fast is not None:
             self._fast.add(channel_id, seq0, t, rows)
+        elif self._fast is not None:
+            self._fast.add_var(channel_id, seq0, t, rows)
         else:
             if isinstance(rows, np.ndarray):
                 blob = rows.tobytes()

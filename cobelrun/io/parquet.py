@@ -27,6 +27,51 @@ import pyarrow.parquet as pq
 __all__ = ["ParquetStreamWriter"]
 
 
+_NUMPY_OF = {
+    pa.int8(): np.dtype(np.int8), pa.int16(): np.dtype(np.int16),
+    pa.int32(): np.dtype(np.int32), pa.int64(): np.dtype(np.int64),
+    pa.uint8(): np.dtype(np.uint8), pa.uint16(): np.dtype(np.uint16),
+    pa.uint32(): np.dtype(np.uint32), pa.uint64(): np.dtype(np.uint64),
+    pa.float32(): np.dtype(np.float32), pa.float64(): np.dtype(np.float64),
+}  # fmt: skip
+
+
+def _to_arrow(v: np.ndarray, typ: pa.DataType) -> pa.Array:
+    """``pa.array(v, type=typ)`` without pyarrow's pandas shim where that is easy.
+
+    The first ``pa.array`` call of a process imports pandas (~0.4 s) to check whether ``v`` is
+    a pandas object. Plain numeric, bool and string columns are wrapped with
+    ``pa.Array.from_buffers`` instead (same values; values that would need a lossy cast still
+    go through ``pa.array`` and fail there as before).
+    """
+    dt = _NUMPY_OF.get(typ)
+    if dt is not None and v.dtype.kind in "iub" + ("f" if dt.kind == "f" else ""):
+        if v.dtype != dt:
+            if not np.can_cast(v.dtype, dt, "safe"):
+                if dt.kind == "f" or v.size == 0:
+                    return pa.array(v, type=typ, from_pandas=False)
+                info = np.iinfo(dt)
+                if v.min() < info.min or v.max() > info.max:
+                    return pa.array(v, type=typ, from_pandas=False)  # raises: out of range
+            v = v.astype(dt)
+        v = np.ascontiguousarray(v)
+        return pa.Array.from_buffers(typ, v.shape[0], [None, pa.py_buffer(v)])
+    if typ == pa.bool_() and v.dtype == np.bool_:
+        bits = np.packbits(v, bitorder="little")
+        return pa.Array.from_buffers(typ, v.shape[0], [None, pa.py_buffer(bits)])
+    if typ == pa.string() and v.dtype.kind in "OU":
+        items = v.tolist()
+        if all(type(x) is str for x in items):
+            encoded = [x.encode() for x in items]
+            offsets = np.zeros(len(encoded) + 1, dtype=np.int64)
+            np.cumsum([len(b) for b in encoded], out=offsets[1:])
+            if offsets[-1] < 2**31:  # pa.string() has int32 offsets
+                offsets32 = pa.py_buffer(offsets.astype(np.int32))
+                data = pa.py_buffer(b"".join(encoded))
+                return pa.Array.from_buffers(typ, len(encoded), [None, offsets32, data])
+    return pa.array(v, type=typ, from_pandas=False)
+
+
 class ParquetStreamWriter:
     """Append rows to a Parquet file in row groups of ``row_group_rows`` rows.
 
@@ -139,7 +184,7 @@ class ParquetStreamWriter:
             if v.ndim == 0:
                 v = np.broadcast_to(v, (n,))
             try:
-                arrays.append(pa.array(v, type=field.type, from_pandas=False))
+                arrays.append(_to_arrow(v, field.type))
             except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
                 raise ValueError(
                     f"{self.path.name}: column '{field.name}' (dtype {v.dtype}) cannot be "

@@ -229,6 +229,54 @@ def collect_cmd(
         typer.echo(str(path))
 
 
+@app.command("figure")
+def figure_cmd(
+    name: Annotated[
+        str | None, typer.Argument(help="Figure name (e.g. fig6b) or `all`; see --list.")
+    ] = None,
+    quick: Annotated[
+        bool, typer.Option("--quick", help="Small budget (few runs) for a fast check or CI.")
+    ] = False,
+    list_: Annotated[bool, typer.Option("--list", help="List the figures and exit.")] = False,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Output folder (default $COBEL_RESULTS/figures)."),
+    ] = None,
+) -> None:
+    """Build a paper figure: run what it needs (finished runs are reused), then draw it.
+
+    Writes NAME.png, NAME.pdf and NAME.csv (the plotted numbers) to results/figures/
+    (NAME_quick.* with --quick). Specs live in experiments/ (./experiments is searched first).
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from cobelrun.figures.registry import build, figures, get
+
+    try:
+        known = figures()
+        if list_ or name is None:
+            table = Table(title="figures  (build with cobel figure NAME)", title_justify="left",
+                          box=None)  # fmt: skip
+            table.add_column("name", style="bold cyan", no_wrap=True)
+            table.add_column("description")
+            table.add_column("runs")
+            for fig in known.values():
+                runs = "; ".join(f"{k}: {' '.join(v)}" for k, v in fig.runs.items())
+                table.add_row(fig.name, fig.title, runs)
+            Console().print(table)
+            return
+        chosen = list(known.values()) if name == "all" else [get(name)]
+        for fig in chosen:
+            files = build(fig, quick=quick, out_dir=out, log=lambda m: typer.echo(m, err=True))
+            for path in files.values():
+                typer.echo(str(path))
+    except CobelError as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        fail("interrupted", EXIT_INTERRUPTED)
+
+
 def main() -> None:
     """Console-script entry point."""
     try:

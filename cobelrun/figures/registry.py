@@ -1,0 +1,302 @@
+"""Paper figures as specs: which runs a figure needs (cobel overrides) and how it is drawn.
+
+A figure is one Python file in ``experiments/`` (shipped in the wheel as
+``cobelrun/experiments``; an ``experiments/`` folder in the working directory is searched first)
+that defines ``FIGURE = Figure(...)``::
+
+    FIGURE = Figure(
+        name="fig6b",
+        title="Extinction learning with tabular Dyna-Q",
+        runs={"dyna_q": ["task=tmaze_extinction"]},          # label -> overrides (sweeps ok)
+        quick={"*": ["task.runs=5"]},                        # extra overrides for --quick
+        draw=draw,                                           # FigureData -> (fig, table)
+    )
+
+``cobel figure NAME`` composes every run's config, finds finished runs again by config hash
+(``$COBEL_RESULTS/figures/runs/<task>-<hash>``, done marker + matching hash), runs only what is
+missing, then calls ``draw`` and writes ``$COBEL_RESULTS/figures/NAME.png``, ``.pdf`` and ``.csv``
+(the plotted numbers). ``--quick`` adds the spec's ``quick`` overrides (a small budget, for CI)
+and writes ``NAME_quick.*``; quick runs have their own hashes, so they never mix with full ones.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import sys
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+
+FIGURE_DIR = "figures"
+RUN_STORE = "runs"
+
+
+@dataclass(frozen=True)
+class RunRef:
+    """One finished run a figure uses."""
+
+    label: str
+    job: int
+    overrides: tuple[str, ...]
+    params: Mapping[str, Any]
+    run_dir: Path
+    config_hash: str
+    reused: bool = False
+
+
+@dataclass
+class FigureData:
+    """What ``draw`` gets: the figure's runs by label, loaders for their tables."""
+
+    runs: dict[str, list[RunRef]]
+    quick: bool = False
+
+    def trials(self, label: str) -> pd.DataFrame:
+        """Trials of every run of ``label``, with ``job`` and the swept params as columns."""
+        return self._table(label, "trials")
+
+    def steps(self, label: str) -> pd.DataFrame:
+        """Steps of every run of ``label``, with ``job`` and the swept params as columns."""
+        return self._table(label, "steps")
+
+    def _table(self, label: str, table: str) -> pd.DataFrame:
+        from cobelrun.results import load_run
+
+        if label not in self.runs:
+            raise CobelError(f"figure has no runs labelled {label!r}; has {sorted(self.runs)}")
+        frames = []
+        for ref in self.runs[label]:
+            df = load_run(ref.run_dir, table)
+            front = {"job": ref.job, **ref.params}
+            for i, (k, v) in enumerate(front.items()):
+                df.insert(i, k if k not in df else f"param:{k}", v)
+            frames.append(df)
+        return pd.concat(frames, ignore_index=True)
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A paper figure: the runs it needs and how it is drawn.
+
+    Attributes
+    ----------
+    name
+        Command-line name (``cobel figure NAME``), e.g. ``fig6b``.
+    title
+        One line shown by ``cobel figure --list``.
+    runs
+        Label -> cobel overrides (as for ``cobel run``; ``a=1,2`` sweeps give one run per value).
+    draw
+        ``draw(data: FigureData) -> (matplotlib Figure, DataFrame of the plotted numbers)``.
+    quick
+        Label (or ``"*"`` for all) -> extra overrides for ``--quick`` (a small budget).
+    """
+
+    name: str
+    title: str
+    runs: Mapping[str, Sequence[str]]
+    draw: Callable[[FigureData], tuple[Any, pd.DataFrame]]
+    quick: Mapping[str, Sequence[str]] = field(default_factory=dict)
+    source: Path | None = None
+
+    def overrides(self, label: str, quick: bool) -> list[str]:
+        extra = [*self.quick.get("*", ()), *self.quick.get(label, ())] if quick else []
+        return [*self.runs[label], *extra]
+
+
+# -- discovery --------------------------------------------------------------------------------
+
+
+def builtin_experiments_dir() -> Path | None:
+    """``experiments/`` inside the installed wheel, or at the source checkout's root."""
+    pkg = Path(__file__).resolve().parents[1]
+    for candidate in (pkg / "experiments", pkg.parent / "experiments"):
+        if candidate.is_dir():
+            return candidate
+    return None
+
+
+def experiments_dirs() -> list[Path]:
+    """Figure spec folders in search order: ``./experiments`` first, then the built-in one."""
+    dirs = []
+    user = Path.cwd() / "experiments"
+    builtin = builtin_experiments_dir()
+    if user.is_dir():
+        dirs.append(user)
+    if builtin is not None and (not dirs or builtin.resolve() != dirs[0].resolve()):
+        dirs.append(builtin)
+    return dirs
+
+
+def _load(path: Path) -> list[Figure]:
+    name = f"cobel_experiments.{path.parent.name}.{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise CobelError(f"cannot load figure spec {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except CobelError:
+        raise
+    except Exception as exc:
+        raise CobelError(f"figure spec {path} failed to load: {type(exc).__name__}: {exc}") from exc
+    found = list(getattr(module, "FIGURES", [])) + (
+        [module.FIGURE] if hasattr(module, "FIGURE") else []
+    )
+    if not found or not all(isinstance(f, Figure) for f in found):
+        raise CobelError(f"figure spec {path} must define FIGURE = Figure(...)")
+    return [Figure(**{**f.__dict__, "source": path}) if f.source is None else f for f in found]
+
+
+def figures() -> dict[str, Figure]:
+    """Every figure spec, by name (``./experiments`` shadows built-in names)."""
+    found: dict[str, Figure] = {}
+    for folder in experiments_dirs():
+        for path in sorted(folder.glob("*.py")):
+            if path.name.startswith("_"):
+                continue
+            for fig in _load(path):
+                found.setdefault(fig.name, fig)
+    return dict(sorted(found.items()))
+
+
+def get(name: str) -> Figure:
+    """The figure called ``name``, or a one-line error listing the known ones."""
+    known = figures()
+    if name not in known:
+        raise CobelError(
+            f"unknown figure {name!r}{suggest(name, known)}; allowed: {allowed_list(known)} "
+            "(see `cobel figure --list`)"
+        )
+    return known[name]
+
+
+# -- building ---------------------------------------------------------------------------------
+
+
+def results_root() -> Path:
+    return Path(os.environ.get("COBEL_RESULTS") or "results")
+
+
+@contextlib.contextmanager
+def _composer() -> Iterator[Callable[[list[str]], Any]]:
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from cobelrun.config import builtin_conf_dir, register_resolvers
+
+    register_resolvers()
+    GlobalHydra.instance().clear()
+
+    def _compose(overrides: list[str]) -> Any:
+        try:
+            cfg = compose("config", overrides=overrides)
+        except HydraException as exc:
+            raise ConfigError(
+                f"{' '.join(overrides)}: {str(exc).strip().splitlines()[0]}"
+            ) from None
+        OmegaConf.resolve(cfg)
+        return cfg
+
+    try:
+        with initialize_config_dir(config_dir=str(builtin_conf_dir()), version_base="1.3"):
+            yield _compose
+    finally:
+        GlobalHydra.instance().clear()
+
+
+@dataclass
+class _Planned:
+    label: str
+    job: int
+    overrides: list[str]
+    params: dict[str, Any]
+    cfg: Any
+    config_hash: str
+    run_dir: Path
+
+
+def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) -> list[_Planned]:
+    """Compose every run of ``figure``; each gets a run folder keyed by its config hash."""
+    from cobelrun.sweep import job_config_hash, plan
+
+    root = root or results_root()
+    planned = []
+    with _composer() as compose:
+        for label in figure.runs:
+            _, jobs = plan(figure.overrides(label, quick))
+            for j in jobs:
+                cfg = compose(j["overrides"])
+                chash = job_config_hash(cfg)
+                run_dir = root / FIGURE_DIR / RUN_STORE / f"{cfg.task.name}-{chash[:16]}"
+                planned.append(
+                    _Planned(label, j["job"], j["overrides"], j["params"], cfg, chash, run_dir)
+                )
+    return planned
+
+
+def build(
+    figure: Figure,
+    *,
+    quick: bool = False,
+    out_dir: Path | None = None,
+    root: Path | None = None,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Path]:
+    """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
+
+    Returns the written files by suffix (``png``, ``pdf``, ``csv``).
+    """
+    from cobelrun.figures.style import paper_style
+    from cobelrun.progress import run_progress
+    from cobelrun.runner import run
+    from cobelrun.sweep import clear_outputs, is_complete
+
+    root = root or results_root()
+    out_dir = out_dir or root / FIGURE_DIR
+    planned = plan_runs(figure, quick=quick, root=root)
+    todo = [p for p in planned if not is_complete(p.run_dir, p.config_hash)]
+    if log:
+        log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
+            f"{len(todo)} to run")  # fmt: skip
+    for k, p in enumerate(todo, 1):
+        clear_outputs(p.run_dir)
+        label = f"{figure.name} {k}/{len(todo)} {p.label}"
+        with run_progress(label) as progress:
+            run(p.cfg, p.run_dir, progress=progress)
+    todo_dirs = {p.run_dir for p in todo}
+    data = FigureData(quick=quick, runs={})
+    for p in planned:
+        ref = RunRef(p.label, p.job, tuple(p.overrides), p.params, p.run_dir, p.config_hash,
+                     reused=p.run_dir not in todo_dirs)  # fmt: skip
+        data.runs.setdefault(p.label, []).append(ref)
+    stem = f"{figure.name}_quick" if quick else figure.name
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with paper_style():
+        fig, table = figure.draw(data)
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            files = {"png": out_dir / f"{stem}.png", "pdf": out_dir / f"{stem}.pdf"}
+            fig.savefig(files["png"], dpi=300)
+            fig.savefig(files["pdf"])
+            files["csv"] = out_dir / f"{stem}.csv"
+            table.to_csv(files["csv"], index=False)
+        except OSError as exc:
+            raise CobelError(f"cannot write figure files to {out_dir}: {exc.strerror}") from None
+        finally:
+            plt.close(fig)
+    return files

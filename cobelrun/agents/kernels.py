@@ -8,8 +8,38 @@ results for the same seed. No global RNG state is used.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
-from numba import njit
+
+
+def _import_numba_arraymath_without_scipy() -> None:
+    """Import ``numba.np.arraymath`` without its BLAS probe importing scipy.linalg (~0.35 s).
+
+    The first call of any compiled (or cache-loaded) function makes numba import
+    ``numba.np.arraymath``, which checks once whether BLAS is available by importing
+    ``scipy.linalg``. The only thing that check decides is whether ``np.convolve`` /
+    ``np.correlate`` inner products in numba code use BLAS; nothing in cobel needs that, so
+    when scipy is not imported yet we let the probe fail (plain-loop fallback) and restore
+    the import system right after. Set ``COBEL_NUMBA_BLAS=1`` to keep numba's default.
+    """
+    import os
+
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    if os.environ.get("COBEL_NUMBA_BLAS") == "1":
+        return
+    sys.modules["scipy.linalg"] = None  # type: ignore[assignment]  # -> ImportError
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        if sys.modules.get("scipy.linalg", 0) is None:
+            del sys.modules["scipy.linalg"]
+
+
+_import_numba_arraymath_without_scipy()
+
+from numba import njit  # noqa: E402
 
 # Policies
 EPSILON_GREEDY = 0

@@ -153,6 +153,17 @@ _SPACE, _MINUS, _DOT, _ZERO = 32, 45, 46, 48
 
 
 def _fixed_digits(values: np.ndarray, frac: int) -> np.ndarray:
+    """:func:`_fixed_digits_all`, formatting each distinct value once when there are few
+    (grid coordinates, the four headings' quaternions, a constant z, 100 ms nsec steps)."""
+    n = values.shape[0]
+    if n >= 64:
+        uniq, inverse = np.unique(values, return_inverse=True)
+        if uniq.shape[0] * 4 <= n:
+            return _fixed_digits_all(uniq, frac)[inverse.reshape(-1)]
+    return _fixed_digits_all(values, frac)
+
+
+def _fixed_digits_all(values: np.ndarray, frac: int) -> np.ndarray:
     """ASCII of ``values`` as fixed-width, right-aligned, space-padded JSON numbers.
 
     Returns an ``(n, width)`` uint8 matrix; e.g. ``[-1.5, 12.25]`` with ``frac=2`` gives
@@ -196,7 +207,21 @@ class _PackedMessageIndex(MessageIndex):
     def write(self, stream: Any) -> None:
         stream.start_record(Opcode.MESSAGE_INDEX)
         stream.write2(self.channel_id)
-        data = np.asarray(self.records, dtype="<u8").tobytes() if self.records else b""
+        # records: (log_time, offset) tuples (Writer.add_message) and (k, 2) uint64 arrays
+        # (_BulkAppender), in the order they were added
+        parts: list[np.ndarray] = []
+        pending: list[tuple[int, int]] = []
+        for r in self.records:
+            if isinstance(r, np.ndarray):
+                if pending:
+                    parts.append(np.asarray(pending, dtype="<u8").reshape(-1, 2))
+                    pending = []
+                parts.append(r)
+            else:
+                pending.append(r)
+        if pending:
+            parts.append(np.asarray(pending, dtype="<u8").reshape(-1, 2))
+        data = np.concatenate(parts).astype("<u8", copy=False).tobytes() if parts else b""
         stream.write4(len(data))
         stream.write(data)
         stream.finish_record()
@@ -293,12 +318,14 @@ class _BulkAppender:
             )
             cb.message_end_time = max(cb.message_end_time, tmax)
             index = cb.message_indices.get(channel_id)
-            if not index:
+            if not isinstance(index, _PackedMessageIndex):
                 index = cb.message_indices[channel_id] = _PackedMessageIndex(
-                    channel_id=channel_id, records=[]
+                    channel_id=channel_id, records=list(index.records) if index else []
                 )
-            offsets = count + (starts[i : i + k] - starts[i])
-            index.records.extend(zip(tk.tolist(), offsets.tolist(), strict=True))
+            rec = np.empty((k, 2), dtype="<u8")
+            rec[:, 0] = tk
+            rec[:, 1] = count + (starts[i : i + k] - starts[i])
+            index.records.append(rec)
             cb.num_messages += k
             cb.record_writer.write(blob[starts[i] : starts[i + k]])
             st.message_start_time = (

@@ -26,7 +26,7 @@ from cobelrun.protocol import Protocol
 from cobelrun.recorder import RecordConfig, RunRecorder
 
 DONE_MARKER = ".done"
-TASK_KEYS = ("name", "description", "runs", "protocol", "monitors", "record")
+TASK_KEYS = ("name", "description", "runs", "protocol", "monitors", "record", "save_agents")
 
 
 class Interrupted(KeyboardInterrupt):
@@ -45,6 +45,8 @@ class Task:
     record: RecordConfig
     runs: int
     seed: int
+    load_from: str | None = None
+    save_agents: bool = True
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -68,7 +70,15 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         raise ConfigError(f"task.runs must be an integer >= 1, got {runs!r}")
     protocol = Protocol.from_config(OmegaConf.to_container(task_cfg.protocol, resolve=True))
     env = instantiate("env", cfg.env)
-    make_agent = instantiate("agent", cfg.agent, env=env, _partial_=True)
+    agent_node = OmegaConf.to_container(cfg.agent, resolve=True)
+    assert isinstance(agent_node, dict)
+    load_from = agent_node.pop("load_from", None)  # handled here, not by the agent
+    if load_from is not None and not Path(str(load_from).replace("{run}", "0")).exists():
+        raise ConfigError(f"agent.load_from {load_from!r} does not exist")
+    save_agents = task_cfg.get("save_agents", True)
+    if not isinstance(save_agents, bool):
+        raise ConfigError(f"task.save_agents must be true or false, got {save_agents!r}")
+    make_agent = instantiate("agent", agent_node, env=env, _partial_=True)
     monitors: dict[str, Monitor] = {}
     for name, node in (task_cfg.get("monitors") or {}).items():
         if node is None:
@@ -92,6 +102,8 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         record=record,
         runs=runs,
         seed=seed,
+        load_from=None if load_from is None else str(load_from),
+        save_agents=save_agents,
     )
 
 
@@ -127,6 +139,20 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def saved_agent_file(load_from: str, run: int) -> Path:
+    """The saved agent to continue run ``run`` from: ``load_from`` is a file (``{run}`` is
+    replaced by the run index) or a run folder holding ``agent_run{run}.*``."""
+    path = Path(load_from.replace("{run}", str(run)))
+    if path.is_dir():
+        found = sorted(path.glob(f"agent_run{run}.*"))
+        if not found:
+            raise ConfigError(f"agent.load_from: {path} has no agent_run{run}.* for run {run}")
+        return found[0]
+    if not path.is_file():
+        raise ConfigError(f"agent.load_from: {path} does not exist")
+    return path
+
+
 def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
     env = task.env
@@ -139,13 +165,21 @@ def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
+            if task.load_from is not None:
+                agent.load(saved_agent_file(task.load_from, run))
             recorder.start_run(run)
+            recorder.start_agent(run, agent)
             first = 1
             for phase in task.protocol.phases:
                 task.protocol.apply(phase, env)
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
-                batch = go(phase.trials, max_steps)
+                callbacks = recorder.phase_callbacks(first)
+                batch = (
+                    go(phase.trials, max_steps, callbacks)
+                    if callbacks
+                    else go(phase.trials, max_steps)
+                )
                 recorder.record(run, phase.name, first, batch)
                 first += phase.trials
                 if progress is not None:  # trials over all runs; phases are the finest grain
@@ -153,6 +187,9 @@ def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
                     progress(
                         run * per_run + first - 1, task.runs * per_run, run=run, runs=task.runs
                     )
+            recorder.end_agent(agent, first - 1)
+            if task.save_agents:
+                agent.save(run_dir / f"agent_run{run}")
     finally:
         recorder.close()
 

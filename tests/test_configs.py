@@ -75,7 +75,8 @@ def _env_for(agent_cls):
 def test_every_agent_instantiates(agent: str):
     import importlib
 
-    cfg = _compose(f"agent={agent}")
+    # task=gridworld sets no agent parameters (the default task's belong to Dyna-Q)
+    cfg = _compose("task=gridworld", f"agent={agent}")
     module, _, name = cfg.agent._target_.rpartition(".")
     agent_cls = getattr(importlib.import_module(module), name)
     env = _env_for(agent_cls)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures import PLOTS_BY_TASK
 
 
 def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
@@ -79,7 +81,10 @@ def plot_extinction(trials: pd.DataFrame, title: str = ""):
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
-    """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``)."""
+    """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``).
+
+    Tasks with their own figure (:data:`cobelrun.figures.PLOTS_BY_TASK`) are drawn by it.
+    """
     from cobelrun.results import load_manifest, load_trials
 
     run_dir = Path(run_dir)
@@ -90,6 +95,8 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
         title = str(load_manifest(run_dir).get("task", ""))
     except CobelError:
         title = ""
+    if title in PLOTS_BY_TASK:  # the task has its own figure
+        return importlib.import_module(PLOTS_BY_TASK[title]).plot_run(run_dir, out)
     fig, _ = plot_extinction(trials, title)
     out = Path(out) if out is not None else run_dir / "plot.png"
     try:

@@ -24,6 +24,8 @@ from cobelrun.records import TrialBatch
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
+#: poses buffered before the MCAP writer is called (bounds memory, amortises per-call cost)
+MCAP_BATCH_POSES = 1 << 16
 #: heading (radians) of the gridworld actions left, up, right, down
 ACTION_HEADING = np.array([np.pi, np.pi / 2, 0.0, -np.pi / 2])
 
@@ -115,6 +117,9 @@ class RunRecorder:
             self._check_unique(step_fields)
             self.steps = ParquetStreamWriter(run_dir / "steps.parquet", pa.schema(step_fields))
         self.mcap = McapStreamWriter(run_dir / "run.mcap") if record.mcap else None
+        self._poses: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._events: list[tuple[np.ndarray, list[bytes]]] = []
+        self._n_buffered = 0
         # monitors with table "activity" take their own snapshots (ActivityMonitor)
         self.activity_monitors = [m for m in monitors.values() if m.table == "activity"]
         self.activity = None
@@ -209,14 +214,14 @@ class RunRecorder:
         t = self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
         pose_keep = np.repeat(keep, batch.steps + 1)
         coords = self.env.unwrapped.world.coords[states]
-        self.mcap.write_poses(
-            t[pose_keep], coords[pose_keep, 0], coords[pose_keep, 1], heading[pose_keep]
-        )
+        self._poses.append((t[pose_keep], coords[pose_keep], heading[pose_keep]))
+        self._n_buffered += int(pose_keep.sum())
         end_pos = start_pos + batch.steps
         idx = np.flatnonzero(keep)
         if idx.size:
             self._write_trial_events(run, phase, trial, batch, idx, t[start_pos], t[end_pos])
         self._clock += n_poses * STEP_NS
+        self._flush_mcap()
 
     def _write_trial_events(
         self,
@@ -263,9 +268,33 @@ class RunRecorder:
         times = np.empty(2 * n, np.int64)
         times[0::2] = t_start[idx]
         times[1::2] = t_end[idx]
-        self.mcap.write_json_batch(self.mcap.TRIAL_TOPIC, times, messages)
+        self._events.append((times, messages))
+
+    def _flush_mcap(self, force: bool = False) -> None:
+        """Write the buffered poses, then the buffered trial events, once enough are pending.
+
+        Batches of ~64k poses amortise the per-call cost of the vectorised writers (a T-maze
+        phase is only a few thousand poses); memory stays bounded by the batch size."""
+        if self.mcap is None or not (force or self._n_buffered >= MCAP_BATCH_POSES):
+            return
+        if self._poses:
+            t = np.concatenate([p[0] for p in self._poses])
+            xy = np.concatenate([p[1] for p in self._poses])
+            heading = np.concatenate([p[2] for p in self._poses])
+            self.mcap.write_poses(t, xy[:, 0], xy[:, 1], heading)
+        if self._events:
+            times = np.concatenate([e[0] for e in self._events])
+            messages = [m for e in self._events for m in e[1]]
+            self.mcap.write_json_batch(self.mcap.TRIAL_TOPIC, times, messages)
+        self._poses, self._events, self._n_buffered = [], [], 0
 
     def close(self) -> None:
+        try:
+            self._flush_mcap(force=True)
+        finally:
+            self._close_writers()
+
+    def _close_writers(self) -> None:
         for w in (self.trials, self.steps, self.mcap, self.activity):
             if w is not None:
                 w.close()

@@ -164,3 +164,24 @@ def test_render_cache_cli_builds_verifies_and_offline_run_reads(cobel, tmp_path)
     assert "up to date" in again.stdout
     bad = cobel("render-cache", "env=tmaze_paper", env=env)
     assert bad.returncode == 2 and "no image observation" in bad.stderr
+
+
+@pytest.mark.slow
+def test_tmaze_3d_task_end_to_end_offline(cobel, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    import pandas as pd
+
+    env = {"COBEL_CACHE": str(tmp_path / "c")}
+    tiny = ["task=tmaze_extinction_3d", "task.runs=1", "task.protocol.phases.0.trials=2",
+            "task.protocol.phases.1.trials=2", "task.protocol.max_steps=10",
+            "agent.learning_starts=5", "env.observation.render=offline"]  # fmt: skip
+    missing = cobel("run", *tiny, env=env)
+    assert missing.returncode == 2
+    line = missing.stderr.strip().splitlines()[-1]
+    assert "no render cache" in line and "cobel render-cache task=tmaze_extinction_3d" in line
+    assert cobel("render-cache", *tiny, env=env).returncode == 0
+    out = cobel("run", *tiny, env=env)
+    assert out.returncode == 0, out.stderr
+    run_dir = out.stdout.strip().splitlines()[-1]
+    trials = pd.read_parquet(f"{run_dir}/trials.parquet")
+    assert len(trials) == 4 and {"response", "steps", "reward"} <= set(trials.columns)

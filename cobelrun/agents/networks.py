@@ -163,7 +163,7 @@ class TorchMLP(Network):
 
     @staticmethod
     def _tensor(x: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(x, dtype=np.float32))
+        return torch.from_numpy(np.array(x, dtype=np.float32))  # a writable copy
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         with torch.no_grad():

@@ -122,8 +122,10 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, other: str | Pa
         end_explore = int(lt.loc[lt["phase"] != REWARDED, "trial"].max())
         last = int(lt["trial"].max())
         start = int(world.starts[0])
-        for ax, trial, label in ((axes[0, 1], end_explore, "end of exploration"),
-                                 (axes[0, 2], last, "end of training")):  # fmt: skip
+        snaps = np.sort(activity["trial"].unique())
+        for ax, wanted, label in ((axes[0, 1], end_explore, "end of exploration"),
+                                  (axes[0, 2], last, "end of training")):  # fmt: skip
+            trial = int(snaps[snaps <= wanted].max())  # the latest snapshot up to then
             sr = start_state_sr(activity, start, trial, world.n_states)
             im = plot_sr_on_maze(sr, world.height, world.width, world.blocked, ax,
                                  f"SR of start state {start}: {label} (trial {trial})")  # fmt: skip

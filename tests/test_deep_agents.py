@@ -1,0 +1,393 @@
+"""Deep and episodic agents: one contract over every agent, learning checks, PER, activity, CLI.
+
+Budgets are small so the default run stays fast; the paper-sized checks are marked slow.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+from gymnasium import spaces
+
+pytest.importorskip("torch")
+pytest.importorskip("stable_baselines3")
+
+from cobelrun.agents import MFEC, DQNAgent, DynaDQN, DynaDSR, DynaQ
+from cobelrun.agents.per import PrioritizedReplayBuffer, SumTree
+from cobelrun.envs import (
+    DiscreteGridWorldEnv,
+    GridWorldEnv,
+    TwoAFCEnv,
+    blodgett,
+    open_field,
+)
+from cobelrun.errors import ConfigError
+from cobelrun.records import TrialBatch
+
+SMALL = {"learning_starts": 10, "buffer_size": 500}
+# agent name -> (class, constructor kwargs, environment class it runs on)
+AGENTS = {
+    "dyna_q": (DynaQ, {"replay_batch": 5}, GridWorldEnv),
+    "dqn": (DQNAgent, SMALL, DiscreteGridWorldEnv),
+    "per_dqn": (DQNAgent, {**SMALL, "prioritized": True}, DiscreteGridWorldEnv),
+    "dyna_dqn": (DynaDQN, {"replay_batch": 8}, DiscreteGridWorldEnv),
+    "dyna_dsr": (
+        DynaDSR,
+        {"replay_batch": 8, "action_mask": True, "always_bootstrap": True},
+        DiscreteGridWorldEnv,
+    ),
+    "mfec": (MFEC, {"projection_dim": 16}, DiscreteGridWorldEnv),
+}
+
+
+def grid_env(cls: type[GridWorldEnv] = DiscreteGridWorldEnv, seed: int = 0, size: int = 4):
+    env = cls(world=open_field(size, size, starts=[0], goal=size * size - 1))
+    env.np_random = np.random.default_rng(seed)
+    return env
+
+
+def make(name: str, seed: int = 3, env_seed: int = 0, **extra):
+    cls, kwargs, env_cls = AGENTS[name]
+    env = grid_env(env_cls, env_seed)
+    return env, cls(env, seed=np.random.SeedSequence(seed), **{**kwargs, **extra})
+
+
+def probes(env: gym.Env) -> np.ndarray:
+    base = env.unwrapped
+    obs = getattr(base, "observations", None)
+    return np.asarray(obs) if obs is not None else np.arange(base.world.n_states)
+
+
+class TupleObsEnv(gym.Env):
+    """Spaces no cobel agent supports: Tuple observations, Box actions (via ``box_actions``)."""
+
+    def __init__(self, box_actions: bool = False) -> None:
+        self.observation_space = spaces.Tuple((spaces.Discrete(2), spaces.Discrete(2)))
+        self.action_space = (
+            spaces.Box(-1.0, 1.0, (1,), np.float32) if box_actions else spaces.Discrete(2)
+        )
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return (0, 0), {}
+
+    def step(self, action):
+        return (0, 0), 0.0, True, False, {}
+
+
+class BoxActionEnv(TupleObsEnv):
+    def __init__(self, obs_space: spaces.Space) -> None:
+        super().__init__(box_actions=True)
+        self.observation_space = obs_space
+
+
+def assert_same_batch(a: TrialBatch, b: TrialBatch) -> None:
+    for field in ("start_state", "end_state", "steps", "reward", "terminated", "offsets",
+                  "step_state", "step_action", "step_next_state", "step_reward"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+
+
+# -- the contract every agent meets ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(AGENTS))
+def test_rejects_unsupported_observation_space(name: str) -> None:
+    cls, kwargs, _ = AGENTS[name]
+    with pytest.raises(ConfigError, match=r"does not support observation space Tuple; allowed"):
+        cls(TupleObsEnv(), **kwargs)
+
+
+@pytest.mark.parametrize("name", sorted(AGENTS))
+def test_rejects_unsupported_action_space(name: str) -> None:
+    cls, kwargs, env_cls = AGENTS[name]
+    ok_obs = grid_env(env_cls).observation_space
+    with pytest.raises(ConfigError, match=r"does not support action space Box; allowed: Discrete"):
+        cls(BoxActionEnv(ok_obs), **kwargs)
+
+
+@pytest.mark.parametrize("name", sorted(AGENTS))
+def test_same_seed_same_trials(name: str) -> None:
+    batches = []
+    for _ in range(2):
+        _env, agent = make(name)
+        first = agent.train(4, 15)
+        batches.append((first, agent.test(2, 15)))
+    (a1, a2), (b1, b2) = batches
+    assert_same_batch(a1, b1)
+    assert_same_batch(a2, b2)
+    assert batches[0][0].n_trials == 4 and batches[0][1].n_trials == 2
+
+
+@pytest.mark.parametrize("name", sorted(AGENTS))
+def test_save_load_round_trip_predicts_the_same(name: str, tmp_path: Path) -> None:
+    env, agent = make(name)
+    agent.train(4, 15)
+    path = agent.save(tmp_path / "agent")
+    assert path.is_file() and path.name.startswith("agent.")
+    _env2, fresh = make(name, seed=99)
+    fresh.load(path)
+    x = probes(env)
+    np.testing.assert_array_equal(agent.predict(x), fresh.predict(x))
+    assert agent.predict(x).shape == (len(x), env.action_space.n)
+
+
+def test_deep_agents_are_lazy() -> None:
+    code = (
+        "import sys, cobelrun.agents, cobelrun.runner, cobelrun.monitors.activity; "
+        "assert 'torch' not in sys.modules and 'stable_baselines3' not in sys.modules; "
+        "cobelrun.agents.MFEC; assert 'torch' not in sys.modules; "
+        "cobelrun.agents.DQNAgent; assert 'stable_baselines3' in sys.modules"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# -- DQN specifics ------------------------------------------------------------------------------
+
+
+def test_dqn_keeps_the_last_transition_and_counts_steps() -> None:
+    _env, agent = make("dqn")
+    batch = agent.train(3, 10)
+    assert agent.model.num_timesteps == batch.n_steps
+    assert agent.model.replay_buffer.pos == batch.n_steps  # every step stored, the last included
+    agent.train(2, 10)  # reset_num_timesteps=False: counters continue
+    assert agent.model.num_timesteps == agent.model.replay_buffer.pos
+
+
+def test_dqn_leaves_global_rng_alone() -> None:
+    import torch
+
+    np.random.seed(5)  # noqa: NPY002
+    torch.manual_seed(5)
+    before = (np.random.get_state()[1].copy(), torch.get_rng_state().clone())  # noqa: NPY002
+    _env, agent = make("dqn")
+    agent.train(2, 10)
+    after = (np.random.get_state()[1], torch.get_rng_state())  # noqa: NPY002
+    np.testing.assert_array_equal(before[0], after[0])
+    assert torch.equal(before[1], after[1])
+
+
+def test_dqn_configuration_errors() -> None:
+    env = grid_env()
+    with pytest.raises(ConfigError, match=r"agent\.epsilon must be in"):
+        DQNAgent(env, epsilon=1.5)
+    with pytest.raises(ConfigError, match=r"agent\.activation 'tanhh' is not known"):
+        DQNAgent(env, activation="tanhh")
+    with pytest.raises(ConfigError, match="CnnPolicy needs image observations"):
+        DQNAgent(env, policy="CnnPolicy")
+
+
+def test_dqn_cnn_and_dict_observations() -> None:
+    class Images(TupleObsEnv):
+        def __init__(self):
+            super().__init__()
+            self.observation_space = spaces.Box(0, 255, (36, 36, 3), np.uint8)
+
+        def reset(self, *, seed=None, options=None):
+            gym.Env.reset(self, seed=seed)
+            return np.zeros((36, 36, 3), np.uint8), {"state": 0}
+
+        def step(self, action):
+            return np.zeros((36, 36, 3), np.uint8), 1.0, True, False, {"state": 1}
+
+    agent = DQNAgent(Images(), learning_starts=0, convs=[[8, 4, 2]], features_dim=32, seed=0)
+    b = agent.train(3, 5)
+    assert b.steps.tolist() == [1, 1, 1] and b.step_next_state.tolist() == [1, 1, 1]
+    assert agent.predict(np.zeros((2, 36, 36, 3), np.uint8)).shape == (2, 2)
+
+
+def test_dqn_learns_gridworld_goal() -> None:
+    _env, agent = make("dqn", env_seed=1, learning_starts=100, buffer_size=10_000)
+    agent.train(40, 50)
+    greedy = agent.test(1, 50)
+    assert greedy.terminated.all() and greedy.steps[0] <= 8  # shortest path: 6 steps
+
+
+# -- PER ------------------------------------------------------------------------------------------
+
+
+def test_sum_tree_prefix_search() -> None:
+    tree = SumTree(5)
+    tree.update(np.arange(5), np.array([1.0, 2.0, 3.0, 4.0, 0.5]))
+    assert tree.total == pytest.approx(10.5) and tree.min == pytest.approx(0.5)
+    np.testing.assert_array_equal(tree.find(np.array([0.0, 0.99, 1.0, 2.9, 6.0, 10.4])),
+                                  [0, 0, 1, 1, 3, 4])  # fmt: skip
+
+
+def test_per_sampling_follows_priorities() -> None:
+    obs_space = spaces.Box(0, 1, (2,), np.float32)
+    buf = PrioritizedReplayBuffer(8, obs_space, spaces.Discrete(2), device="cpu", alpha=1.0,
+                                  beta=0.5, seed=0)  # fmt: skip
+    for i in range(8):
+        buf.add(np.zeros((1, 2)), np.zeros((1, 2)), np.array([0]), np.array([float(i)]),
+                np.array([False]), [{}])  # fmt: skip
+    priorities = np.arange(1, 9, dtype=float)
+    buf.update_priorities(np.arange(8), priorities - buf.epsilon)
+    n = 40_000
+    counts = np.bincount(np.concatenate([buf.sample_indices(32) for _ in range(n // 32)]),
+                         minlength=8)  # fmt: skip
+    expected = priorities / priorities.sum() * counts.sum()
+    chi2 = ((counts - expected) ** 2 / expected).sum()
+    assert chi2 < 24.3  # chi-square, 7 degrees of freedom, p = 0.001
+    # importance weights: (N P(i))^-beta normalised by the largest (the rarest transition's)
+    sample = buf.sample(32)
+    p = priorities[sample.indices] / priorities.sum()
+    w = (8 * p) ** -sample_beta(buf) / (8 * priorities.min() / priorities.sum()) ** -sample_beta(
+        buf
+    )
+    np.testing.assert_allclose(sample.weights.numpy().ravel(), w, rtol=1e-5)
+
+
+def sample_beta(buf: PrioritizedReplayBuffer) -> float:
+    buf.n_sampled -= 1  # the beta that the last sample() used
+    beta = buf.beta
+    buf.n_sampled += 1
+    return beta
+
+
+def test_per_beta_anneals_to_one() -> None:
+    buf = PrioritizedReplayBuffer(4, spaces.Box(0, 1, (1,)), spaces.Discrete(2), device="cpu",
+                                  beta=0.4, beta_steps=10)  # fmt: skip
+    assert buf.beta == pytest.approx(0.4)
+    buf.n_sampled = 5
+    assert buf.beta == pytest.approx(0.7)
+    buf.n_sampled = 50
+    assert buf.beta == 1.0
+
+
+# -- MFEC ----------------------------------------------------------------------------------------
+
+
+def test_mfec_learns_gridworld_goal() -> None:
+    env = grid_env(size=5, seed=0)
+    agent = MFEC(env, seed=0)
+    batch = agent.train(60, 100)
+    assert batch.steps[-20:].mean() <= 8 * 1.5  # shortest path: 8 steps; epsilon 0.1 explores
+
+
+def test_mfec_buffer_rules() -> None:
+    env = grid_env()
+    agent = MFEC(env, seed=0, k=3, capacity=2, projection="none")
+    buf = agent.buffers[0]
+    key = np.eye(16)[0]
+    assert buf.estimate(key, 3) == 0.0  # fewer than k keys
+    buf.update(key, 1.0)
+    buf.update(key, 0.5)  # keeps the max
+    assert buf.estimate(key, 3) == 1.0  # exact match
+    buf.update(np.eye(16)[1], 2.0)
+    buf.update(np.eye(16)[2], 3.0)  # full: the oldest (key 0) goes
+    assert buf.lookup(key) is None and buf.size == 2
+
+
+# -- Dyna-DSR --------------------------------------------------------------------------------------
+
+
+def test_dyna_dsr_successor_representation_and_activations() -> None:
+    env = DiscreteGridWorldEnv(world=blodgett())
+    env.np_random = np.random.default_rng(0)
+    agent = DynaDSR(env, seed=0, replay_batch=16, action_mask=True, always_bootstrap=True)
+    agent.train(3, 60)
+    sr = agent.successor_representation(24)
+    assert sr.shape == (4, 40)
+    np.testing.assert_allclose(sr, agent.successor_representation(env.observations[24]))
+    acts = agent.activations(env.observations, ["sr/layer1", "sr/output", "reward/output"])
+    assert acts["sr/layer1"].shape == (40, 4 * 64) and acts["sr/output"].shape == (40, 160)
+    with pytest.raises(ConfigError, match="unknown layer 'sr/nope'"):
+        agent.activations(env.observations, ["sr/nope"])
+
+
+# -- tasks ------------------------------------------------------------------------------------------
+
+
+def two_afc_rewards(runs: int) -> tuple[np.ndarray, np.ndarray]:
+    train, greedy = [], []
+    for run in range(runs):
+        env = TwoAFCEnv()
+        env.np_random = np.random.default_rng(1000 + run)
+        agent = DQNAgent(env, seed=run, epsilon=0.3, gamma=0.8, batch_size=32, learning_starts=0)
+        train.append(agent.train(50, 1).reward)
+        greedy.append(agent.test(20, 1).reward.mean())
+    return np.array(train), np.array(greedy)
+
+
+def check_two_afc(train: np.ndarray, greedy: np.ndarray) -> None:
+    assert 0.35 <= train[:, :3].mean() <= 0.75  # chance at the start
+    # epsilon 0.3 caps the expected training reward at 0.7 + 0.3 / 2 = 0.85
+    assert train[:, 40:50].mean() >= 0.75
+    assert greedy.mean() >= 0.9
+
+
+def test_two_afc_learns_quickly() -> None:
+    check_two_afc(*two_afc_rewards(20))
+
+
+@pytest.mark.slow
+def test_two_afc_learns_quickly_100_agents() -> None:
+    check_two_afc(*two_afc_rewards(100))
+
+
+def latent_vs_direct(runs: int, explore: int = 100, rewarded: int = 10) -> tuple[float, float]:
+    settings = {"epsilon": 0.3, "beta": 5.0, "gamma": 0.9, "action_mask": True,
+                "replay_batch": 100, "target_tau": 0.01, "always_bootstrap": True}  # fmt: skip
+    means = {}
+    for group in ("latent", "direct"):
+        steps = []
+        for run in range(runs):
+            env = DiscreteGridWorldEnv(world=blodgett())
+            env.np_random = np.random.default_rng(run)
+            agent = DynaDSR(env, seed=run, **settings)
+            if group == "latent":
+                agent.train(explore, 200)
+            env.apply_changes(rewards={15: 10.0})
+            steps.append(agent.train(rewarded, 200).steps)
+        means[group] = float(np.mean(steps))
+    return means["latent"], means["direct"]
+
+
+@pytest.mark.slow
+def test_latent_learning_group_is_faster_after_reward() -> None:
+    latent, direct = latent_vs_direct(runs=5)
+    assert latent < 0.7 * direct, (latent, direct)
+
+
+# -- runner and CLI ----------------------------------------------------------------------------------
+
+
+def test_cli_two_afc_and_plot(cobel, tmp_path: Path) -> None:
+    res = cobel("run", "task=two_afc", "task.runs=2")
+    assert res.returncode == 0, res.stderr
+    run_dir = Path(res.stdout.strip().splitlines()[-1])
+    trials = pd.read_parquet(run_dir / "trials.parquet")
+    assert len(trials) == 100 and set(trials["reward"]) <= {0.0, 1.0}
+    assert (run_dir / "agent_run0.pt").is_file() and (run_dir / "agent_run1.pt").is_file()
+    plot = cobel("plot", str(run_dir))
+    assert plot.returncode == 0, plot.stderr
+
+
+def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -> None:
+    tiny = ["task=latent_learning", "task.runs=1", "task.protocol.max_steps=20",
+            "task.protocol.phases.0.trials=3", "task.protocol.phases.1.trials=2",
+            "task.monitors.activity.every=2", "agent.replay_batch=8"]  # fmt: skip
+    res = cobel("run", *tiny)
+    assert res.returncode == 0, res.stderr
+    run_dir = Path(res.stdout.strip().splitlines()[-1])
+    trials = pd.read_parquet(run_dir / "trials.parquet")
+    assert trials["phase"].tolist() == ["exploration"] * 3 + ["rewarded"] * 2
+    activity = pd.read_parquet(run_dir / "activity.parquet")
+    assert sorted(activity["trial"].unique()) == [0, 2, 4, 5]
+    assert set(activity["layer"]) == {"sr/output"}
+    assert len(activity) == 4 * 40 * 160  # snapshots x probes x units
+    assert (run_dir / "agent_run0.npz").is_file()
+    assert cobel("plot", str(run_dir)).returncode == 0
+    # continue from the saved agent; the direct protocol is one rewarded phase
+    more = cobel("run", "task=latent_learning", "protocol=direct", "task.runs=1",
+                 "task.protocol.max_steps=20", "task.protocol.phases.0.trials=2",
+                 "agent.replay_batch=8", f"+agent.load_from={run_dir}")  # fmt: skip
+    assert more.returncode == 0, more.stderr
+    bad = cobel("run", "task=two_afc", "task.runs=1", f"+agent.load_from={tmp_path}/nope.pt")
+    assert bad.returncode != 0 and "agent.load_from" in bad.stderr

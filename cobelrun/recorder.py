@@ -8,7 +8,9 @@ Foxglove. Everything is written in chunks as the run goes, so memory stays flat.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+import collections
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +84,45 @@ class RecordConfig:
         return self.runs == "all" or run in self.runs
 
 
+class WriterThread:
+    """Runs write calls in submission order on one background thread.
+
+    The simulation hands finished arrays over and goes on: Arrow's Parquet encoder, zstd and
+    numpy's array operations release the GIL, so with two or more cores writing overlaps
+    simulating. At most ``max_pending`` calls wait (memory stays bounded); an exception in a
+    write is raised in the calling thread at the next :meth:`submit` or at :meth:`close`.
+    With ``enabled=False`` calls run immediately in the calling thread.
+    """
+
+    def __init__(self, *, enabled: bool = True, max_pending: int = 8) -> None:
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="cobel-writer") if enabled else None
+        self._pending: collections.deque[Future] = collections.deque()
+        self._max_pending = max_pending
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        if self._pool is None:
+            fn(*args)
+            return
+        while self._pending and (
+            self._pending[0].done() or len(self._pending) >= self._max_pending
+        ):
+            self._pending.popleft().result()
+        self._pending.append(self._pool.submit(fn, *args))
+
+    def drain(self) -> None:
+        """Wait for every submitted call; raise the first error."""
+        while self._pending:
+            self._pending.popleft().result()
+
+    def close(self) -> None:
+        """Wait for pending calls (raising the first error) and stop the thread."""
+        try:
+            self.drain()
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True, cancel_futures=False)
+
+
 class RunRecorder:
     """Collects monitor columns for each batch and streams them to the run folder."""
 
@@ -91,6 +132,8 @@ class RunRecorder:
         env: Any,
         monitors: Mapping[str, Monitor],
         record: RecordConfig,
+        *,
+        background: bool = True,
     ) -> None:
         self.env = env
         self.record_cfg = record
@@ -117,7 +160,7 @@ class RunRecorder:
             self._check_unique(step_fields)
             self.steps = ParquetStreamWriter(run_dir / "steps.parquet", pa.schema(step_fields))
         self.mcap = McapStreamWriter(run_dir / "run.mcap") if record.mcap else None
-        self._poses: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._poses: list[tuple[np.ndarray, np.ndarray]] = []  # (times, pose ids)
         self._events: list[tuple[np.ndarray, list[bytes]]] = []
         self._n_buffered = 0
         # monitors with table "activity" take their own snapshots (ActivityMonitor)
@@ -129,6 +172,7 @@ class RunRecorder:
             for m in self.activity_monitors:
                 m.bind(self.activity.write)
         self._clock = 0  # simulated ns
+        self._writer = WriterThread(enabled=background)
 
     @staticmethod
     def _check_unique(fields: list[pa.Field]) -> None:
@@ -175,7 +219,7 @@ class RunRecorder:
         }
         for m in self.trial_monitors:
             cols.update(m.columns(batch, self.env))
-        self.trials.write(cols)
+        self._writer.submit(self.trials.write, cols)
 
         if not self.record_cfg.records_run(run):
             self._clock += int(batch.n_steps + n) * STEP_NS
@@ -189,7 +233,7 @@ class RunRecorder:
             }
             for m in self.step_monitors:
                 step_cols.update({k: v[step_keep] for k, v in m.columns(batch, self.env).items()})
-            self.steps.write(step_cols)
+            self._writer.submit(self.steps.write, step_cols)
         if self.mcap is not None:
             self._write_mcap(run, phase, trial, batch, keep)
         else:
@@ -207,14 +251,13 @@ class RunRecorder:
         states = np.empty(n_poses, np.int64)
         states[is_start] = batch.start_state
         states[~is_start] = batch.step_next_state
-        heading = np.empty(n_poses)
-        heading[is_start] = np.pi / 2
-        n_actions = ACTION_HEADING.shape[0]
-        heading[~is_start] = ACTION_HEADING[np.clip(batch.step_action, 0, n_actions - 1)]
+        # pose id = state * 5 + heading code (0-3: the action that led there, 4: trial start)
+        code = np.empty(n_poses, np.int64)
+        code[is_start] = 4
+        code[~is_start] = np.clip(batch.step_action, 0, 3)
         t = self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
         pose_keep = np.repeat(keep, batch.steps + 1)
-        coords = self.env.unwrapped.world.coords[states]
-        self._poses.append((t[pose_keep], coords[pose_keep], heading[pose_keep]))
+        self._poses.append((t[pose_keep], (states * 5 + code)[pose_keep]))
         self._n_buffered += int(pose_keep.sum())
         end_pos = start_pos + batch.steps
         idx = np.flatnonzero(keep)
@@ -279,20 +322,32 @@ class RunRecorder:
             return
         if self._poses:
             t = np.concatenate([p[0] for p in self._poses])
-            xy = np.concatenate([p[1] for p in self._poses])
-            heading = np.concatenate([p[2] for p in self._poses])
-            self.mcap.write_poses(t, xy[:, 0], xy[:, 1], heading)
+            pose_id = np.concatenate([p[1] for p in self._poses])
+            coords = self.env.unwrapped.world.coords
+            headings = np.append(ACTION_HEADING, np.pi / 2)  # codes 0-3 and 4 (start: up)
+            self._writer.submit(
+                self.mcap.write_indexed_poses,
+                t,
+                pose_id,
+                np.repeat(coords[:, 0], 5),
+                np.repeat(coords[:, 1], 5),
+                np.tile(headings, coords.shape[0]),
+            )
         if self._events:
             times = np.concatenate([e[0] for e in self._events])
             messages = [m for e in self._events for m in e[1]]
-            self.mcap.write_json_batch(self.mcap.TRIAL_TOPIC, times, messages)
+            self._writer.submit(self.mcap.write_json_batch, self.mcap.TRIAL_TOPIC, times, messages)
         self._poses, self._events, self._n_buffered = [], [], 0
 
     def close(self) -> None:
+        """Write what is buffered, wait for the writer thread, close every file."""
         try:
             self._flush_mcap(force=True)
         finally:
-            self._close_writers()
+            try:
+                self._writer.close()
+            finally:
+                self._close_writers()
 
     def _close_writers(self) -> None:
         for w in (self.trials, self.steps, self.mcap, self.activity):

@@ -298,7 +298,7 @@ def _replay_inline(
         Q[s, a] += lr * (target - Q[s, a])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run_trials(
     rng, env_rng, Q, mask, use_mask,
     m_next, m_reward, m_terminal, visited, visited_list, n_visited, reward_rate,

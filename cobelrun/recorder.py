@@ -7,8 +7,8 @@ Foxglove. Everything is written in chunks as the run goes, so memory stays flat.
 
 from __future__ import annotations
 
-import json
 import collections
+import json
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass

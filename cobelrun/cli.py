@@ -54,6 +54,9 @@ Examples:
 \b
 Hydra flags work as usual: -m/--multirun, --cfg job (print the config), --info, -c.
 Results go to results/<task>/<date>/<time>_<id>/ (COBEL_RESULTS changes the root).
+Sweeps (-m) run on all cores (joblib; hydra/launcher=slurm for SLURM) into
+results/<task>/sweeps/<id>/, <id> a hash of the jobs: the same command resumes the
+sweep, skipping finished jobs. Then: cobel status DIR, cobel collect DIR.
 Add --debug for a full traceback on errors. `cobel list` shows tasks, envs and agents.
 """
 

@@ -113,16 +113,28 @@ def list_cmd(
 
 @app.command("plot")
 def plot_cmd(
-    run_dir: Annotated[Path, typer.Argument(help="A run folder written by `cobel run`.")],
+    run_dirs: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Run folder(s) written by `cobel run`; Fig. 7 takes a latent and a direct one.",
+            show_default=False,
+            metavar="RUN_DIR...",
+        ),
+    ],
     out: Annotated[
-        Path | None, typer.Option("--out", "-o", help="Output PNG (default: RUN_DIR/plot.png).")
+        Path | None,
+        typer.Option("--out", "-o", help="Output PNG (default: FIRST_RUN_DIR/plot.png)."),
     ] = None,
 ) -> None:
-    """Plot a run: cumulative response and escape latency across runs (Fig. 6B style)."""
+    """Plot a run: the task's own figure (Fig. 7, Fig. 9) or Fig. 6B-style response/latency.
+
+    Several folders are drawn together where the task's figure compares groups, e.g.
+    `cobel plot LATENT_DIR DIRECT_DIR` for Fig. 7B.
+    """
     from cobelrun.figures.extinction import plot_run
 
     try:
-        path = plot_run(run_dir, out)
+        path = plot_run(run_dirs[0], out, *run_dirs[1:])
     except CobelError as exc:
         fail(str(exc))
     typer.echo(str(path))

@@ -41,6 +41,14 @@ def load_steps(path: str | Path) -> pd.DataFrame:
     return pd.read_parquet(p)
 
 
+def load_activity(path: str | Path) -> pd.DataFrame:
+    """The ``activity`` table of a run folder (unit activations written by an activity monitor)."""
+    p = _run_dir(path) / "activity.parquet"
+    if not p.is_file():
+        raise CobelError(f"{p.parent} has no activity.parquet (no activity monitor)")
+    return pd.read_parquet(p)
+
+
 def load_manifest(path: str | Path) -> dict[str, Any]:
     """The run's ``manifest.json``."""
     p = _run_dir(path) / "manifest.json"
@@ -50,7 +58,7 @@ def load_manifest(path: str | Path) -> dict[str, Any]:
 
 
 def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:
-    """One table (``trials`` or ``steps``) of a run folder.
+    """One table (``trials``, ``steps`` or ``activity``) of a run folder.
 
     Examples
     --------
@@ -60,7 +68,9 @@ def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:
         return load_trials(path)
     if table == "steps":
         return load_steps(path)
-    raise CobelError(f"unknown table {table!r}; allowed: 'trials', 'steps'")
+    if table == "activity":
+        return load_activity(path)
+    raise CobelError(f"unknown table {table!r}; allowed: 'trials', 'steps', 'activity'")
 
 
 def load_jobs(sweep_dir: str | Path) -> pd.DataFrame:

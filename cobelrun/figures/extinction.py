@@ -80,10 +80,18 @@ def plot_extinction(trials: pd.DataFrame, title: str = ""):
     return fig, axes
 
 
-def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
+def _takes_more_runs(fn) -> bool:
+    import inspect
+
+    params = inspect.signature(fn).parameters.values()
+    return any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in params)
+
+
+def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | Path) -> Path:
     """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``).
 
-    Tasks with their own figure (:data:`cobelrun.figures.PLOTS_BY_TASK`) are drawn by it.
+    Tasks with their own figure (:data:`cobelrun.figures.PLOTS_BY_TASK`) are drawn by it;
+    ``others`` (more run folders, e.g. Fig. 7's direct group) go to figures that take them.
     """
     from cobelrun.results import load_manifest, load_trials
 
@@ -96,7 +104,13 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     except CobelError:
         title = ""
     if title in PLOTS_BY_TASK:  # the task has its own figure
-        return importlib.import_module(PLOTS_BY_TASK[title]).plot_run(run_dir, out)
+        task_plot = importlib.import_module(PLOTS_BY_TASK[title]).plot_run
+        if others and not _takes_more_runs(task_plot):
+            raise CobelError(f"the {title} plot takes one run folder, got {1 + len(others)}")
+        return task_plot(run_dir, out, *others)
+    if others:
+        raise CobelError(f"the {title or 'Fig. 6B'} plot takes one run folder, got "
+                         f"{1 + len(others)}")  # fmt: skip
     fig, _ = plot_extinction(trials, title)
     out = Path(out) if out is not None else run_dir / "plot.png"
     try:

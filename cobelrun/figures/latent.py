@@ -21,25 +21,49 @@ GROUP_COLORS = {"latent": "tab:blue", "direct": "tab:orange"}
 
 
 def aligned_latency(trials: pd.DataFrame, phase: str = REWARDED) -> pd.DataFrame:
-    """Rows of the ``phase`` trials with ``rewarded_trial`` = 1 for the phase's first trial."""
+    """Trials with ``aligned_trial``: 0 = the first ``phase`` trial of each run, earlier
+    trials (the latent group's exploration) negative, as on the x axis of Fig. 7B."""
     if "steps" not in trials:
         raise CobelError("the trials table has no steps column (no latency monitor)")
     rows = trials[trials["phase"] == phase]
     if rows.empty:
         raise CobelError(f"the trials table has no {phase!r} phase to align on")
-    return rows.assign(rewarded_trial=rows["trial_in_phase"].astype(int))
+    first = rows.groupby("run")["trial"].min()
+    return trials.assign(aligned_trial=trials["trial"] - trials["run"].map(first).to_numpy())
+
+
+def latency_summary(groups: Mapping[str, pd.DataFrame]) -> pd.DataFrame:
+    """Per group and aligned trial: runs, mean, 25th and 75th percentile of the latency."""
+    frames = []
+    for name, trials in groups.items():
+        g = aligned_latency(trials).groupby("aligned_trial")["steps"]
+        frames.append(
+            pd.DataFrame({"runs": g.count(), "mean": g.mean(), "q25": g.quantile(0.25),
+                          "q75": g.quantile(0.75)})  # fmt: skip
+            .reset_index()
+            .assign(group=name)
+        )
+    return pd.concat(frames, ignore_index=True)
+
+
+def mean_latency_first_rewarded(trials: pd.DataFrame, n: int = 10) -> float:
+    """Mean escape latency over the first ``n`` rewarded trials (all runs)."""
+    rows = aligned_latency(trials)
+    return float(rows.loc[rows["aligned_trial"].between(0, n - 1), "steps"].mean())
 
 
 def plot_latency_groups(groups: Mapping[str, pd.DataFrame], ax) -> None:
-    """Fig. 7B: mean latency (band: 25th-75th percentile over runs) per rewarded trial."""
-    for name, trials in groups.items():
-        rows = aligned_latency(trials)
-        g = rows.groupby("rewarded_trial")["steps"]
-        x = g.mean().index.to_numpy()
-        color = GROUP_COLORS.get(name)
-        ax.plot(x, g.mean(), lw=1.5, color=color, label=f"{name} ({rows['run'].nunique()} runs)")
-        ax.fill_between(x, g.quantile(0.25), g.quantile(0.75), alpha=0.2, lw=0, color=color)
-    ax.set_xlabel("trial since reward introduced")
+    """Fig. 7B: mean latency (band: 25th-75th percentile over runs), aligned on the first
+    rewarded trial (0); the latent group's exploration trials are negative."""
+    summary = latency_summary(groups)
+    for name, rows in summary.groupby("group", sort=False):
+        color = GROUP_COLORS.get(str(name))
+        x = rows["aligned_trial"].to_numpy()
+        ax.plot(x, rows["mean"], lw=1.2, color=color,
+                label=f"{name} ({int(rows['runs'].max())} runs)")  # fmt: skip
+        ax.fill_between(x, rows["q25"], rows["q75"], alpha=0.2, lw=0, color=color)
+    ax.axvline(-0.5, color="0.5", lw=0.8, ls=":")
+    ax.set_xlabel("trial (0 = first rewarded trial)")
     ax.set_ylabel("escape latency [steps]")
     ax.legend(frameon=False, fontsize=8)
 
@@ -57,81 +81,180 @@ def start_state_sr(
     return per_unit.reshape(-1, n_states).mean(axis=0)
 
 
-def plot_sr_on_maze(sr: np.ndarray, height: int, width: int, blocked: np.ndarray, ax, title=""):
-    """Draw a per-state vector on the grid; wall cells grey. Returns the image."""
-    grid = np.ma.masked_array(sr.reshape(height, width), mask=blocked.reshape(height, width))
+def maze_walls(world) -> list[tuple[tuple[float, float], tuple[float, float], bool]]:
+    """Wall segments between neighbouring cells, in image coordinates (x = column, y = row):
+    ``((x0, y0), (x1, y1), one_way)``; ``one_way`` where only one direction is open."""
+    ns = world.next_state
+    if ns is None:
+        return []
+    h, w = world.height, world.width
+    segs = []
+    for r in range(h):
+        for c in range(w):
+            a = r * w + c
+            for dr, dc in ((0, 1), (1, 0)):
+                r2, c2 = r + dr, c + dc
+                if r2 >= h or c2 >= w:
+                    continue
+                b = r2 * w + c2
+                ab, ba = b in ns[a], a in ns[b]
+                if ab and ba:
+                    continue
+                if dc:  # vertical segment between columns c and c + 1
+                    seg = ((c + 0.5, r - 0.5), (c + 0.5, r + 0.5))
+                else:
+                    seg = ((c - 0.5, r + 0.5), (c + 0.5, r + 0.5))
+                segs.append((*seg, ab != ba))
+    return segs
+
+
+def plot_sr_on_maze(sr: np.ndarray, world, ax, title: str = "", mask: np.ndarray | None = None):
+    """Draw a per-state vector on the maze grid (masked cells grey, walls black, one-way doors
+    dotted, start S and goal G marked). Returns the image."""
     import matplotlib as mpl
 
+    h, w = world.height, world.width
+    mask = world.blocked if mask is None else mask
+    grid = np.ma.masked_array(sr.reshape(h, w), mask=np.asarray(mask).reshape(h, w))
     cmap = mpl.colormaps["viridis"].copy()
-    cmap.set_bad("0.6")
+    cmap.set_bad("0.75")
     im = ax.imshow(grid, cmap=cmap, interpolation="nearest")
+    for (x0, y0), (x1, y1), one_way in maze_walls(world):
+        ax.plot([x0, x1], [y0, y1], color="k", lw=0.6 if one_way else 1.6,
+                ls=":" if one_way else "-")  # fmt: skip
+    ax.plot([-0.5, w - 0.5, w - 0.5, -0.5, -0.5], [-0.5, -0.5, h - 0.5, h - 0.5, -0.5],
+            color="k", lw=1.6)  # fmt: skip
+    places = getattr(world, "places", {}) or {}
+    for name, letter in (("start", "S"), ("goal", "G")):
+        if name in places:
+            r, c = divmod(int(places[name]), w)
+            ax.text(c, r, letter, ha="center", va="center", color="w", fontsize=8,
+                    fontweight="bold")  # fmt: skip
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title(title, fontsize=9)
+    ax.set_title(title, fontsize=8)
     return im
 
 
-def _load(run_dir: Path) -> tuple[pd.DataFrame, dict]:
-    from cobelrun.results import load_manifest, load_trials
+def sr_snapshots(activity: pd.DataFrame, trials: pd.DataFrame) -> list[tuple[str, int]]:
+    """(label, snapshot trial) for Fig. 7C: the latest snapshots at the end of the exploration
+    phase and at the end of training."""
+    snaps = np.sort(activity["trial"].unique())
+    explore = trials.loc[trials["phase"] != REWARDED, "trial"]
+    wanted = []
+    if not explore.empty:
+        wanted.append(("end of exploration", int(explore.max())))
+    wanted.append(("end of training", int(trials["trial"].max())))
+    out = []
+    for label, t in wanted:
+        before = snaps[snaps <= t]
+        if before.size:
+            out.append((label, int(before.max())))
+    return out
 
-    trials = load_trials(run_dir)
-    return trials, load_manifest(run_dir)
+
+def draw_fig7(
+    groups: Mapping[str, pd.DataFrame],
+    activity: pd.DataFrame | None = None,
+    world=None,
+    *,
+    sr_group: str = "latent",
+    layer: str = "sr/output",
+):
+    """Fig. 7B (+ 7C when ``activity`` of ``sr_group`` and its ``world`` are given).
+
+    Returns ``(figure, table)``; the table is long format with ``panel`` ("7B" or "7C"),
+    ``series`` (group, or SR snapshot), ``trial`` (aligned trial for 7B, snapshot trial for
+    7C), ``state`` (7C), ``runs``, ``mean``, ``q25``, ``q75``.
+    """
+    import matplotlib.pyplot as plt
+
+    snaps: list[tuple[str, int]] = []
+    if activity is not None and world is not None and sr_group in groups:
+        activity = activity[activity["layer"] == layer]
+        snaps = sr_snapshots(activity, groups[sr_group])
+    n = 1 + len(snaps)
+    widths = [1.35] + [1.0] * len(snaps)
+    fig, axes = plt.subplots(1, n, figsize=(3.6 + 3.0 * len(snaps), 2.6), squeeze=False,
+                             constrained_layout=True, width_ratios=widths)  # fmt: skip
+    ax_b = axes[0, 0]
+    plot_latency_groups(groups, ax_b)
+    ax_b.set_title("B  escape latency (mean, IQR)", fontsize=9, loc="left")
+    summary = latency_summary(groups)
+    table = [
+        summary.rename(columns={"group": "series", "aligned_trial": "trial"}).assign(panel="7B")
+    ]
+    if snaps:
+        assert activity is not None
+        start = int(world.starts[0])
+        reach = world.reachable()
+        runs = activity["run"].nunique()
+        for k, (label, trial) in enumerate(snaps, 1):
+            sr = start_state_sr(activity, start, trial, world.n_states, layer)
+            im = plot_sr_on_maze(sr, world, axes[0, k], mask=~reach,
+                                 title=f"{'C  ' if k == 1 else ''}SR of start: {label}\n"
+                                       f"(trial {trial}, mean of {runs} runs)")  # fmt: skip
+            fig.colorbar(im, ax=axes[0, k], shrink=0.7)
+            table.append(pd.DataFrame({"panel": "7C", "series": label, "trial": trial,
+                                       "state": np.arange(world.n_states), "runs": runs,
+                                       "mean": sr}))  # fmt: skip
+    cols = ["panel", "series", "trial", "state", "runs", "mean", "q25", "q75"]
+    out = pd.concat(table, ignore_index=True).reindex(columns=cols)
+    return fig, out
 
 
-def _group_of(trials: pd.DataFrame) -> str:
+def _load(run_dir: Path) -> pd.DataFrame:
+    from cobelrun.results import load_trials
+
+    return load_trials(run_dir)
+
+
+def group_of(trials: pd.DataFrame) -> str:
+    """``latent`` if the run has unrewarded trials before the rewarded phase, else ``direct``."""
     return "latent" if (trials["phase"] != REWARDED).any() else "direct"
 
 
-def _world(run_dir: Path):
+def world_of(run_dir: str | Path):
+    """The maze of a run folder, rebuilt from its ``config.yaml``."""
     from omegaconf import OmegaConf
 
     from cobelrun.config import instantiate
 
-    cfg = OmegaConf.load(run_dir / "config.yaml")
+    cfg = OmegaConf.load(Path(run_dir) / "config.yaml")
     return instantiate("env", cfg.env).unwrapped.world
 
 
-def plot_run(run_dir: str | Path, out: str | Path | None = None, other: str | Path | None = None):
-    """Fig. 7 for a run folder (and optionally the other group's folder) into ``out``.
+def plot_run(
+    run_dir: str | Path, out: str | Path | None = None, *others: str | Path
+) -> Path:
+    """Fig. 7 for a run folder and optionally the other group's folder(s) into ``out``.
 
-    With an ``activity.parquet`` holding ``sr/output``, the SR of the start state is drawn at
-    the end of exploration (trial 100 of the latent group) and at the end of training.
+    Each folder's group is recognised from its phases (``latent`` has an exploration phase).
+    With an ``activity.parquet`` holding ``sr/output`` in the latent group's folder, the SR of
+    the start state is drawn at the end of exploration and at the end of training.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run_dir = Path(run_dir)
-    trials, _ = _load(run_dir)
-    groups = {_group_of(trials): trials}
-    if other is not None:
-        t2, _ = _load(Path(other))
-        groups[_group_of(t2)] = t2
-    activity_path = run_dir / "activity.parquet"
-    latent_dir = run_dir if _group_of(trials) == "latent" else Path(other) if other else None
-    has_sr = latent_dir is not None and (latent_dir / "activity.parquet").is_file()
-    fig, axes = plt.subplots(1, 3 if has_sr else 1, figsize=(11 if has_sr else 4.5, 3.4),
-                             constrained_layout=True, squeeze=False)  # fmt: skip
-    plot_latency_groups(groups, axes[0, 0])
-    if has_sr:
-        activity_path = latent_dir / "activity.parquet"
-        activity = pd.read_parquet(activity_path)
-        world = _world(latent_dir)
-        lt = groups["latent"]
-        end_explore = int(lt.loc[lt["phase"] != REWARDED, "trial"].max())
-        last = int(lt["trial"].max())
-        start = int(world.starts[0])
-        snaps = np.sort(activity["trial"].unique())
-        for ax, wanted, label in ((axes[0, 1], end_explore, "end of exploration"),
-                                  (axes[0, 2], last, "end of training")):  # fmt: skip
-            trial = int(snaps[snaps <= wanted].max())  # the latest snapshot up to then
-            sr = start_state_sr(activity, start, trial, world.n_states)
-            im = plot_sr_on_maze(sr, world.height, world.width, world.blocked, ax,
-                                 f"SR of start state {start}: {label} (trial {trial})")  # fmt: skip
-            fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.suptitle("Latent learning (Fig. 7)", fontsize=10)
-    out = Path(out) if out is not None else run_dir / "plot.png"
+    dirs = [Path(run_dir), *(Path(o) for o in others if o is not None)]
+    groups: dict[str, pd.DataFrame] = {}
+    folder: dict[str, Path] = {}
+    for d in dirs:
+        trials = _load(d)
+        name = group_of(trials)
+        if name in groups:
+            raise CobelError(f"{folder[name]} and {d} are both {name} runs; give one of each")
+        groups[name], folder[name] = trials, d
+    activity = world = None
+    latent_dir = folder.get("latent")
+    if latent_dir is not None and (latent_dir / "activity.parquet").is_file():
+        activity = pd.read_parquet(latent_dir / "activity.parquet")
+        world = world_of(latent_dir)
+    fig, _ = draw_fig7(groups, activity, world)
+    fig.suptitle("Latent learning in the Blodgett maze (Fig. 7)", fontsize=10)
+    out = Path(out) if out is not None else dirs[0] / "plot.png"
     try:
         fig.savefig(out, dpi=150)
     except OSError as exc:

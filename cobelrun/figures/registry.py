@@ -66,6 +66,16 @@ class FigureData:
         """Steps of every run of ``label``, with ``job`` and the swept params as columns."""
         return self._table(label, "steps")
 
+    def activity(self, label: str) -> pd.DataFrame:
+        """Activity snapshots (``activity.parquet``) of every run of ``label``, with ``job``."""
+        return self._table(label, "activity")
+
+    def run_dirs(self, label: str) -> list[Path]:
+        """The run folders of ``label`` (e.g. to load saved agents or the config)."""
+        if label not in self.runs:
+            raise CobelError(f"figure has no runs labelled {label!r}; has {sorted(self.runs)}")
+        return [ref.run_dir for ref in self.runs[label]]
+
     def _table(self, label: str, table: str) -> pd.DataFrame:
         from cobelrun.results import load_run
 

@@ -192,10 +192,17 @@ class RunRecorder:
             m.start_agent(run, agent)
 
     def phase_callbacks(self, first_trial: int) -> list[Any]:
-        """Trial callbacks to pass to ``agent.train/test`` for a phase starting at ``first_trial``."""
-        for m in self.activity_monitors:
-            m.begin_phase(first_trial)
-        return list(self.activity_monitors)
+        """Trial callbacks to pass to ``agent.train/test`` for a phase starting at ``first_trial``:
+        the activity monitors and every other monitor that is a ``TrialCallback`` (probes)."""
+        from cobelrun.agents.base import TrialCallback
+
+        callbacks = [*self.activity_monitors]
+        callbacks += [m for m in (*self.trial_monitors, *self.step_monitors)
+                      if isinstance(m, TrialCallback)]  # fmt: skip
+        for m in callbacks:
+            if hasattr(m, "begin_phase"):
+                m.begin_phase(first_trial)
+        return callbacks
 
     def end_agent(self, agent: Any, last_trial: int) -> None:
         """A run is over: activity monitors take their final snapshot."""

@@ -54,7 +54,9 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
 
     ``info`` holds ``state`` (``2 * choice_type + correct_side``: one index per distinct
     display), ``choice_type`` and ``correct`` (the correct action). :attr:`observations` lists
-    the observation of each state (the default probes of activity monitors).
+    the observation of each state (the default probes of activity monitors) and
+    :attr:`correct_actions` the correct action of each (the default of the greedy probe,
+    :class:`cobelrun.monitors.probe.GreedyProbeMonitor`).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
@@ -86,6 +88,9 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
             obs[s] = self._display(s)
         obs.setflags(write=False)
         self.observations = obs
+        correct = np.arange(n_states, dtype=np.int64) % 2
+        correct.setflags(write=False)
+        self.correct_actions = correct
         self._state = 0
 
     def _display(self, s: int) -> np.ndarray:

@@ -284,6 +284,42 @@ def test_mfec_buffer_rules() -> None:
     assert buf.lookup(key) is None and buf.size == 2
 
 
+@pytest.mark.parametrize("memo", [1, 4096])
+def test_mfec_memo_changes_nothing(memo: int) -> None:
+    """Memoised keys and estimates give the same actions and buffers, bit for bit, as none."""
+    env = gym.wrappers.TransformObservation(
+        grid_env(size=5),
+        lambda o: np.repeat(o.astype(np.uint8) * 200, 3),  # image-like uint8 observations
+        spaces.Box(0, 255, (75,), np.uint8),
+    )
+    runs = []
+    for m in (0, memo):
+        env.unwrapped.np_random = np.random.default_rng(0)
+        agent = MFEC(env, seed=0, capacity=20, projection_dim=8, memo=m)
+        runs.append((agent, agent.train(30, 40)))
+    (plain, a), (memoised, b) = runs
+    np.testing.assert_array_equal(a.step_action, b.step_action)
+    for x, y in zip(plain.buffers, memoised.buffers, strict=True):
+        np.testing.assert_array_equal(x.keys, y.keys)
+        np.testing.assert_array_equal(x.values, y.values)
+    assert len(memoised._keys) <= memo
+
+
+def test_mfec_estimate_memo_follows_updates() -> None:
+    env = grid_env()
+    agent = MFEC(env, seed=0, k=1, projection="none")
+    buf, key, tag = agent.buffers[0], np.eye(16)[0], b"view0"
+    assert buf.estimate(key, 1, tag) == 0.0
+    buf.update(np.eye(16)[1], 2.0)  # a new key: the memoised 0 must go
+    assert buf.estimate(key, 1, tag) == 2.0
+    buf.update(np.eye(16)[1], 1.0)  # lower: nothing changes
+    assert buf.estimate(key, 1, tag) == 2.0
+    buf.update(np.eye(16)[1], 3.0)  # max update
+    assert buf.estimate(key, 1, tag) == 3.0
+    with pytest.raises(ConfigError, match=r"agent\.memo"):
+        MFEC(env, memo=-1)
+
+
 # -- Dyna-DSR --------------------------------------------------------------------------------------
 
 

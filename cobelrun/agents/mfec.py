@@ -24,11 +24,22 @@ Where this differs from a literal port, on purpose (documented, not copied):
 - A key that occurs twice within one trial is updated with the larger of its returns, in
   one pass, whatever the order.
 
+Speed (exact: the same actions, values and buffers as without it, bit for bit):
+
+- Projected keys are memoised by a 128-bit BLAKE2b digest of the observation's bytes
+  (``memo`` entries at most; the memo is emptied when full), so each distinct image is
+  projected once. Environments with finitely many views (topology envs, online or offline)
+  then pay the ``obs_dim x projection_dim`` product only the first time a view is seen.
+- Each buffer memoises its estimates by the same digest until it next changes (learning
+  happens at trial end only, so within a trial a revisited view costs a dict lookup).
+- ``memo: 0`` switches both off (every step projects and queries, as a literal port).
+
 Numpy and scipy only; no torch.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -57,26 +68,40 @@ class EpisodicBuffer:
         self.clock = 0
         self.index: dict[bytes, int] = {}
         self._tree: cKDTree | None = None
+        self._estimates: dict[bytes, float] = {}  # observation digest -> estimate, until a change
 
     def lookup(self, key: np.ndarray) -> int | None:
         return self.index.get(key.tobytes())
 
-    def estimate(self, key: np.ndarray, k: int) -> float:
+    def estimate(self, key: np.ndarray, k: int, tag: bytes | None = None) -> float:
+        """Estimate for ``key``; ``tag`` (the observation's digest) memoises it until the next
+        change of this buffer."""
+        if tag is not None:
+            value = self._estimates.get(tag)
+            if value is not None:
+                return value
         slot = self.lookup(key)
         if slot is not None:
-            return float(self.values[slot])
-        if self.size < k:
-            return 0.0
-        if self._tree is None:
-            self._tree = cKDTree(self.keys[: self.size])
-        _, idx = self._tree.query(key, k=k)
-        return float(np.mean(self.values[np.atleast_1d(idx)]))
+            value = float(self.values[slot])
+        elif self.size < k:
+            value = 0.0
+        else:
+            if self._tree is None:
+                self._tree = cKDTree(self.keys[: self.size])
+            _, idx = self._tree.query(key, k=k)
+            value = float(np.mean(self.values[np.atleast_1d(idx)]))
+        if tag is not None:
+            self._estimates[tag] = value
+        return value
 
     def update(self, key: np.ndarray, value: float) -> None:
         slot = self.lookup(key)
         if slot is not None:
-            self.values[slot] = max(self.values[slot], value)
+            if value > self.values[slot]:
+                self.values[slot] = value
+                self._estimates.clear()
             return
+        self._estimates.clear()
         if self.size < self.capacity:
             slot = self.size
             self.size += 1
@@ -110,6 +135,7 @@ class EpisodicBuffer:
         self.clock = int(state["clock"])
         self.index = {self.keys[i].tobytes(): i for i in range(n)}
         self._tree = None
+        self._estimates.clear()
 
 
 class MFEC(Agent):
@@ -132,6 +158,9 @@ class MFEC(Agent):
         ``"gaussian"`` random projection (default) or ``"none"``.
     projection_dim
         Dimension of the projected keys (256).
+    memo
+        Distinct observations whose projected key is remembered (4096; ``0``: no memo, no
+        estimate memo). Exact: it changes no result, only the time (module docstring).
     seed
         Seed of the projection matrix and of exploration.
     """
@@ -149,6 +178,7 @@ class MFEC(Agent):
         capacity: int = 2000,
         projection: str = "gaussian",
         projection_dim: int = 256,
+        memo: int = 4096,
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
@@ -158,6 +188,8 @@ class MFEC(Agent):
         for name, value in (("k", k), ("capacity", capacity), ("projection_dim", projection_dim)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"agent.{name} must be an integer >= 1, got {value!r}")
+        if isinstance(memo, bool) or not isinstance(memo, int) or memo < 0:
+            raise ConfigError(f"agent.memo must be an integer >= 0, got {memo!r}")
         if projection not in PROJECTIONS:
             raise ConfigError(
                 f"agent.projection {projection!r} is not known; allowed: 'gaussian', 'none'"
@@ -177,6 +209,8 @@ class MFEC(Agent):
             self.matrix = None
             self.key_dim = self.obs_dim
         self.buffers = [EpisodicBuffer(capacity, self.key_dim) for _ in range(self.n_actions)]
+        self.memo = memo
+        self._keys: dict[bytes, np.ndarray] = {}  # observation digest -> projected key
 
     def hyperparameters(self) -> dict[str, Any]:
         return {"epsilon": self.epsilon, "gamma": self.gamma, "k": self.k,
@@ -188,13 +222,33 @@ class MFEC(Agent):
         """Projected keys ``(n, key_dim)`` of a batch of observations."""
         if self.discrete_obs:
             idx = np.asarray(observations, dtype=np.int64).reshape(-1)
-            x = np.eye(self.obs_dim)[idx]
+            x = np.zeros((idx.size, self.obs_dim))
+            x[np.arange(idx.size), idx] = 1.0
         else:
             x = np.asarray(observations, dtype=np.float64).reshape(-1, self.obs_dim)
         return x @ self.matrix if self.matrix is not None else x
 
-    def _q(self, key: np.ndarray) -> np.ndarray:
-        return np.array([b.estimate(key, self.k) for b in self.buffers])
+    def key(self, observation: Any) -> tuple[np.ndarray, bytes | None]:
+        """Projected key of one observation and its digest (``None`` without memo).
+
+        The key is computed exactly as by :meth:`keys` (same product, same bits) the first time
+        an observation is seen and then reused; it is read-only.
+        """
+        if self.memo == 0 or self.discrete_obs:
+            return self.keys(observation)[0], None
+        x = np.ascontiguousarray(observation)
+        tag = hashlib.blake2b(x.view(np.uint8), digest_size=16).digest()
+        key = self._keys.get(tag)
+        if key is None:
+            key = self.keys(x)[0]
+            key.flags.writeable = False
+            if len(self._keys) >= self.memo:
+                self._keys.clear()
+            self._keys[tag] = key
+        return key, tag
+
+    def _q(self, key: np.ndarray, tag: bytes | None = None) -> np.ndarray:
+        return np.array([b.estimate(key, self.k, tag) for b in self.buffers])
 
     def predict(self, observations: np.ndarray) -> np.ndarray:
         """Q estimates ``(n, A)`` of a batch of observations."""
@@ -232,8 +286,8 @@ class MFEC(Agent):
             states, actions, rewards, keys = [s], [], [], []
             terminated = False
             for step in range(1, max_steps + 1):
-                key = self.keys(obs)[0]
-                a = self._act(self._q(key))
+                key, tag = self.key(obs)
+                a = self._act(self._q(key, tag))
                 obs, r, terminated, truncated, info = env.step(a)
                 s2 = int(info.get("state", -1))
                 keys.append(key)

@@ -118,7 +118,7 @@ def plot_cmd(
         typer.Argument(
             help="Run folder(s) written by `cobel run`; Fig. 7 takes a latent and a direct one.",
             show_default=False,
-            metavar="RUN_DIR...",
+            metavar="RUN_DIR",
         ),
     ],
     out: Annotated[

@@ -36,8 +36,12 @@ FIGURE = Figure(
         "direct": ["task=latent_learning", "protocol=direct"],
     },
     quick={
-        "*": ["task.runs=2", "task.record.steps=false", "agent.replay_batch=16",
-              "task.monitors.activity.every=10"],  # fmt: skip
+        "*": [
+            "task.runs=2",
+            "task.record.steps=false",
+            "agent.replay_batch=16",
+            "task.monitors.activity.every=10",
+        ],
         "latent": ["task.protocol.phases.0.trials=10", "task.protocol.phases.1.trials=10"],
         "direct": ["task.protocol.phases.0.trials=10"],
     },

@@ -64,3 +64,44 @@ def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
     assert proc.returncode == 0, proc.stderr
     table = pd.read_csv(tmp_path / "results" / "figures" / "mine.csv")
     assert sorted(table["seed"].unique()) == [1, 2] and len(table) == 20
+
+
+def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
+    proc = cobel("figure", "fig7", "--quick")
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "results" / "figures"
+    for suffix in ("png", "pdf", "csv"):
+        f = out / f"fig7_quick.{suffix}"
+        assert f.is_file() and f.stat().st_size > 1000, f
+    table = pd.read_csv(out / "fig7_quick.csv")
+    b, c = table[table["panel"] == "7B"], table[table["panel"] == "7C"]
+    # 7B: latent trials -10..9 (exploration negative), direct 0..9, aligned on the first reward
+    assert sorted(b.loc[b["series"] == "latent", "trial"]) == list(range(-10, 10))
+    assert sorted(b.loc[b["series"] == "direct", "trial"]) == list(range(10))
+    assert (b["runs"] == 2).all() and (b["mean"] >= 1).all()
+    # 7C: SR of the start state over the 40 maze states at the end of exploration and the end
+    assert set(c["series"]) == {"end of exploration", "end of training"}
+    assert len(c) == 2 * 40 and set(c["trial"]) == {10, 20}
+    # the two folders drawn together by `cobel plot LATENT_DIR DIRECT_DIR`
+    runs = sorted((out / "runs").iterdir())
+    plot = cobel("plot", *map(str, runs), "-o", str(tmp_path / "fig7.png"))
+    assert plot.returncode == 0, plot.stderr
+    assert (tmp_path / "fig7.png").stat().st_size > 1000
+    twice = cobel("plot", str(runs[0]), str(runs[0]))
+    assert twice.returncode == 2 and "give one of each" in twice.stderr
+
+
+def test_figure_fig9_quick_writes_reward_and_greedy_probe(cobel, tmp_path):
+    proc = cobel("figure", "fig9", "--quick")
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "results" / "figures"
+    for suffix in ("png", "pdf", "csv"):
+        f = out / f"fig9_quick.{suffix}"
+        assert f.is_file() and f.stat().st_size > 1000, f
+    table = pd.read_csv(out / "fig9_quick.csv")
+    assert len(table) == 50 and table["runs"].eq(10).all()
+    assert {"reward_mean", "reward_sem", "greedy_correct_mean", "greedy_correct_sem"} <= set(
+        table.columns
+    )
+    assert table["greedy_correct_mean"].between(0, 1).all()
+    assert table["greedy_correct_mean"].iloc[-10:].mean() >= 0.8

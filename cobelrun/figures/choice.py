@@ -1,4 +1,10 @@
-"""Fig. 9: two-alternative forced choice, mean reward per trial across agents."""
+"""Fig. 9: two-alternative forced choice, mean reward per trial across agents.
+
+The training reward of an epsilon-greedy agent with two actions cannot exceed
+``1 - epsilon / 2`` in expectation (0.85 at the paper's epsilon 0.3), so the figure draws that
+ceiling and, where the run recorded it (``GreedyProbeMonitor``), the fraction of the four
+displays on which the greedy policy after each trial picks the correct stimulus.
+"""
 
 from __future__ import annotations
 
@@ -9,21 +15,58 @@ import pandas as pd
 
 from cobelrun.errors import CobelError
 
+PROBE = "greedy_correct"
 
-def plot_mean_reward(trials: pd.DataFrame, ax, chance: float = 0.5) -> None:
-    """Mean reward per trial over runs, band = standard error of the mean; chance level."""
+
+def choice_summary(trials: pd.DataFrame) -> pd.DataFrame:
+    """Per trial: agents, mean and standard error of ``reward`` (and ``greedy_correct``)."""
     if "reward" not in trials:
         raise CobelError("the trials table has no reward column (no reward monitor)")
-    g = trials.groupby("trial")["reward"]
-    mean, sem = g.mean(), g.std(ddof=1).fillna(0) / np.sqrt(g.count())
-    x = mean.index.to_numpy()
-    ax.plot(x, mean, color="tab:blue", lw=1.5, label=f"mean of {trials['run'].nunique()} agents")
-    ax.fill_between(x, mean - sem, mean + sem, color="tab:blue", alpha=0.25, lw=0)
+    cols = ["reward", *([PROBE] if PROBE in trials else [])]
+    g = trials.groupby("trial")
+    out = pd.DataFrame({"runs": g["run"].nunique()})
+    for col in cols:
+        out[f"{col}_mean"] = g[col].mean()
+        out[f"{col}_sem"] = g[col].std(ddof=1).fillna(0) / np.sqrt(g[col].count())
+    return out.reset_index()
+
+
+def plot_mean_reward(
+    trials: pd.DataFrame, ax, chance: float = 0.5, epsilon: float | None = None
+) -> pd.DataFrame:
+    """Mean reward per trial over agents (band: standard error), chance level, the
+    epsilon-greedy ceiling ``1 - epsilon / 2`` and the greedy probe if recorded.
+    Returns the plotted numbers (:func:`choice_summary`)."""
+    s = choice_summary(trials)
+    x = s["trial"].to_numpy()
+    n = int(s["runs"].max())
+    series = [("reward", "tab:blue", f"training reward (mean of {n} agents)")]
+    if f"{PROBE}_mean" in s:
+        series.append((PROBE, "tab:green", "greedy choice correct (4 displays)"))
+    for col, color, label in series:
+        mean, sem = s[f"{col}_mean"], s[f"{col}_sem"]
+        ax.plot(x, mean, color=color, lw=1.5, label=label)
+        ax.fill_between(x, mean - sem, mean + sem, color=color, alpha=0.25, lw=0)
     ax.axhline(chance, color="0.4", ls="--", lw=1, label="chance")
+    if epsilon is not None and epsilon > 0:
+        ax.axhline(1 - epsilon / 2, color="tab:blue", ls=":", lw=1,
+                   label=f"training ceiling 1 - ε/2 (ε = {epsilon:g})")  # fmt: skip
     ax.set_ylim(0, 1.05)
     ax.set_xlabel("trial")
-    ax.set_ylabel("reward")
-    ax.legend(frameon=False, fontsize=8, loc="lower right")
+    ax.set_ylabel("reward / fraction correct")
+    ax.legend(frameon=False, fontsize=7, loc="lower right")
+    return s
+
+
+def epsilon_of(run_dir: str | Path) -> float | None:
+    """The agent's training epsilon from a run folder's ``config.yaml`` (None if it has none)."""
+    from omegaconf import OmegaConf
+
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        return None
+    eps = OmegaConf.load(path).get("agent", {}).get("epsilon")
+    return None if eps is None else float(eps)
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
@@ -40,7 +83,7 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     if trials.empty:
         raise CobelError(f"{run_dir}/trials.parquet has no rows to plot")
     fig, ax = plt.subplots(figsize=(4.5, 3.2), constrained_layout=True)
-    plot_mean_reward(trials, ax)
+    plot_mean_reward(trials, ax, epsilon=epsilon_of(run_dir))
     ax.set_title("Two-alternative forced choice (Fig. 9)", fontsize=10)
     ax.spines[["top", "right"]].set_visible(False)
     out = Path(out) if out is not None else run_dir / "plot.png"

@@ -37,12 +37,9 @@ def latency_summary(groups: Mapping[str, pd.DataFrame]) -> pd.DataFrame:
     frames = []
     for name, trials in groups.items():
         g = aligned_latency(trials).groupby("aligned_trial")["steps"]
-        frames.append(
-            pd.DataFrame({"runs": g.count(), "mean": g.mean(), "q25": g.quantile(0.25),
-                          "q75": g.quantile(0.75)})  # fmt: skip
-            .reset_index()
-            .assign(group=name)
-        )
+        stats = {"runs": g.count(), "mean": g.mean(), "q25": g.quantile(0.25),
+                 "q75": g.quantile(0.75)}  # fmt: skip
+        frames.append(pd.DataFrame(stats).reset_index().assign(group=name))
     return pd.concat(frames, ignore_index=True)
 
 
@@ -224,9 +221,7 @@ def world_of(run_dir: str | Path):
     return instantiate("env", cfg.env).unwrapped.world
 
 
-def plot_run(
-    run_dir: str | Path, out: str | Path | None = None, *others: str | Path
-) -> Path:
+def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | Path) -> Path:
     """Fig. 7 for a run folder and optionally the other group's folder(s) into ``out``.
 
     Each folder's group is recognised from its phases (``latent`` has an exploration phase).

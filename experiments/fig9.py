@@ -1,0 +1,39 @@
+"""Fig. 9C: two-alternative forced choice with DQN (100 agents x 50 one-step trials).
+
+Mean training reward per trial over agents (band: standard error) with the chance level 0.5.
+With training epsilon 0.3 and two actions the expected training reward is capped at
+1 - 0.3 / 2 = 0.85, so the figure also draws that ceiling and the greedy probe
+(``greedy_correct``: after every trial, the fraction of the four displays on which the greedy
+action is correct; measured without learning or environment draws, see
+``cobelrun/monitors/probe.py``), which shows what the agents have learnt.
+"""
+
+from __future__ import annotations
+
+from cobelrun.figures.choice import epsilon_of, plot_mean_reward
+from cobelrun.figures.registry import Figure, FigureData
+
+
+def draw(data: FigureData):
+    import matplotlib.pyplot as plt
+
+    trials = data.trials("dqn")
+    eps = epsilon_of(data.run_dirs("dqn")[0])
+    fig, ax = plt.subplots(figsize=(4.6, 3.2), constrained_layout=True)
+    table = plot_mean_reward(trials, ax, epsilon=eps)
+    late = trials[trials["trial"].between(41, 50)]
+    note = f"trials 41-50: reward {late['reward'].mean():.3f}"
+    if "greedy_correct" in late:
+        note += f", greedy {late['greedy_correct'].mean():.3f}"
+    ax.set_title(f"Fig. 9C: two-alternative forced choice (DQN)\n{note}", fontsize=9)
+    ax.spines[["top", "right"]].set_visible(False)
+    return fig, table
+
+
+FIGURE = Figure(
+    name="fig9",
+    title="Two-alternative forced choice with DQN (mean reward per trial, greedy probe)",
+    runs={"dqn": ["task=two_afc"]},
+    quick={"*": ["task.runs=10"]},
+    draw=draw,
+)

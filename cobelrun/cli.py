@@ -28,6 +28,24 @@ app = typer.Typer(
 )
 
 EXIT_USER_ERROR = 2
+
+
+def _version(value: bool) -> None:
+    if value:
+        from cobelrun import __version__
+
+        typer.echo(f"cobel {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
+    ] = False,
+) -> None:
+    """Config-driven experiments for neuroscience-oriented reinforcement learning."""
 EXIT_INTERRUPTED = 130
 
 

@@ -115,6 +115,13 @@ def test_list_shows_descriptions(cobel):
     assert "dyna_q" in out.stdout and "tmaze_paper" in out.stdout
 
 
+def test_version(cobel):
+    from cobelrun import __version__
+
+    out = cobel("--version")
+    assert out.returncode == 0 and out.stdout.strip() == f"cobel {__version__}"
+
+
 def test_help_is_useful(cobel):
     top = cobel("--help")
     assert top.returncode == 0 and "run" in top.stdout and "list" in top.stdout

@@ -26,7 +26,9 @@ from cobelrun.protocol import Protocol
 from cobelrun.recorder import RecordConfig, RunRecorder
 
 DONE_MARKER = ".done"
-TASK_KEYS = ("name", "description", "runs", "protocol", "monitors", "record", "save_agents")
+TASK_KEYS = (
+    "name", "description", "runs", "protocol", "monitors", "record", "save_agents", "job",
+)  # fmt: skip
 
 
 class Interrupted(KeyboardInterrupt):
@@ -47,6 +49,10 @@ class Task:
     seed: int
     load_from: str | None = None
     save_agents: bool = True
+    #: A custom job (``task.job``) that replaces the protocol loop: ``job(config, run_dir,
+    #: progress=...) -> dict | None`` (the dict goes into the manifest).
+    job: Any = None
+    config: Any = None
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -68,6 +74,8 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     runs = task_cfg.get("runs", 1)
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
         raise ConfigError(f"task.runs must be an integer >= 1, got {runs!r}")
+    if task_cfg.get("job") is not None:
+        return build_job(cfg)
     protocol = Protocol.from_config(OmegaConf.to_container(task_cfg.protocol, resolve=True))
     env = instantiate("env", cfg.env)
     agent_node = OmegaConf.to_container(cfg.agent, resolve=True)
@@ -105,6 +113,24 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         load_from=None if load_from is None else str(load_from),
         save_agents=save_agents,
     )
+
+
+def build_job(cfg: DictConfig) -> Task:
+    """A task with a custom ``task.job``: a ``_target_`` built with its nested nodes left as
+    plain config (the job builds the environments and agents it needs from them and from the
+    composed config it is called with)."""
+    node = OmegaConf.to_container(cfg.task.job, resolve=True)
+    job = instantiate("task.job", node, _recursive_=False)
+    if not callable(job):
+        raise ConfigError("task.job must build a callable job(config, run_dir, progress=None)")
+    protocol = (
+        Protocol.from_config(OmegaConf.to_container(cfg.task.protocol, resolve=True))
+        if cfg.task.get("protocol") is not None
+        else None
+    )
+    return Task(name=str(cfg.task.name), env=None, make_agent=None, protocol=protocol,  # type: ignore[arg-type]
+                monitors={}, record=RecordConfig.from_config(None), runs=1, seed=cfg.seed,
+                save_agents=False, job=job, config=cfg)  # fmt: skip
 
 
 def run_seed(seed: int, run: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
@@ -153,8 +179,10 @@ def saved_agent_file(load_from: str, run: int) -> Path:
     return path
 
 
-def execute(task: Task, run_dir: Path, progress: Any = None) -> None:
+def execute(task: Task, run_dir: Path, progress: Any = None) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
+    if task.job is not None:
+        return task.job(task.config, run_dir, progress=progress)
     env = task.env
     base = env.unwrapped
     recorder = RunRecorder(run_dir, env, task.monitors, task.record)
@@ -210,19 +238,24 @@ def run(cfg: DictConfig, run_dir: Path, *, progress: Any = None) -> Path:
     task = build_task(cfg)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
     manifest = Manifest(run_dir)
-    manifest.start(config=dict(resolved), seed=task.seed, task=task.name,
-                   extra={"runs": task.runs, "trials": task.protocol.n_trials})  # fmt: skip
+    extra = (
+        {"job": str(cfg.task.job._target_)}
+        if task.job is not None
+        else {"runs": task.runs, "trials": task.protocol.n_trials}
+    )
+    manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
     t0 = time.perf_counter()
     with sigterm_as_interrupt():
         try:
-            execute(task, run_dir, progress=progress)
+            result = execute(task, run_dir, progress=progress)
         except KeyboardInterrupt:
             manifest.finish("interrupted")
             raise
         except BaseException as exc:
             manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
             raise
-    manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3))
+    summary = {"job_result": result} if isinstance(result, Mapping) else {}
+    manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
     (run_dir / DONE_MARKER).write_text("completed\n")
     return run_dir
 

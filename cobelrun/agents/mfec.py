@@ -161,6 +161,11 @@ class MFEC(Agent):
     memo
         Distinct observations whose projected key is remembered (4096; ``0``: no memo, no
         estimate memo). Exact: it changes no result, only the time (module docstring).
+    blas_threads
+        Threads of numpy's OpenBLAS, set when the agent is built (1; ``None`` leaves it): one
+        projection per step is memory-bound and a second thread on shared cores slows it down
+        (:mod:`cobelrun.agents.blas`; the results do not depend on it). Process-wide, like
+        DQN's ``torch_threads``.
     seed
         Seed of the projection matrix and of exploration.
     """
@@ -179,6 +184,7 @@ class MFEC(Agent):
         projection: str = "gaussian",
         projection_dim: int = 256,
         memo: int = 4096,
+        blas_threads: int | None = 1,
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
@@ -190,6 +196,18 @@ class MFEC(Agent):
                 raise ConfigError(f"agent.{name} must be an integer >= 1, got {value!r}")
         if isinstance(memo, bool) or not isinstance(memo, int) or memo < 0:
             raise ConfigError(f"agent.memo must be an integer >= 0, got {memo!r}")
+        if blas_threads is not None:
+            if (
+                isinstance(blas_threads, bool)
+                or not isinstance(blas_threads, int)
+                or blas_threads < 1
+            ):
+                raise ConfigError(
+                    f"agent.blas_threads must be null or an integer >= 1, got {blas_threads!r}"
+                )
+            from cobelrun.agents.blas import set_blas_threads
+
+            set_blas_threads(blas_threads)
         if projection not in PROJECTIONS:
             raise ConfigError(
                 f"agent.projection {projection!r} is not known; allowed: 'gaussian', 'none'"

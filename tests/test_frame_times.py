@@ -1,0 +1,105 @@
+"""Fig. 4 frame-time benchmark: the task job, `cobel run task=render_benchmark`, `cobel figure fig4`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cobelrun.agents.blas import blas_threads, set_blas_threads
+from cobelrun.errors import ConfigError
+
+pytest.importorskip("pybullet")
+
+TINY = ["task.job.sizes=[[20,80]]", "task.job.trials=1", "task.job.steps=6"]
+
+
+def compose(overrides: list[str]):
+    from cobelrun.figures.registry import _composer
+
+    with _composer() as c:
+        return c(["task=render_benchmark", *overrides])
+
+
+def test_blas_threads_set_and_read_back():
+    before = blas_threads()
+    if not before:
+        pytest.skip("no OpenBLAS found in this process")
+    try:
+        assert set_blas_threads(1) == len(before)
+        assert blas_threads() == [1] * len(before)
+        np.testing.assert_allclose(np.ones((4, 3)) @ np.arange(3.0), [3.0] * 4)
+    finally:
+        for n in set(before):
+            set_blas_threads(n)
+
+
+def test_frame_time_job_in_process(tmp_path, monkeypatch):
+    """The job measures size x agent x mode, builds the offline cache itself, and the runner
+    writes the manifest and done marker around it."""
+    from cobelrun.runner import DONE_MARKER, run
+
+    monkeypatch.setenv("COBEL_CACHE", str(tmp_path / "shared-cache"))
+    cfg = compose([*TINY, "task.job.agents.dqn=null", "+task.job.agents.random=random"])
+    out = run(cfg, tmp_path / "run")
+    table = pd.read_csv(out / "frame_times.csv")
+    assert list(zip(table["agent"], table["mode"], strict=True)) == [
+        ("mfec", "online"), ("mfec", "offline"), ("random", "online"), ("random", "offline"),
+    ]  # fmt: skip
+    assert (table["frames"] == 5).all() and (table["frame_ms_mean"] > 0).all()
+    assert table.loc[table["mode"] == "offline", "cache_build_s"].gt(0).all()
+    assert table.loc[table["mode"] == "online", "cache_build_s"].isna().all()
+    summary = json.loads((out / "frame_times.json").read_text())
+    assert set(summary["offline_over_online"]) == {"mfec_20x80", "random_20x80"}
+    assert summary["steps"] == 6 and summary["trials"] == 1
+    assert (out / "frame_times.png").stat().st_size > 0
+    assert (out / DONE_MARKER).is_file()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "completed"
+    assert not (tmp_path / "shared-cache").exists()  # fresh_cache: a temporary folder
+
+
+def test_frame_time_job_shared_cache_and_validation(tmp_path, monkeypatch):
+    from cobelrun.runner import build_task, run
+
+    monkeypatch.setenv("COBEL_CACHE", str(tmp_path / "shared-cache"))
+    over = [*TINY, "task.job.agents.dqn=null", "task.job.fresh_cache=false", "task.job.plot=false"]
+    out = run(compose(over), tmp_path / "a")
+    assert any((tmp_path / "shared-cache").iterdir())  # built into the shared cache
+    assert pd.read_csv(out / "frame_times.csv")["cache_build_s"].notna().any()
+    again = pd.read_csv(run(compose(over), tmp_path / "b") / "frame_times.csv")
+    assert again["cache_build_s"].isna().all()  # found there: nothing built, nothing timed
+    assert not (tmp_path / "b" / "frame_times.png").exists()
+    for bad, match in (
+        (["task.job.sizes=[[20]]"], r"task\.job\.sizes"),
+        (["task.job.modes=[online,blender]"], r"task\.job\.modes"),
+        (["+task.job.agents.mfec.kk=3"], r"unknown key 'task\.job\.agents\.mfec\.kk'"),
+        (["task.job.steps=1"], r"task\.job\.steps"),
+        (["+task.job.colour=red"], r"unknown key 'task\.job\.colour'"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            build_task(compose(bad))
+
+
+def test_cobel_run_render_benchmark_writes_table_and_plot(cobel, tmp_path):
+    proc = cobel("run", "task=render_benchmark", *TINY, "hydra.run.dir=out",
+                 env={"COBEL_CACHE": str(tmp_path / "cache")})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "out"
+    table = pd.read_csv(out / "frame_times.csv")
+    assert sorted(set(table["agent"])) == ["dqn", "mfec"]
+    assert sorted(set(table["mode"])) == ["offline", "online"]
+    assert (out / "frame_times.png").is_file() and (out / ".done").is_file()
+
+
+def test_figure_fig4_quick(cobel, tmp_path):
+    proc = cobel("figure", "fig4", "--quick", env={"COBEL_CACHE": str(tmp_path / "cache")})
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "results" / "figures"
+    for suffix in ("png", "pdf", "csv"):
+        assert (out / f"fig4_quick.{suffix}").stat().st_size > 0
+    table = pd.read_csv(out / "fig4_quick.csv")
+    assert len(table) == 2 * 2 * 2  # sizes x agents x modes
+    assert table["offline_over_online"].notna().all()

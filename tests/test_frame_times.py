@@ -103,3 +103,22 @@ def test_figure_fig4_quick(cobel, tmp_path):
     table = pd.read_csv(out / "fig4_quick.csv")
     assert len(table) == 2 * 2 * 2  # sizes x agents x modes
     assert table["offline_over_online"].notna().all()
+
+
+def test_measure_applies_the_phase_so_arm_ends_do_not_end_trials(tmp_path):
+    """Foraging: every trial runs its full budget (the phase's terminals are applied after the
+    world reset); without the phase a random walk soon ends a trial in an arm."""
+    from cobelrun.render.benchmark import FrameTimeBenchmark, build_caches, measure
+    from cobelrun.render.benchmark import sized_env_config as sized
+
+    cfg = compose([])
+    trials, steps, phase = FrameTimeBenchmark(agents={"r": "random"}).budget(cfg)
+    assert (trials, steps) == (5, 400) and phase["terminals"] == {
+        "left_arm": False,
+        "right_arm": False,
+    }
+    env_cfg = sized(cfg.env, 20, 80, "offline", str(tmp_path))
+    assert build_caches(env_cfg, jobs=1) > 0 and build_caches(env_cfg, jobs=1) is None
+    r = measure(env_cfg, "random", trials=2, steps=300, seed=0, phase=phase)
+    assert r["steps"] == 600 and r["frames"] == 598
+    assert measure(env_cfg, "random", trials=2, steps=300, seed=0)["steps"] < 600

@@ -134,13 +134,13 @@ def measure(
 
     env = instantiate("env", env_cfg)
     try:
-        if phase is not None:
-            protocol = Protocol.from_config({"max_steps": steps, "phases": [dict(phase)]})
-            protocol.apply(protocol.phases[0], env)
         agent_seed, env_seed = run_seed(seed, 0)
         base = env.unwrapped
         if hasattr(base, "reset_world"):
             base.reset_world()
+        if phase is not None:  # after reset_world, which undoes changes (as in the runner)
+            protocol = Protocol.from_config({"max_steps": steps, "phases": [dict(phase)]})
+            protocol.apply(protocol.phases[0], env)
         base.np_random = np.random.default_rng(env_seed)
         timed = FrameClock(env)
         if agent == RANDOM:
@@ -288,6 +288,8 @@ class FrameTimeBenchmark:
         plot: bool = True,
     ) -> None:
         sizes = _plain(sizes)
+        if isinstance(sizes, tuple):
+            sizes = list(sizes)
         if not isinstance(sizes, list) or not sizes:
             raise ConfigError(f"task.job.sizes must be a list of [height, width], got {sizes!r}")
         for s in sizes:

@@ -30,6 +30,36 @@ def test_figure_fig6a_quick_writes_png_pdf_csv(cobel, tmp_path):
     assert list(table["phase"]) == ["acquisition"] * 5 + ["extinction"] * 5
 
 
+def test_response_monitor_first_choice_codes_the_first_arm_reached():
+    from types import SimpleNamespace
+
+    from cobelrun.envs import TopologyEnv
+    from cobelrun.monitors import ResponseMonitor
+    from cobelrun.records import TrialBatch
+
+    env = TopologyEnv()  # the paper's T-maze: start 11, junction 3, arm ends 0 (left), 6 (right)
+    trials = [
+        [11, 3, 4, 5, 6],  # right arm end
+        [11, 3, 2, 1, 0],  # left arm end
+        [11, 3, 4, 5, 6, 5, 4, 3, 2, 1, 0],  # right first, then left: a right choice
+        [11, 3, 2, 1, 0, 1, 2, 3, 4, 5, 6],  # left first: not a right choice
+        [11, 10, 3, 4],  # neither (time-out)
+    ]
+    batch = TrialBatch.from_trials(
+        [{"states": t, "actions": [0] * (len(t) - 1), "rewards": [0.0] * (len(t) - 1),
+          "terminated": False} for t in trials]
+    )  # fmt: skip
+    first = ResponseMonitor(states=["right_arm"], before=["left_arm"])
+    end = ResponseMonitor(states=["right_arm"])
+    for m in (first, end):
+        m.setup(SimpleNamespace(unwrapped=env))
+        m.start_run(0)
+    cols = first.columns(batch, env)
+    assert cols["response"].tolist() == [1, 0, 1, 0, 0]
+    assert cols["cumulative_response"].tolist() == [1, 1, 2, 2, 2]
+    assert end.columns(batch, env)["response"].tolist() == [1, 0, 0, 1, 0]
+
+
 def _trials(cobel, tmp_path, *overrides: str) -> pd.DataFrame:
     out = cobel("run", *overrides, "task.record.steps=false", "task.record.mcap=false",
                 env={"COBEL_CACHE": str(tmp_path / "cache")}, timeout=1800)  # fmt: skip

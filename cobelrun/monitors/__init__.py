@@ -84,20 +84,29 @@ class ResponseMonitor(Monitor):
     ----------
     states
         States that code a response: indices, place names (``right_arm``) or ``[row, col]``.
+    before
+        Optional competing states (e.g. ``[left_arm]``). Given, a trial codes 1 if it arrives in
+        one of ``states`` before any of ``before`` (the first choice), wherever it ends. When
+        both are terminal this is the same as the end-state coding.
     """
 
-    def __init__(self, states: Sequence[Any]) -> None:
+    def __init__(self, states: Sequence[Any], before: Sequence[Any] | None = None) -> None:
         if isinstance(states, (str, int)):
             states = [states]
+        if isinstance(before, (str, int)):
+            before = [before]
         if not states:
             raise ConfigError("response monitor needs at least one state in 'states'")
         self.refs = list(states)
+        self.before_refs = list(before or [])
         self.states = np.zeros(0, np.int64)
+        self.before = np.zeros(0, np.int64)
         self._cumulative = 0
 
     def setup(self, env: Any) -> None:
         world = env.unwrapped.world
         self.states = np.array([world.state(r) for r in self.refs], dtype=np.int64)
+        self.before = np.array([world.state(r) for r in self.before_refs], dtype=np.int64)
 
     def start_run(self, run: int) -> None:
         self._cumulative = 0
@@ -106,11 +115,27 @@ class ResponseMonitor(Monitor):
         return [pa.field("response", pa.int8()), pa.field("cumulative_response", pa.int64())]
 
     def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
-        response = np.isin(batch.end_state, self.states).astype(np.int8)
+        if self.before.size:
+            response = self._first_choice(batch)
+        else:
+            response = np.isin(batch.end_state, self.states).astype(np.int8)
         cumulative = self._cumulative + np.cumsum(response, dtype=np.int64)
         if cumulative.size:
             self._cumulative = int(cumulative[-1])
         return {"response": response, "cumulative_response": cumulative}
+
+    def _first_choice(self, batch: TrialBatch) -> np.ndarray:
+        """1 where a trial reaches ``states`` before ``before`` (step order within the trial)."""
+        n, never = batch.n_trials, np.iinfo(np.int64).max
+        trial = batch.step_trial_index()
+        step = np.arange(batch.n_steps, dtype=np.int64)
+        first = []
+        for targets in (self.states, self.before):
+            hit = np.isin(batch.step_next_state, targets)
+            at = np.full(n, never, np.int64)
+            np.minimum.at(at, trial[hit], step[hit])
+            first.append(at)
+        return ((first[0] < first[1]) & (first[0] != never)).astype(np.int8)
 
 
 class TrajectoryMonitor(Monitor):

@@ -123,6 +123,33 @@ class WriterThread:
                 self._pool.shutdown(wait=True, cancel_futures=False)
 
 
+class ColumnBuffer:
+    """Collects column batches for one Parquet writer and hands them over in large pieces.
+
+    Per-call costs of Arrow conversion dominate when a phase yields only a few hundred rows;
+    joining batches until ``rows`` are pending makes one conversion per ~64k rows.
+    """
+
+    def __init__(self, write: Callable[[Mapping[str, Any]], None], rows: int = 1 << 16) -> None:
+        self._write = write
+        self._rows = rows
+        self._parts: list[Mapping[str, Any]] = []
+        self._pending = 0
+
+    def add(self, columns: Mapping[str, Any], n: int, submit: Callable[..., None]) -> None:
+        self._parts.append(columns)
+        self._pending += n
+        if self._pending >= self._rows:
+            self.flush(submit)
+
+    def flush(self, submit: Callable[..., None]) -> None:
+        if not self._parts:
+            return
+        parts, self._parts, self._pending = self._parts, [], 0
+        joined = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+        submit(self._write, joined)
+
+
 class RunRecorder:
     """Collects monitor columns for each batch and streams them to the run folder."""
 
@@ -173,6 +200,8 @@ class RunRecorder:
                 m.bind(self.activity.write)
         self._clock = 0  # simulated ns
         self._writer = WriterThread(enabled=background)
+        self._trial_rows = ColumnBuffer(self.trials.write)
+        self._step_rows = ColumnBuffer(self.steps.write) if self.steps is not None else None
 
     @staticmethod
     def _check_unique(fields: list[pa.Field]) -> None:
@@ -226,7 +255,7 @@ class RunRecorder:
         }
         for m in self.trial_monitors:
             cols.update(m.columns(batch, self.env))
-        self._writer.submit(self.trials.write, cols)
+        self._trial_rows.add(cols, n, self._writer.submit)
 
         if not self.record_cfg.records_run(run):
             self._clock += int(batch.n_steps + n) * STEP_NS
@@ -240,7 +269,7 @@ class RunRecorder:
             }
             for m in self.step_monitors:
                 step_cols.update({k: v[step_keep] for k, v in m.columns(batch, self.env).items()})
-            self._writer.submit(self.steps.write, step_cols)
+            self._step_rows.add(step_cols, len(step_cols["run"]), self._writer.submit)
         if self.mcap is not None:
             self._write_mcap(run, phase, trial, batch, keep)
         else:
@@ -349,6 +378,9 @@ class RunRecorder:
     def close(self) -> None:
         """Write what is buffered, wait for the writer thread, close every file."""
         try:
+            self._trial_rows.flush(self._writer.submit)
+            if self._step_rows is not None:
+                self._step_rows.flush(self._writer.submit)
             self._flush_mcap(force=True)
         finally:
             try:

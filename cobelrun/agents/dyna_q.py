@@ -304,7 +304,7 @@ class DynaQ(Agent):
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(".npz")
-        np.savez_compressed(
+        np.savez(  # uncompressed: tables are small, and this runs once per run
             path, Q=self.Q, hyperparameters=np.array(json.dumps(self.hyperparameters())),
             **self.memory.state_dict(),
         )  # fmt: skip

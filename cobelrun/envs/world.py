@@ -206,18 +206,19 @@ class World:
 
     # ------------------------------------------------------------------ changes (in place)
     def copy(self) -> World:
-        """Return a deep copy (arrays copied, cache not shared)."""
-        return World(
-            width=self.width,
-            height=self.height,
-            T=self.T.copy(),
-            rewards=self.rewards.copy(),
-            terminal=self.terminal.copy(),
-            starts=self.starts.copy(),
-            coords=self.coords.copy(),
-            blocked=self.blocked.copy(),
-            places=dict(self.places),
-        )
+        """Return a copy whose changeable arrays are independent of this world's.
+
+        ``T`` is read-only (replacing it re-validates), so the copy shares it and its cached
+        ``next_state`` table; everything else is copied. Nothing is re-validated: the source
+        is a valid world, which keeps :meth:`copy` cheap (it runs once per run).
+        """
+        new = object.__new__(World)
+        state = dict(self.__dict__)
+        for name in ("rewards", "terminal", "starts", "coords", "blocked"):
+            state[name] = state[name].copy()
+        state["places"] = dict(self.places)
+        new.__dict__.update(state)
+        return new
 
     def set_rewards(self, mapping: Mapping[Any, float]) -> None:
         """Set the arrival reward of some states, in place.

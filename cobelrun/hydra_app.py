@@ -180,7 +180,7 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
             return str(run_dir)
         clear_outputs(run_dir)
         status(run_dir, "running", config_hash=chash, **fields)
-        run(cfg, run_dir)
+        run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
     except KeyboardInterrupt:
         status(run_dir, "interrupted", **fields)
         raise

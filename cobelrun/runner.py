@@ -183,13 +183,15 @@ def saved_agent_file(load_from: str, run: int) -> Path:
     return path
 
 
-def execute(task: Task, run_dir: Path, progress: Any = None) -> Any:
+def execute(
+    task: Task, run_dir: Path, progress: Any = None, *, background_writes: bool = True
+) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
     env = task.env
     base = env.unwrapped
-    recorder = RunRecorder(run_dir, env, task.monitors, task.record)
+    recorder = RunRecorder(run_dir, env, task.monitors, task.record, background=background_writes)
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
@@ -226,11 +228,15 @@ def execute(task: Task, run_dir: Path, progress: Any = None) -> Any:
         recorder.close()
 
 
-def run(cfg: DictConfig, run_dir: Path, *, progress: Any = None) -> Path:
+def run(
+    cfg: DictConfig, run_dir: Path, *, progress: Any = None, background_writes: bool = True
+) -> Path:
     """Build and execute a task into ``run_dir``; write config, manifest and done marker.
 
     Returns the run folder. On Ctrl-C or SIGTERM the files written so far are closed properly,
     the manifest says ``interrupted`` and :class:`KeyboardInterrupt` propagates.
+    ``background_writes`` writes files on a second thread, overlapping simulation and I/O on a
+    free core; sweeps switch it off, since their parallel jobs already use every core.
     """
     run_dir = Path(run_dir)
     try:
@@ -251,7 +257,7 @@ def run(cfg: DictConfig, run_dir: Path, *, progress: Any = None) -> Path:
     t0 = time.perf_counter()
     with sigterm_as_interrupt():
         try:
-            result = execute(task, run_dir, progress=progress)
+            result = execute(task, run_dir, progress=progress, background_writes=background_writes)
         except KeyboardInterrupt:
             manifest.finish("interrupted")
             raise

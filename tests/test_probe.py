@@ -52,7 +52,7 @@ def test_probe_scores_greedy_choices_against_the_correct_actions() -> None:
 
 
 def test_probe_does_not_change_training_for_the_same_seed(tmp_path: Path) -> None:
-    base = ["task=two_afc", "task.runs=3", "seed=11", "+task.save_agents=false"]
+    base = ["task=two_afc", "task.runs=3", "seed=11", "task.save_agents=false"]
     with_probe = run(compose(base), tmp_path / "probe")
     without = run(compose([*base, "task.monitors.probe=null"]), tmp_path / "none")
     a = pd.read_parquet(with_probe / "trials.parquet")

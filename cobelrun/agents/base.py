@@ -23,6 +23,12 @@ def as_seed_sequence(seed: SeedLike) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed)
 
 
+def check_budget(n_trials: int, max_steps: int) -> None:
+    """Raise ConfigError unless ``n_trials >= 0`` and ``max_steps >= 1``."""
+    if n_trials < 0 or max_steps < 1:
+        raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
+
+
 class TrialCallback:
     """Per-step hooks for the opt-in slow path (template-method style, as SB3's callbacks).
 
@@ -94,17 +100,25 @@ class Agent(abc.ABC):
                     f"{type(space).__name__}; allowed: {names}"
                 )
 
-    @abc.abstractmethod
     def train(
         self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
     ) -> TrialBatch:
-        """Run ``n_trials`` trials with learning on."""
+        """Run ``n_trials`` trials of at most ``max_steps`` steps with learning on."""
+        check_budget(n_trials, max_steps)
+        return self._run(n_trials, max_steps, True, callbacks)
 
-    @abc.abstractmethod
     def test(
         self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
     ) -> TrialBatch:
         """Run ``n_trials`` trials with learning off (the same policy, no updates)."""
+        check_budget(n_trials, max_steps)
+        return self._run(n_trials, max_steps, False, callbacks)
+
+    @abc.abstractmethod
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        """Run trials (arguments already checked); subclasses implement this."""
 
     @abc.abstractmethod
     def predict(self, observations: np.ndarray) -> np.ndarray:

@@ -392,10 +392,15 @@ class DQNAgent(Agent):
             torch.set_rng_state(outer_torch)
 
     # -- trials ----------------------------------------------------------------------------
-    def train(
-        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        self._check_budget(n_trials, max_steps)
+        go = self._learn_trials if learn else self._test_trials
+        return go(n_trials, max_steps, callbacks)
+
+    def _learn_trials(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
         rec = self.recorder
         rec.begin(max_steps, callbacks, self)
         if n_trials == 0:
@@ -412,10 +417,9 @@ class DQNAgent(Agent):
         rec.finished = rec.finished[:n_trials]
         return rec.batch()
 
-    def test(
-        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
+    def _test_trials(
+        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        self._check_budget(n_trials, max_steps)
         rec = self.recorder
         rec.begin(max_steps, callbacks, self)
         m = self.model
@@ -434,11 +438,6 @@ class DQNAgent(Agent):
         finally:
             m.exploration_rate = eps
         return rec.batch()
-
-    @staticmethod
-    def _check_budget(n_trials: int, max_steps: int) -> None:
-        if n_trials < 0 or max_steps < 1:
-            raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
 
     # -- inference ---------------------------------------------------------------------------
     def _obs_tensor(self, observations: Any) -> torch.Tensor:

@@ -207,21 +207,9 @@ class DynaDeepAgent(Agent):
         return int(idx[best[self.rng.integers(best.size)]])
 
     # -- trials -----------------------------------------------------------------------------------
-    def train(
-        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
-    ) -> TrialBatch:
-        return self._run(n_trials, max_steps, True, callbacks)
-
-    def test(
-        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
-    ) -> TrialBatch:
-        return self._run(n_trials, max_steps, False, callbacks)
-
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        if n_trials < 0 or max_steps < 1:
-            raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
         env, mem = self.env, self.memory
         mask = self._mask()
         trials = []

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-import operator
-from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from cobelrun.envs.base import ChangeableWorld, check_action
 from cobelrun.envs.world import World, tmaze_paper
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 _ARROWS = ("<", "^", ">", "v")
 
 
-class GridWorldEnv(gym.Env[int, int]):
+class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
     """A tabular gridworld; the observation is the state index.
 
     Description
@@ -99,16 +98,6 @@ class GridWorldEnv(gym.Env[int, int]):
 
     # ------------------------------------------------------------------ world access
     @property
-    def world(self) -> World:
-        """The live world (changed by :meth:`apply_changes`)."""
-        return self._world
-
-    @property
-    def base_world(self) -> World:
-        """The world as it was at construction (a copy; do not modify)."""
-        return self._base_world
-
-    @property
     def state(self) -> int:
         """The current state index."""
         return self._state
@@ -117,34 +106,6 @@ class GridWorldEnv(gym.Env[int, int]):
     def steps(self) -> int:
         """Steps taken in the current episode."""
         return self._steps
-
-    def reset_world(self) -> None:
-        """Restore the world to :attr:`base_world` (undo every :meth:`apply_changes`)."""
-        self._world = self._base_world.copy()
-
-    def apply_changes(
-        self,
-        rewards: Mapping[Any, float] | None = None,
-        terminals: Mapping[Any, bool] | None = None,
-        starts: Iterable[Any] | None = None,
-    ) -> None:
-        """Change the live world in place (e.g. at a protocol phase boundary).
-
-        Parameters
-        ----------
-        rewards : mapping state -> float, optional
-            New arrival rewards (see :meth:`World.set_rewards`).
-        terminals : mapping state -> bool, optional
-            Terminal flags to set (see :meth:`World.set_terminal`).
-        starts : list of states, optional
-            New start states (see :meth:`World.set_starts`).
-        """
-        if rewards is not None:
-            self._world.set_rewards(rewards)
-        if terminals is not None:
-            self._world.set_terminal(terminals)
-        if starts is not None:
-            self._world.set_starts(starts)
 
     def action_mask(self) -> np.ndarray:
         """(S, A) bool: True where an action has some probability of leaving the state."""
@@ -217,25 +178,7 @@ class GridWorldEnv(gym.Env[int, int]):
         return {"state": int(s), "x": float(x), "y": float(y)}
 
     def _check_action(self, action: Any) -> int:
-        try:
-            if isinstance(action, np.ndarray):
-                if action.size != 1:
-                    raise TypeError
-                action = action.reshape(()).item()
-            if isinstance(action, bool | np.bool_):
-                raise TypeError
-            a = operator.index(action)
-        except TypeError:
-            raise ValueError(
-                f"invalid action {action!r}; allowed: integers 0..{self._world.n_actions - 1} "
-                "(0=left, 1=up, 2=right, 3=down)"
-            ) from None
-        if not 0 <= a < self._world.n_actions:
-            raise ValueError(
-                f"invalid action {a}; allowed: 0..{self._world.n_actions - 1} "
-                "(0=left, 1=up, 2=right, 3=down)"
-            )
-        return a
+        return check_action(action, self._world.n_actions, ("left", "up", "right", "down"))
 
 
 class DiscreteGridWorldEnv(GridWorldEnv):

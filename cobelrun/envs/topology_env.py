@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import operator
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -11,9 +10,10 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.envs import topology as topo
+from cobelrun.envs.base import ChangeableWorld, check_action
 from cobelrun.envs.observations import ObservationModule, PoseObservation
 from cobelrun.envs.world import World, _finite, _pairs
-from cobelrun.errors import ConfigError, LayoutError, allowed_list
+from cobelrun.errors import ConfigError, LayoutError
 
 
 @dataclass(eq=False)
@@ -102,7 +102,7 @@ class GraphWorld:
         self.starts = np.asarray(starts, np.int64)
 
 
-class TopologyEnv(gym.Env):
+class TopologyEnv(ChangeableWorld, gym.Env):
     """Navigation on a topology graph with poses (node, heading) and an observation module.
 
     Description
@@ -260,15 +260,6 @@ class TopologyEnv(gym.Env):
 
     # ------------------------------------------------------------------ world access
     @property
-    def world(self) -> GraphWorld:
-        """The live rewards / terminals / starts on the nodes (changed by :meth:`apply_changes`)."""
-        return self._world
-
-    @property
-    def base_world(self) -> GraphWorld:
-        return self._base_world
-
-    @property
     def action_names(self) -> tuple[str, ...]:
         return self.action_map.names
 
@@ -281,24 +272,6 @@ class TopologyEnv(gym.Env):
     def state(self) -> int:
         """Current node."""
         return self._node
-
-    def reset_world(self) -> None:
-        """Undo every :meth:`apply_changes`."""
-        self._world = self._base_world.copy()
-
-    def apply_changes(
-        self,
-        rewards: Mapping[Any, float] | None = None,
-        terminals: Mapping[Any, bool] | None = None,
-        starts: Iterable[Any] | None = None,
-    ) -> None:
-        """Change rewards, terminal flags or start nodes in place (protocol phases)."""
-        if rewards is not None:
-            self._world.set_rewards(rewards)
-        if terminals is not None:
-            self._world.set_terminal(terminals)
-        if starts is not None:
-            self._world.set_starts(starts)
 
     def observe_pose(self, node: int, heading: int) -> Any:
         """The observation at any pose (e.g. for activity maps), noise drawn from ``np_random``."""
@@ -352,21 +325,4 @@ class TopologyEnv(gym.Env):
                 "angle": angle, "x": float(x), "y": float(y)}  # fmt: skip
 
     def _check_action(self, action: Any) -> int:
-        n = self.action_map.n_actions
-        try:
-            if isinstance(action, np.ndarray):
-                if action.size != 1:
-                    raise TypeError
-                action = action.reshape(()).item()
-            if isinstance(action, bool | np.bool_):
-                raise TypeError
-            a = operator.index(action)
-        except TypeError:
-            raise ValueError(
-                f"invalid action {action!r}; allowed: integers 0..{n - 1} ({allowed_list(self.action_names)})"
-            ) from None
-        if not 0 <= a < n:
-            raise ValueError(
-                f"invalid action {a}; allowed: 0..{n - 1} ({allowed_list(self.action_names)})"
-            )
-        return a
+        return check_action(action, self.action_map.n_actions, self.action_names)

@@ -46,6 +46,8 @@ def _root(
     ] = False,
 ) -> None:
     """Config-driven experiments for neuroscience-oriented reinforcement learning."""
+
+
 EXIT_INTERRUPTED = 130
 
 

@@ -32,4 +32,3 @@ def __getattr__(name: str) -> Any:
             ) from None
         raise
     return getattr(mod, name)
-

@@ -1,7 +1,7 @@
 """Fig. 6A: extinction learning in the rendered 3D T-maze with DQN on camera images.
 
-Cumulative response (right-arm choices) and escape latency over 200 trials, mean and 25th-75th
-percentile band over the runs; the reward moves from the right to the left arm after trial 100.
+Cumulative response (right-arm choices) and escape latency over 200 trials, mean ± standard error
+over the runs; the reward moves from the right to the left arm after trial 100.
 The default budget is ``task=tmaze_extinction_3d`` (CPU-sized); the paper's scale (84 x 84
 images, 50 runs) is ``task=tmaze_extinction_3d_paper`` (see docs/rendering.md).
 """
@@ -29,7 +29,7 @@ def draw(data: FigureData):
     n = trials["run"].nunique()
     axes[0].set_title("DQN: cumulative response")
     axes[1].set_title("DQN: escape latency")
-    fig.suptitle(f"Fig. 6A: extinction in the 3D T-maze, camera images ({n} runs, mean and IQR)")
+    fig.suptitle(f"Fig. 6A: extinction in the 3D T-maze, camera images ({n} runs, mean ± SEM)")
     resp, lat = summarize(trials, "cumulative_response"), summarize(trials, "steps")
     rate = summarize(trials, "response")["mean"].rename("response_rate")
     phase = trials[trials["run"] == trials["run"].min()].set_index("trial")["phase"]

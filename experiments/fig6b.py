@@ -1,7 +1,7 @@
 """Fig. 6B: extinction learning in the gridworld T-maze with tabular Dyna-Q.
 
-Cumulative response (right-arm choices) and escape latency over 200 trials, mean and 25th-75th
-percentile band over 100 runs; the reward moves from the right to the left arm after trial 100.
+Cumulative response (right-arm choices) and escape latency over 200 trials, mean ± standard error
+over 100 runs; the reward moves from the right to the left arm after trial 100.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def draw(data: FigureData):
     n = trials["run"].nunique()
     axes[0].set_title("Dyna-Q: cumulative response")
     axes[1].set_title("Dyna-Q: escape latency")
-    fig.suptitle(f"Fig. 6B: extinction in the gridworld T-maze ({n} runs, mean and IQR)")
+    fig.suptitle(f"Fig. 6B: extinction in the gridworld T-maze ({n} runs, mean ± SEM)")
     resp, lat = summarize(trials, "cumulative_response"), summarize(trials, "steps")
     phase = trials[trials["run"] == trials["run"].min()].set_index("trial")["phase"]
     table = pd.concat(

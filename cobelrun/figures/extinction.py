@@ -22,17 +22,26 @@ def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
 
 
 def summarize(trials: pd.DataFrame, column: str) -> pd.DataFrame:
-    """Per trial: mean, std and 25th/75th percentile of ``column`` across runs."""
+    """Per trial: mean, std, standard error and 25th/75th percentile of ``column`` across runs."""
     g = trials.groupby("trial")[column]
     return pd.DataFrame(
-        {"mean": g.mean(), "std": g.std(ddof=0), "q25": g.quantile(0.25), "q75": g.quantile(0.75)}
+        {
+            "mean": g.mean(),
+            "std": g.std(ddof=0),
+            "sem": g.sem(ddof=1).fillna(0.0),
+            "q25": g.quantile(0.25),
+            "q75": g.quantile(0.75),
+        }
     )
 
 
 def _shade(ax, summary: pd.DataFrame, color: str, label: str) -> None:
     x = summary.index.to_numpy()
     ax.plot(x, summary["mean"], color=color, lw=1.5, label=label)
-    ax.fill_between(x, summary["q25"], summary["q75"], color=color, alpha=0.25, lw=0)
+    # mean ± standard error: latencies are bimodal (found the goal or hit max_steps), so a
+    # percentile band jumps between the two modes and hides the mean's trend
+    lo, hi = summary["mean"] - summary["sem"], summary["mean"] + summary["sem"]
+    ax.fill_between(x, lo, hi, color=color, alpha=0.3, lw=0)
 
 
 def _mark_phases(ax, trials: pd.DataFrame) -> None:
@@ -43,7 +52,7 @@ def _mark_phases(ax, trials: pd.DataFrame) -> None:
 
 
 def plot_cumulative_response(trials: pd.DataFrame, ax) -> None:
-    """Cumulative response curve (mean, interquartile band across runs), phase boundaries."""
+    """Cumulative response curve (mean ± standard error across runs), phase boundaries."""
     if "cumulative_response" not in trials:
         raise CobelError("the trials table has no cumulative_response column (no response monitor)")
     _shade(ax, summarize(trials, "cumulative_response"), "tab:blue", "cumulative responses")
@@ -53,7 +62,7 @@ def plot_cumulative_response(trials: pd.DataFrame, ax) -> None:
 
 
 def plot_escape_latency(trials: pd.DataFrame, ax) -> None:
-    """Escape latency in steps (mean, interquartile band across runs), phase boundaries."""
+    """Escape latency in steps (mean ± standard error across runs), phase boundaries."""
     if "steps" not in trials:
         raise CobelError("the trials table has no steps column (no latency monitor)")
     _shade(ax, summarize(trials, "steps"), "tab:red", "escape latency")
@@ -73,7 +82,7 @@ def plot_extinction(trials: pd.DataFrame, title: str = ""):
     plot_cumulative_response(trials, axes[0])
     plot_escape_latency(trials, axes[1])
     n_runs = trials["run"].nunique()
-    what = f"{n_runs} runs: mean, band = 25th-75th percentile"
+    what = f"{n_runs} runs: mean ± standard error"
     fig.suptitle(f"{title} ({what})" if title else what, fontsize=10)
     for ax in axes:
         ax.spines[["top", "right"]].set_visible(False)

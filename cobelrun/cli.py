@@ -151,7 +151,7 @@ def plot_cmd(
     Several folders are drawn together where the task's figure compares groups, e.g.
     `cobel plot LATENT_DIR DIRECT_DIR` for Fig. 7B.
     """
-    from cobelrun.figures.extinction import plot_run
+    from cobelrun.figures import plot_run
 
     try:
         path = plot_run(run_dirs[0], out, *run_dirs[1:])

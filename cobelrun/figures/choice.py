@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures import save_figure
 
 PROBE = "greedy_correct"
 
@@ -86,11 +87,4 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     plot_mean_reward(trials, ax, epsilon=epsilon_of(run_dir))
     ax.set_title("Two-alternative forced choice (Fig. 9)", fontsize=10)
     ax.spines[["top", "right"]].set_visible(False)
-    out = Path(out) if out is not None else run_dir / "plot.png"
-    try:
-        fig.savefig(out, dpi=150)
-    except OSError as exc:
-        raise CobelError(f"cannot write {out}: {exc.strerror}") from None
-    finally:
-        plt.close(fig)
-    return out
+    return save_figure(fig, Path(out) if out is not None else run_dir / "plot.png")

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 import pandas as pd
 
 from cobelrun.errors import CobelError
-from cobelrun.figures import PLOTS_BY_TASK
+from cobelrun.figures import save_figure
 
 
 def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
@@ -89,19 +88,8 @@ def plot_extinction(trials: pd.DataFrame, title: str = ""):
     return fig, axes
 
 
-def _takes_more_runs(fn) -> bool:
-    import inspect
-
-    params = inspect.signature(fn).parameters.values()
-    return any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in params)
-
-
-def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | Path) -> Path:
-    """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``).
-
-    Tasks with their own figure (:data:`cobelrun.figures.PLOTS_BY_TASK`) are drawn by it;
-    ``others`` (more run folders, e.g. Fig. 7's direct group) go to figures that take them.
-    """
+def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Draw Fig. 6B for a run folder into ``out`` (default ``RUN_DIR/plot.png``)."""
     from cobelrun.results import load_manifest, load_trials
 
     run_dir = Path(run_dir)
@@ -112,23 +100,5 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
         title = str(load_manifest(run_dir).get("task", ""))
     except CobelError:
         title = ""
-    if title in PLOTS_BY_TASK:  # the task has its own figure
-        task_plot = importlib.import_module(PLOTS_BY_TASK[title]).plot_run
-        if others and not _takes_more_runs(task_plot):
-            raise CobelError(f"the {title} plot takes one run folder, got {1 + len(others)}")
-        return task_plot(run_dir, out, *others)
-    if others:
-        raise CobelError(f"the {title or 'Fig. 6B'} plot takes one run folder, got "
-                         f"{1 + len(others)}")  # fmt: skip
     fig, _ = plot_extinction(trials, title)
-    out = Path(out) if out is not None else run_dir / "plot.png"
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=150)
-    except OSError as exc:
-        raise CobelError(f"cannot write {out}: {exc.strerror}") from None
-    finally:
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
-    return out
+    return save_figure(fig, Path(out) if out is not None else run_dir / "plot.png")

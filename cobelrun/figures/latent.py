@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures import save_figure
 
 REWARDED = "rewarded"
 GROUP_COLORS = {"latent": "tab:blue", "direct": "tab:orange"}
@@ -231,7 +232,6 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     dirs = [Path(run_dir), *(Path(o) for o in others if o is not None)]
     groups: dict[str, pd.DataFrame] = {}
@@ -249,11 +249,4 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
         world = world_of(latent_dir)
     fig, _ = draw_fig7(groups, activity, world)
     fig.suptitle("Latent learning in the Blodgett maze (Fig. 7)", fontsize=10)
-    out = Path(out) if out is not None else dirs[0] / "plot.png"
-    try:
-        fig.savefig(out, dpi=150)
-    except OSError as exc:
-        raise CobelError(f"cannot write {out}: {exc.strerror}") from None
-    finally:
-        plt.close(fig)
-    return out
+    return save_figure(fig, Path(out) if out is not None else dirs[0] / "plot.png")

@@ -114,10 +114,10 @@ def list_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from cobelrun.config import describe, group_options
+    from cobelrun.config import GROUPS, describe, group_options
     from cobelrun.errors import suggest
 
-    groups = ["task", "env", "agent", "protocol"]
+    groups = list(GROUPS)
     if group is not None and group not in groups:
         fail(f"unknown group {group!r}{suggest(group, groups)}; allowed: {', '.join(groups)}")
     console = Console()

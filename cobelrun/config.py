@@ -15,8 +15,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 
-#: config groups users pick from on the command line
-GROUPS = ("task", "env", "agent")
+#: config groups users pick an option of by name (``task=NAME``); listed by ``cobel list``
+GROUPS = ("task", "env", "agent", "protocol")
 
 
 def builtin_conf_dir() -> Path:

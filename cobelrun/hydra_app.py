@@ -16,10 +16,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from cobelrun.config import builtin_conf_dir, register_resolvers
+from cobelrun.config import GROUPS, builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
-
-CHOICE_GROUPS = ("task", "env", "agent", "protocol")
 
 
 def _check_choices(parsed: list[Any]) -> None:
@@ -27,7 +25,7 @@ def _check_choices(parsed: list[Any]) -> None:
 
     for o in parsed:
         key = o.key_or_group
-        if key not in CHOICE_GROUPS or o.package:
+        if key not in GROUPS or o.package:
             continue
         options = group_options(key)
         values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
@@ -115,7 +113,7 @@ def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConf
             except HydraException as exc:
                 base_cfg = None
                 try:
-                    plain = [o for o in first if o.split("=", 1)[0] in CHOICE_GROUPS]
+                    plain = [o for o in first if o.split("=", 1)[0] in GROUPS]
                     base_cfg = compose("config", overrides=plain)
                 except HydraException:
                     pass

@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import signal
-import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -268,7 +267,3 @@ def run(
     manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
     (run_dir / DONE_MARKER).write_text("completed\n")
     return run_dir
-
-
-def main_process_is_interactive() -> bool:
-    return sys.stderr.isatty()

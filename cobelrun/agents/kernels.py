@@ -164,18 +164,6 @@ def select_action(rng, q_row, mask_row, use_mask, policy, epsilon, beta):
 
 
 @njit(cache=True, inline="always")
-def max_value(q_row, mask_row, use_mask):
-    """max_a q[a] over allowed actions (all actions if none is allowed)."""
-    best = -np.inf
-    for a in range(q_row.shape[0]):
-        if ((not use_mask) or mask_row[a]) and q_row[a] > best:
-            best = q_row[a]
-    if best == -np.inf:
-        best = q_row.max()
-    return best
-
-
-@njit(cache=True, inline="always")
 def q_update(Q, mask, use_mask, s, a, r, s2, terminal, lr, gamma):
     """One Q-learning update: Q[s,a] += lr * (r + gamma * max Q[s2] * (1 - terminal) - Q[s,a])."""
     target = r

@@ -294,10 +294,6 @@ def _bin_edges(
     return nb
 
 
-def _places(topology_n: int, places: Mapping[str, Any] | None) -> dict[str, Any]:
-    return dict(places or {})
-
-
 def grid(
     width: int,
     height: int,
@@ -324,7 +320,7 @@ def grid(
         positions=pos,
         directions=_directions(4),
         neighbours=nb,
-        places=_places(width * height, places),
+        places=dict(places or {}),
         cells=np.stack([rows, cols], axis=1),
         name="grid",
     )
@@ -366,7 +362,7 @@ def hexagonal(
         positions=positions,
         directions=_directions(6),
         neighbours=nb,
-        places={"centre": centre, **_places(len(pos), places)},
+        places={"centre": centre, **dict(places or {})},
         name="hexagonal",
     )
 
@@ -414,7 +410,7 @@ def delaunay(
         positions=pts,
         directions=_directions(int(n_directions)),
         neighbours=nb,
-        places=_places(len(pts), places),
+        places=dict(places or {}),
         name="delaunay",
     )
 
@@ -449,7 +445,7 @@ def manual(
         positions=pos,
         directions=_directions(int(n_directions)),
         neighbours=nb,
-        places=_places(len(pos), places),
+        places=dict(places or {}),
         name="manual",
     )
 

@@ -6,6 +6,7 @@ table (one row per step). Monitors never do I/O.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Sequence
 from typing import Any
 
@@ -24,23 +25,25 @@ __all__ = [
 ]
 
 
-class Monitor:
+class Monitor(abc.ABC):
     """Base class. Subclasses set ``table`` and implement :meth:`fields` and :meth:`columns`."""
 
     #: ``"trials"`` or ``"steps"``
     table: str = "trials"
 
-    def setup(self, env: Any) -> None:
+    def setup(self, env: Any) -> None:  # noqa: B027 (optional hook)
         """Resolve anything that depends on the environment (e.g. place names)."""
 
-    def start_run(self, run: int) -> None:
+    def start_run(self, run: int) -> None:  # noqa: B027 (optional hook)
         """Reset per-run state (called before each independent agent)."""
 
+    @abc.abstractmethod
     def fields(self) -> list[pa.Field]:
-        raise NotImplementedError
+        """The columns this monitor writes (Arrow fields)."""
 
+    @abc.abstractmethod
     def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
-        raise NotImplementedError
+        """This monitor's columns for a batch of trials."""
 
 
 class RewardMonitor(Monitor):

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from cobelrun.envs.gridworld import GridWorldEnv
 from cobelrun.errors import ConfigError
 from cobelrun.io.mcap import McapStreamWriter
 from cobelrun.io.parquet import ParquetStreamWriter
@@ -200,6 +201,10 @@ class RunRecorder:
                 m.bind(self.activity.write)
         self._clock = 0  # simulated ns
         self._writer = WriterThread(enabled=background)
+        # a gridworld action is a compass direction, so it gives the heading of the pose it
+        # leads to; other envs' actions (turns, choices) do not
+        base = env.unwrapped
+        self._headings_from_actions = isinstance(base, GridWorldEnv)
         self._trial_rows = ColumnBuffer(self.trials.write)
         self._step_rows = ColumnBuffer(self.steps.write) if self.steps is not None else None
 
@@ -287,10 +292,11 @@ class RunRecorder:
         states = np.empty(n_poses, np.int64)
         states[is_start] = batch.start_state
         states[~is_start] = batch.step_next_state
-        # pose id = state * 5 + heading code (0-3: the action that led there, 4: trial start)
-        code = np.empty(n_poses, np.int64)
-        code[is_start] = 4
-        code[~is_start] = np.clip(batch.step_action, 0, 3)
+        # pose id = state * 5 + heading code (0-3: the gridworld action that led there, 4: trial
+        # start or a heading the actions do not define, e.g. a topology env's turns)
+        code = np.full(n_poses, 4, np.int64)
+        if self._headings_from_actions:
+            code[~is_start] = batch.step_action
         t = self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
         pose_keep = np.repeat(keep, batch.steps + 1)
         self._poses.append((t[pose_keep], (states * 5 + code)[pose_keep]))
@@ -360,7 +366,7 @@ class RunRecorder:
             t = np.concatenate([p[0] for p in self._poses])
             pose_id = np.concatenate([p[1] for p in self._poses])
             coords = self.env.unwrapped.world.coords
-            headings = np.append(ACTION_HEADING, np.pi / 2)  # codes 0-3 and 4 (start: up)
+            headings = np.append(ACTION_HEADING, np.pi / 2)  # codes 0-3, and 4: facing up
             self._writer.submit(
                 self.mcap.write_indexed_poses,
                 t,

@@ -397,11 +397,9 @@ class FrameTimeBenchmark:
             import matplotlib
 
             matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
+            from cobelrun.figures import save_figure
 
-            fig = plot_frame_times(table)
-            fig.savefig(run_dir / PLOT, dpi=150)
-            plt.close(fig)
+            save_figure(plot_frame_times(table), run_dir / PLOT)
         return summary
 
 

@@ -8,9 +8,11 @@ folder is created.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -81,45 +83,72 @@ def _writable_root(path: Path) -> None:
         ) from None
 
 
-def validate(config_dir: Path, overrides: list[str], multirun: bool) -> DictConfig:
-    """Compose (first sweep combination) and build everything once; raise one-line errors.
+@contextlib.contextmanager
+def composer() -> Iterator[Callable[..., DictConfig]]:
+    """Compose configs as ``cobel run`` does, with errors as one-line ConfigErrors.
 
-    Returns the composed config of the first combination, ``hydra`` node included.
+    Yields ``compose(overrides, return_hydra_config=False)``: built-in configs (``./conf``
+    searched first through ``hydra_plugins/cobel_searchpath``), overrides parsed, chosen
+    task/env/agent/protocol names checked with close-match suggestions, typos in keys
+    explained. Used by ``cobel run``'s up-front validation, ``cobel render-cache`` and
+    ``cobel figure``.
     """
     from hydra import compose, initialize_config_dir
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 
-    from cobelrun.runner import build_task
+    register_resolvers()
 
-    try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
-    except OverrideParseException as exc:
-        raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
-    _check_choices(parsed)
-    first = overrides
-    if multirun:
-        combos = BasicSweeper.split_arguments(parsed, None)
-        first = list(combos[0][0]) if combos and combos[0] else overrides
+    def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
+        try:
+            parsed = OverridesParser.create().parse_overrides(overrides)
+        except OverrideParseException as exc:
+            raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
+        _check_choices(parsed)
+        try:
+            return compose("config", overrides=overrides, return_hydra_config=return_hydra_config)
+        except MissingConfigException as exc:
+            raise ConfigError(str(exc).strip().splitlines()[0]) from None
+        except HydraException as exc:
+            base_cfg = None
+            try:  # the config without the bad override, to list the keys that are allowed
+                plain = [o for o in overrides if o.split("=", 1)[0] in GROUPS]
+                base_cfg = compose("config", overrides=plain)
+            except HydraException:
+                pass
+            raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
+
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
-            try:
-                cfg = compose("config", overrides=first, return_hydra_config=True)
-            except MissingConfigException as exc:
-                raise ConfigError(str(exc).strip().splitlines()[0]) from None
-            except HydraException as exc:
-                base_cfg = None
-                try:
-                    plain = [o for o in first if o.split("=", 1)[0] in GROUPS]
-                    base_cfg = compose("config", overrides=plain)
-                except HydraException:
-                    pass
-                raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
+        with initialize_config_dir(config_dir=str(builtin_conf_dir()), version_base="1.3"):
+            yield _compose
     finally:
         GlobalHydra.instance().clear()
+
+
+def validate(overrides: list[str], multirun: bool) -> DictConfig:
+    """Compose (first sweep combination) and build everything once; raise one-line errors.
+
+    Returns the composed config of the first combination, ``hydra`` node included.
+    """
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    from cobelrun.runner import build_task
+
+    first = overrides
+    if multirun:
+        try:
+            parsed = OverridesParser.create().parse_overrides(overrides)
+        except OverrideParseException as exc:
+            raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
+        _check_choices(parsed)  # every swept value, not only the first combination's
+        combos = BasicSweeper.split_arguments(parsed, None)
+        first = list(combos[0][0]) if combos and combos[0] else overrides
+    with composer() as compose:
+        cfg = compose(first, return_hydra_config=True)
     if not multirun:
         try:
             out = OmegaConf.select(cfg, "hydra.run.dir")
@@ -275,7 +304,7 @@ def launch(args: list[str]) -> int:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
     if not informational:
-        cfg = validate(config_dir, overrides, multirun)
+        cfg = validate(overrides, multirun)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg)
             _writable_root(sweep_dir)

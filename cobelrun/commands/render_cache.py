@@ -32,35 +32,21 @@ The cache lives in $COBEL_CACHE (default ~/.cache/cobel/render) or env.observati
 
 
 def compose(overrides: list[str]) -> Any:
-    """Compose the run config for ``overrides`` (Hydra compose API, as ``cobel run`` validates)."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+    """Compose the run config for ``overrides`` exactly as ``cobel run`` does (no sweeps)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException, OverrideParseException
+    from hydra.errors import OverrideParseException
 
-    from cobelrun.config import builtin_conf_dir, register_resolvers
     from cobelrun.errors import ConfigError
-    from cobelrun.hydra_app import _check_choices, _explain_compose_error
+    from cobelrun.hydra_app import composer
 
-    register_resolvers()
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except OverrideParseException as exc:
         raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
     if any(o.is_sweep_override() for o in parsed):
         raise ConfigError("render-cache takes one configuration; remove the sweep (a,b) overrides")
-    _check_choices(parsed)
-    config_dir = builtin_conf_dir()  # ./conf is searched first (hydra_plugins/cobel_searchpath)
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
-            try:
-                return hydra_compose("config", overrides=overrides)
-            except HydraException as exc:
-                raise ConfigError(_explain_compose_error(exc, None)) from None
-    finally:
-        GlobalHydra.instance().clear()
+    with composer() as compose_config:
+        return compose_config(overrides)
 
 
 @contextlib.contextmanager

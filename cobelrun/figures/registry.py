@@ -198,31 +198,22 @@ def results_root() -> Path:
 
 @contextlib.contextmanager
 def _composer() -> Iterator[Callable[[list[str]], Any]]:
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
+    """Compose (and resolve) run configs as ``cobel run`` does; errors name the run's overrides."""
     from omegaconf import OmegaConf
 
-    from cobelrun.config import builtin_conf_dir, register_resolvers
+    from cobelrun.hydra_app import composer
 
-    register_resolvers()
-    GlobalHydra.instance().clear()
+    with composer() as compose:
 
-    def _compose(overrides: list[str]) -> Any:
-        try:
-            cfg = compose("config", overrides=overrides)
-        except HydraException as exc:
-            raise ConfigError(
-                f"{' '.join(overrides)}: {str(exc).strip().splitlines()[0]}"
-            ) from None
-        OmegaConf.resolve(cfg)
-        return cfg
+        def _compose(overrides: list[str]) -> Any:
+            try:
+                cfg = compose(overrides)
+            except ConfigError as exc:
+                raise ConfigError(f"{' '.join(overrides)}: {exc}") from None
+            OmegaConf.resolve(cfg)
+            return cfg
 
-    try:
-        with initialize_config_dir(config_dir=str(builtin_conf_dir()), version_base="1.3"):
-            yield _compose
-    finally:
-        GlobalHydra.instance().clear()
+        yield _compose
 
 
 @dataclass

@@ -191,3 +191,22 @@ def test_open_field_learns_shortest_path():
         s = nxt[s, int(np.argmax(agent.Q[s]))]
         n += 1
     assert n == 10
+
+
+def test_building_an_agent_does_not_load_numba():
+    """Validation (and a sweep's launcher process) builds agents without the ~0.35 s numba
+    import; the kernels are loaded when an agent first runs trials."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from cobelrun.agents import DynaQ\n"
+        "from cobelrun.envs import GridWorldEnv, tmaze_paper\n"
+        "agent = DynaQ(GridWorldEnv(tmaze_paper()), seed=0)\n"
+        "assert 'numba' not in sys.modules, 'numba imported by building an agent'\n"
+        "agent.train(1, 10)\n"
+        "assert 'numba' in sys.modules\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

@@ -25,16 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
-from cobelrun.agents.kernels import (
-    POLICIES,
-    REPLAY_MODES,
-    REPLAY_STEP,
-    REPLAY_TRIAL_END,
-    q_update,
-    replay,
-    run_trials,
-    select_action,
-)
+from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
@@ -175,6 +166,8 @@ class DynaQ(Agent):
         return self._run_python(n_trials, max_steps, learn, callbacks)
 
     def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
+        from cobelrun.agents.kernels import run_trials  # numba: imported on first use
+
         base = self.env.unwrapped
         world = base.world
         det_table = world.next_state
@@ -219,6 +212,8 @@ class DynaQ(Agent):
     def _run_python(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
+        from cobelrun.agents.kernels import q_update, select_action
+
         env = self.env
         mask = self._mask()
         (policy, eps, beta, lr, gamma, replay_mode, batch, _sampling) = self._params()
@@ -268,6 +263,8 @@ class DynaQ(Agent):
         return TrialBatch.from_trials(trials)
 
     def _replay(self, mask: np.ndarray, n: int) -> None:
+        from cobelrun.agents.kernels import replay
+
         m = self.memory
         replay(self.rng, self.Q, mask, self.use_mask, m.next_state, m.reward, m.terminal,
                m.visited_list, m.n_visited, m.sampling_code, n, self.learning_rate, self.gamma)  # fmt: skip

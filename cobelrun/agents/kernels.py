@@ -41,22 +41,7 @@ _import_numba_arraymath_without_scipy()
 
 from numba import njit  # noqa: E402
 
-# Policies
-EPSILON_GREEDY = 0
-SOFTMAX = 1
-POLICIES = {"epsilon_greedy": EPSILON_GREEDY, "softmax": SOFTMAX}
-
-# Replay modes
-REPLAY_OFF = 0
-REPLAY_STEP = 1
-REPLAY_TRIAL_END = 2
-REPLAY_MODES = {"off": REPLAY_OFF, "step": REPLAY_STEP, "trial_end": REPLAY_TRIAL_END}
-
-# Model memory sampling
-SAMPLE_ALL = 0
-SAMPLE_VISITED = 1
-SAMPLING = {"all": SAMPLE_ALL, "visited": SAMPLE_VISITED}
-
+from cobelrun.agents.codes import EPSILON_GREEDY, REPLAY_STEP, REPLAY_TRIAL_END, SAMPLE_ALL  # noqa: E402
 
 try:  # numba's own bounded-integer routine behind Generator.integers (same draws as numpy)
     from numba.np.random.random_methods import (

@@ -1,7 +1,7 @@
 """Tabular model memory for Dyna-style replay (the component behind Dyna-Q, Dyna-DQN, Dyna-DSR).
 
-Its compiled store/sample/replay routines live in :mod:`cobelrun.agents.kernels` (re-exported
-here), next to the trial loop that inlines them.
+Its compiled store/sample/replay routines live in :mod:`cobelrun.agents.kernels`, next to the
+trial loop that inlines them (imported on first use, so building an agent does not load numba).
 """
 
 from __future__ import annotations
@@ -10,16 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cobelrun.agents.kernels import (
-    SAMPLING,
-    memory_sample,
-    memory_sample_batch,
-    memory_store,
-    replay,
-)
+from cobelrun.agents.codes import SAMPLING
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
-__all__ = ["TabularMemory", "memory_sample", "memory_sample_batch", "memory_store", "replay"]
+__all__ = ["TabularMemory"]
 
 
 class TabularMemory:
@@ -76,10 +70,14 @@ class TabularMemory:
         )
 
     def store(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        from cobelrun.agents.kernels import memory_store
+
         memory_store(*self.arrays(), self.reward_rate, s, a, r, s2, terminal)
 
     def sample(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Draw ``n`` (state, action) pairs as replay does."""
+        from cobelrun.agents.kernels import memory_sample_batch
+
         idx = memory_sample_batch(
             rng,
             self.visited_list,

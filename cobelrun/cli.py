@@ -189,11 +189,11 @@ def status_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from cobelrun.sweep import index, read_sweep, summary
+    from cobelrun.sweep import job_rows, read_sweep, summary
 
     try:
         sweep = read_sweep(sweep_dir)
-        df = index(sweep_dir)
+        rows = job_rows(sweep_dir)
     except CobelError as exc:
         fail(str(exc))
     console = Console()
@@ -204,8 +204,7 @@ def status_cmd(
     table.add_column("status")
     table.add_column("time [s]", justify="right")
     table.add_column("error", overflow="fold")
-    for row in df.itertuples(index=False):
-        r = dict(zip(df.columns, row, strict=True))
+    for r in rows:
         if problems and r["status"] == "done":
             continue
         dur = r["duration_s"]
@@ -217,10 +216,10 @@ def status_cmd(
             "" if not isinstance(r["error"], str) else r["error"],
         )
     console.print(table)
-    counts = summary(df)
+    counts = summary(rows)
     parts = [f"{n} {s}" for s, n in counts.items() if n]
-    console.print(f"{len(df)} jobs: " + ", ".join(parts))
-    if counts["done"] < len(df):
+    console.print(f"{len(rows)} jobs: " + ", ".join(parts))
+    if counts["done"] < len(rows):
         console.print(f"resume (runs only what is not done): {sweep.get('command', '')}")
         raise typer.Exit(1)
 
@@ -243,14 +242,14 @@ def collect_cmd(
     cobelrun.results.load_collected.
     """
     from cobelrun.progress import counter_progress
-    from cobelrun.sweep import collect, index, summary
+    from cobelrun.sweep import collect, job_rows, summary
 
     try:
         with counter_progress("collect", total=0, unit="files") as update:
             written = collect(
                 sweep_dir, [t for t in tables.split(",") if t], out_dir=out, progress=update
             )
-        counts = summary(index(sweep_dir, write=False))
+        counts = summary(job_rows(sweep_dir, write=False))
     except CobelError as exc:
         fail(str(exc))
     total = sum(counts.values())

@@ -130,6 +130,8 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
 def validate(overrides: list[str], multirun: bool) -> DictConfig:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
+    For a sweep on the joblib launcher, its workers are started here, once the config is
+    composed, so that they warm up while this process validates (``cobelrun.warmup``).
     Returns the composed config of the first combination, ``hydra`` node included.
     """
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -138,7 +140,7 @@ def validate(overrides: list[str], multirun: bool) -> DictConfig:
 
     from cobelrun.runner import build_task
 
-    first = overrides
+    first, n_jobs = overrides, 1
     if multirun:
         try:
             parsed = OverridesParser.create().parse_overrides(overrides)
@@ -147,9 +149,14 @@ def validate(overrides: list[str], multirun: bool) -> DictConfig:
         _check_choices(parsed)  # every swept value, not only the first combination's
         combos = BasicSweeper.split_arguments(parsed, None)
         first = list(combos[0][0]) if combos and combos[0] else overrides
+        n_jobs = sum(len(batch) for batch in combos)
     with composer() as compose:
         cfg = compose(first, return_hydra_config=True)
-    if not multirun:
+    if multirun:
+        from cobelrun import warmup
+
+        warmup.start(cfg, n_jobs)  # joblib workers start while this process goes on
+    else:
         try:
             out = OmegaConf.select(cfg, "hydra.run.dir")
         except Exception as exc:  # interpolation errors in the output folder pattern
@@ -259,15 +266,15 @@ def sweep_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path
 
 def report_sweep(sweep_dir: Path) -> int:
     """Print the sweep's outcome; return the exit code (1 when a job failed or is missing)."""
-    from cobelrun.sweep import index, read_json, summary
+    from cobelrun.sweep import job_rows, read_json, summary
 
     try:
-        df = index(sweep_dir)
+        rows = job_rows(sweep_dir)
     except CobelError as exc:
         print(f"cobel: error: {exc}", file=sys.stderr)
         return 1
-    counts = summary(df)
-    total = len(df)
+    counts = summary(rows)
+    total = len(rows)
     bad = total - counts["done"]
     launched = (read_json(sweep_dir / "sweep.json") or {}).get("launches", 1)
     if bad:

@@ -253,13 +253,19 @@ def job_dir(sweep_dir: Path, job: int) -> Path:
     return sweep_dir / str(job)
 
 
-def index(sweep_dir: str | os.PathLike[str], *, write: bool = True):
-    """The job index of a sweep folder as a data frame (and ``jobs.csv`` when ``write``).
+INDEX_COLUMNS = ("status", "error", "config_hash", "duration_s", "host", "ended_at", "run_dir",
+                 "overrides")  # fmt: skip
 
-    Columns: ``job``, one column per swept key, ``status`` (done / failed / interrupted /
-    running / missing), ``error``, ``config_hash``, ``duration_s``, ``run_dir``, ``overrides``.
+
+def job_rows(sweep_dir: str | os.PathLike[str], *, write: bool = True) -> list[dict[str, Any]]:
+    """The job index of a sweep folder as rows (and ``jobs.csv`` when ``write``).
+
+    Keys: ``job``, one per swept key, ``status`` (done / failed / interrupted / running /
+    queued / missing), ``error``, ``config_hash``, ``duration_s``, ``host``, ``ended_at``,
+    ``run_dir``, ``overrides``. Plain Python (no pandas), so a sweep's launcher process and
+    ``cobel status`` stay quick; :func:`index` gives the same as a data frame.
     """
-    import pandas as pd
+    import csv
 
     sweep_dir = Path(sweep_dir)
     sweep = read_sweep(sweep_dir)
@@ -272,24 +278,36 @@ def index(sweep_dir: str | os.PathLike[str], *, write: bool = True):
         row["run_dir"] = str(d)
         row["overrides"] = " ".join(j["overrides"])
         rows.append(row)
-    columns = ["job", *sweep["swept"], "status", "error", "config_hash", "duration_s", "host",
-               "ended_at", "run_dir", "overrides"]  # fmt: skip
-    df = pd.DataFrame(rows, columns=columns)
     if write:
         tmp = sweep_dir / f".{INDEX_FILE}.{os.getpid()}.tmp"
-        df.to_csv(tmp, index=False)
+        with tmp.open("w", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=["job", *sweep["swept"], *INDEX_COLUMNS])
+            writer.writeheader()
+            writer.writerows(rows)
         os.replace(tmp, sweep_dir / INDEX_FILE)
-    return df
+    return rows
+
+
+def index(sweep_dir: str | os.PathLike[str], *, write: bool = True):
+    """The job index of a sweep folder as a data frame (and ``jobs.csv`` when ``write``).
+
+    Columns: those of :func:`job_rows`, in the same order as ``jobs.csv``.
+    """
+    import pandas as pd
+
+    rows = job_rows(sweep_dir, write=write)
+    swept = read_sweep(Path(sweep_dir))["swept"]
+    return pd.DataFrame(rows, columns=["job", *swept, *INDEX_COLUMNS])
 
 
 def _cell(value: Any) -> Any:
     return json.dumps(value) if isinstance(value, list | dict) else value
 
 
-def summary(df) -> dict[str, int]:
-    """Counts of each status in an index frame."""
-    counts = df["status"].value_counts().to_dict()
-    return {s: int(counts.get(s, 0)) for s in STATUSES}
+def summary(jobs: Any) -> dict[str, int]:
+    """Counts of each status in a job index (rows from :func:`job_rows` or its data frame)."""
+    statuses = list(jobs["status"]) if hasattr(jobs, "columns") else [r["status"] for r in jobs]
+    return {s: statuses.count(s) for s in STATUSES}
 
 
 # -- collect ----------------------------------------------------------------------------------
@@ -330,15 +348,14 @@ def collect(
     import pyarrow.parquet as pq
 
     sweep_dir = Path(sweep_dir)
-    df = index(sweep_dir)
+    rows = job_rows(sweep_dir)
     sweep = read_sweep(sweep_dir)
-    done = df[df["status"] == "done"]
-    if done.empty:
+    jobs = [int(r["job"]) for r in rows if r["status"] == "done"]
+    if not jobs:
         raise CobelError(f"no job of {sweep_dir} is done yet; see `cobel status {sweep_dir}`")
     out = Path(out_dir) if out_dir is not None else sweep_dir / COLLECTED_DIR
     out.mkdir(parents=True, exist_ok=True)
     params = {j["job"]: j["params"] for j in sweep["jobs"]}
-    jobs = [int(j) for j in done["job"]]
     ptypes: dict[str, Any] = {}
     pvalues: dict[str, dict[int, Any]] = {}
     for key in sweep["swept"]:

@@ -65,14 +65,15 @@ class CobelSweeper(BasicSweeper):
     def sweep(self, arguments: list[str]) -> Any:
         from hydra.core.utils import JobStatus
 
+        from cobelrun import warmup
         from cobelrun.config import register_resolvers
         from cobelrun.sweep import (
             DONE_MARKER,
             clear_outputs,
-            index,
             is_complete,
             job_config_hash,
             job_dir,
+            job_rows,
             one_line,
             plan,
             write_job_status,
@@ -128,6 +129,9 @@ class CobelSweeper(BasicSweeper):
             [job_dir(sweep_dir, n) for n in self.launched], len(jobs), len(self.reused)
         )
         returns = []
+        warmup.wait()  # joblib workers started by `cobel run` (cobelrun.warmup)
+        if warmup.worker_pids and pending:
+            log.info(f"warm joblib workers (pids {' '.join(map(str, warmup.worker_pids))})")
         watcher.start()
         try:
             first = 0
@@ -147,9 +151,10 @@ class CobelSweeper(BasicSweeper):
                             )
                 returns.append(results)
                 first += len(batch)
+            warmup.release_workers()
         finally:
             watcher.stop()
-            index(sweep_dir)
+            job_rows(sweep_dir)
         return returns
 
     def _check_group_choices(self, jobs: list[dict], swept: list[str]) -> dict[int, str]:

@@ -2,12 +2,15 @@
 
 Run on demand (not a test)::
 
-    python benchmarks/bench_sweep.py [--jobs 20] [--runs 20] [--out benchmarks/results/bench_sweep.json]
+    python benchmarks/bench_sweep.py [--jobs 20] [--runs 100] [--repeats 3]
+                                     [--out benchmarks/results/bench_sweep.json]
 
 Measures, through the real CLI in subprocesses:
 
-* ``scaling``: a sweep of ``--jobs`` small tmaze_extinction jobs (``task.runs=--runs``, 200 trials
-  each) on 1 and on 2 joblib workers; wall times and the speed-up;
+* ``scaling``: a sweep of ``--jobs`` tmaze_extinction jobs (``task.runs=--runs``, 200 trials each;
+  100 runs is the task's default) on 1 and on 2 joblib workers, ``--repeats`` times, the two
+  alternating so that both see the same machine; wall times, the speed-up of the medians and of
+  each pair, and the same with worker warm-up off (``COBEL_WARMUP=0``, see cobelrun.warmup);
 * ``overhead``: sweeps of 1 and of ``--jobs`` near-empty jobs (1 run of 2 trials) on 1 worker;
   per-job overhead = (wall(N) - wall(1)) / (N - 1): what a job costs beyond its simulation
   (config composition in the sweeper and the worker, job/status files, run folder setup);
@@ -26,6 +29,7 @@ import json
 import os
 import platform
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -41,8 +45,8 @@ def cobel() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "cobelrun.cli"]
 
 
-def timed(args: list[str], results: Path) -> float:
-    env = {**os.environ, "COBEL_RESULTS": str(results), "COBEL_PROGRESS": "0"}
+def timed(args: list[str], results: Path, **env_vars: str) -> float:
+    env = {**os.environ, "COBEL_RESULTS": str(results), "COBEL_PROGRESS": "0", **env_vars}
     t0 = time.perf_counter()
     proc = subprocess.run([*cobel(), *args], env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -51,11 +55,13 @@ def timed(args: list[str], results: Path) -> float:
     return wall
 
 
-def sweep(tmp: Path, name: str, n_jobs: int, workers: int, extra: list[str]) -> dict:
+def sweep(tmp: Path, name: str, n_jobs: int, workers: int, extra: list[str], **env: str) -> dict:
     sweep_dir = tmp / name
+    shutil.rmtree(sweep_dir, ignore_errors=True)
     seeds = f"seed=range(0,{n_jobs})"
     wall = timed(["run", "-m", "task=tmaze_extinction", seeds, *extra,
-                  f"hydra.launcher.n_jobs={workers}", f"hydra.sweep.dir={sweep_dir}"], tmp)  # fmt: skip
+                  f"hydra.launcher.n_jobs={workers}", f"hydra.sweep.dir={sweep_dir}"], tmp,
+                 **env)  # fmt: skip
     sims = [json.loads((d / "manifest.json").read_text())["wall_time_s"]
             for d in sweep_dir.glob("[0-9]*")]  # fmt: skip
     return {"jobs": n_jobs, "workers": workers, "wall_s": round(wall, 3),
@@ -65,7 +71,7 @@ def sweep(tmp: Path, name: str, n_jobs: int, workers: int, extra: list[str]) -> 
 def _spin(_: int) -> float:
     t0 = time.perf_counter()
     s = 0
-    for i in range(10_000_000):
+    for i in range(30_000_000):
         s += i
     return time.perf_counter() - t0
 
@@ -88,10 +94,15 @@ def cpu_ceiling() -> float:
     return round(2 * one / two, 3)
 
 
+def _median(xs: list[float]) -> float:
+    return float(statistics.median(xs))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=20)
-    ap.add_argument("--runs", type=int, default=20, help="task.runs of each scaling job")
+    ap.add_argument("--runs", type=int, default=100, help="task.runs of each scaling job")
+    ap.add_argument("--repeats", type=int, default=3, help="1- and 2-worker sweeps, alternating")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_sweep.json")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="cobel-bench-") as t:
@@ -100,18 +111,25 @@ def main() -> None:
             ["run", "task=tmaze_extinction", *TINY, f"hydra.run.dir={tmp}/warm"], tmp
         )  # numba cache
         load0 = os.getloadavg()
-        ceiling0 = cpu_ceiling()
         process = [timed(["run", "task=tmaze_extinction", *TINY, f"hydra.run.dir={tmp}/p{i}"], tmp)
                    for i in range(3)]  # fmt: skip
         small = [f"task.runs={a.runs}"]
-        one = sweep(tmp, "w1", a.jobs, 1, small)
-        two = sweep(tmp, "w2", a.jobs, 2, small)
+        one, two, cold, ceilings = [], [], [], []
+        for r in range(a.repeats):
+            ceilings.append(cpu_ceiling())
+            one.append(sweep(tmp, "w1", a.jobs, 1, small))
+            two.append(sweep(tmp, "w2", a.jobs, 2, small))
+            cold.append(sweep(tmp, "w2cold", a.jobs, 2, small, COBEL_WARMUP="0"))
+            print(f"repeat {r + 1}/{a.repeats}: 1 worker {one[-1]['wall_s']:.2f} s, "
+                  f"2 workers {two[-1]['wall_s']:.2f} s (no warm-up {cold[-1]['wall_s']:.2f} s), "
+                  f"CPU ceiling {ceilings[-1]:.2f}", file=sys.stderr)  # fmt: skip
+        ceilings.append(cpu_ceiling())
         o1 = sweep(tmp, "o1", 1, 1, TINY)
         on = sweep(tmp, "on", a.jobs, 1, TINY)
         load1 = os.getloadavg()
-        ceiling1 = cpu_ceiling()
+    walls = {k: [x["wall_s"] for x in v] for k, v in (("one", one), ("two", two), ("cold", cold))}
     per_job = (on["wall_s"] - o1["wall_s"]) / (a.jobs - 1)
-    sim_per_job = one["simulation_s_sum"] / a.jobs
+    sim_per_job = _median([x["simulation_s_sum"] for x in one]) / a.jobs
     result = {
         "benchmark": "bench_sweep",
         "host": platform.node(),
@@ -120,12 +138,19 @@ def main() -> None:
         "loadavg_before": [round(x, 2) for x in load0],
         "loadavg_after": [round(x, 2) for x in load1],
         "scaling": {
-            "task": f"tmaze_extinction task.runs={a.runs} (200 trials per run)",
+            "task": f"tmaze_extinction task.runs={a.runs} (200 trials per run), {a.jobs} jobs",
+            "repeats": a.repeats,
             "one_worker": one,
             "two_workers": two,
-            "speedup": round(one["wall_s"] / two["wall_s"], 3),
+            "two_workers_no_warmup": cold,
+            "speedup": round(_median(walls["one"]) / _median(walls["two"]), 3),
+            "speedup_per_repeat": [
+                round(x / y, 3) for x, y in zip(walls["one"], walls["two"], strict=True)
+            ],
+            "speedup_no_warmup": round(_median(walls["one"]) / _median(walls["cold"]), 3),
             "target_speedup": 1.7,
-            "cpu_ceiling_speedup_before_after": [ceiling0, ceiling1],
+            "cpu_ceiling_speedups": ceilings,
+            "cpu_ceiling_median": round(_median(ceilings), 3),
         },
         "overhead": {
             "one_tiny_job": o1,

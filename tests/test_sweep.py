@@ -151,7 +151,9 @@ def test_worker_rehearsal_is_one_trial_per_phase_and_leaves_the_job_config_alone
     assert [p.trials for p in short.task.protocol.phases] == [1, 1]
     assert cfg.task.runs == 100 and [p.trials for p in cfg.task.protocol.phases] == [100, 100]
     # everything else (env, agent, monitors, recording) is the job's own
-    assert short.agent == cfg.agent and short.env == cfg.env and short.task.record == cfg.task.record
+    assert (
+        short.agent == cfg.agent and short.env == cfg.env and short.task.record == cfg.task.record
+    )
 
 
 def test_no_warm_up_when_joblib_runs_the_jobs_in_process(cobel, tmp_path):

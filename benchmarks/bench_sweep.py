@@ -10,7 +10,7 @@ Measures, through the real CLI in subprocesses:
 * ``scaling``: a sweep of ``--jobs`` tmaze_extinction jobs (``task.runs=--runs``, 200 trials each;
   100 runs is the task's default) on 1 and on 2 joblib workers, ``--repeats`` times, the two
   alternating so that both see the same machine; wall times, the speed-up of the medians and of
-  each pair, and the same with worker warm-up off (``COBEL_WARMUP=0``, see cobelrun.warmup);
+  each pair;
 * ``overhead``: sweeps of 1 and of ``--jobs`` near-empty jobs (1 run of 2 trials) on 1 worker;
   per-job overhead = (wall(N) - wall(1)) / (N - 1): what a job costs beyond its simulation
   (config composition in the sweeper and the worker, job/status files, run folder setup);
@@ -114,20 +114,19 @@ def main() -> None:
         process = [timed(["run", "task=tmaze_extinction", *TINY, f"hydra.run.dir={tmp}/p{i}"], tmp)
                    for i in range(3)]  # fmt: skip
         small = [f"task.runs={a.runs}"]
-        one, two, cold, ceilings = [], [], [], []
+        one, two, ceilings = [], [], []
         for r in range(a.repeats):
             ceilings.append(cpu_ceiling())
             one.append(sweep(tmp, "w1", a.jobs, 1, small))
             two.append(sweep(tmp, "w2", a.jobs, 2, small))
-            cold.append(sweep(tmp, "w2cold", a.jobs, 2, small, COBEL_WARMUP="0"))
             print(f"repeat {r + 1}/{a.repeats}: 1 worker {one[-1]['wall_s']:.2f} s, "
-                  f"2 workers {two[-1]['wall_s']:.2f} s (no warm-up {cold[-1]['wall_s']:.2f} s), "
+                  f"2 workers {two[-1]['wall_s']:.2f} s, "
                   f"CPU ceiling {ceilings[-1]:.2f}", file=sys.stderr)  # fmt: skip
         ceilings.append(cpu_ceiling())
         o1 = sweep(tmp, "o1", 1, 1, TINY)
         on = sweep(tmp, "on", a.jobs, 1, TINY)
         load1 = os.getloadavg()
-    walls = {k: [x["wall_s"] for x in v] for k, v in (("one", one), ("two", two), ("cold", cold))}
+    walls = {k: [x["wall_s"] for x in v] for k, v in (("one", one), ("two", two))}
     per_job = (on["wall_s"] - o1["wall_s"]) / (a.jobs - 1)
     sim_per_job = _median([x["simulation_s_sum"] for x in one]) / a.jobs
     result = {
@@ -142,12 +141,10 @@ def main() -> None:
             "repeats": a.repeats,
             "one_worker": one,
             "two_workers": two,
-            "two_workers_no_warmup": cold,
             "speedup": round(_median(walls["one"]) / _median(walls["two"]), 3),
             "speedup_per_repeat": [
                 round(x / y, 3) for x, y in zip(walls["one"], walls["two"], strict=True)
             ],
-            "speedup_no_warmup": round(_median(walls["one"]) / _median(walls["cold"]), 3),
             "target_speedup": 1.7,
             "cpu_ceiling_speedups": ceilings,
             "cpu_ceiling_median": round(_median(ceilings), 3),

@@ -130,8 +130,6 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
 def validate(overrides: list[str], multirun: bool) -> DictConfig:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
-    For a sweep on the joblib launcher, its workers are started here, once the config is
-    composed, so that they warm up while this process validates (``cobelrun.warmup``).
     Returns the composed config of the first combination, ``hydra`` node included.
     """
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -140,7 +138,7 @@ def validate(overrides: list[str], multirun: bool) -> DictConfig:
 
     from cobelrun.runner import build_task
 
-    first, n_jobs = overrides, 1
+    first = overrides
     if multirun:
         try:
             parsed = OverridesParser.create().parse_overrides(overrides)
@@ -149,14 +147,9 @@ def validate(overrides: list[str], multirun: bool) -> DictConfig:
         _check_choices(parsed)  # every swept value, not only the first combination's
         combos = BasicSweeper.split_arguments(parsed, None)
         first = list(combos[0][0]) if combos and combos[0] else overrides
-        n_jobs = sum(len(batch) for batch in combos)
     with composer() as compose:
         cfg = compose(first, return_hydra_config=True)
-    if multirun:
-        from cobelrun import warmup
-
-        warmup.start(cfg, n_jobs)  # joblib workers start while this process goes on
-    else:
+    if not multirun:
         try:
             out = OmegaConf.select(cfg, "hydra.run.dir")
         except Exception as exc:  # interpolation errors in the output folder pattern

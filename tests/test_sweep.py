@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pandas as pd
@@ -38,11 +37,6 @@ def test_joblib_sweep_resumes_and_collects(cobel, tmp_path):
     assert list(index["job"]) == [0, 1, 2] and list(index["seed"]) == [1, 2, 3]
     assert set(index["status"]) == {"done"}
     assert "3 of 3 jobs done" in proc.stderr
-    # the workers started while `cobel run` validated (cobelrun.warmup) are the ones that ran
-    warm = re.search(r"warm joblib workers \(pids ([\d ]+)\)", proc.stdout + proc.stderr)
-    assert warm, proc.stdout + proc.stderr
-    pids = {json.loads((sweep / str(j) / "job.json").read_text())["pid"] for j in range(3)}
-    assert pids <= {int(p) for p in warm.group(1).split()}
 
     # the same command again: same folder, nothing re-run (the launcher setting does not matter)
     before = mtimes(sweep)
@@ -138,28 +132,3 @@ def test_sweep_id_ignores_order_of_fixed_overrides_and_launcher(order):
     assert sweep_id(jobs) == sweep_id(ref)
     _, other = plan(["task=tmaze_extinction", "seed=1,2,3", "task.runs=2"])
     assert sweep_id(other) != sweep_id(ref)
-
-
-def test_worker_rehearsal_is_one_trial_per_phase_and_leaves_the_job_config_alone():
-    from cobelrun.hydra_app import composer
-    from cobelrun.warmup import rehearsal_config
-
-    with composer() as compose:
-        cfg = compose(["task=tmaze_extinction"])
-    short = rehearsal_config(cfg)
-    assert short.task.runs == 1
-    assert [p.trials for p in short.task.protocol.phases] == [1, 1]
-    assert cfg.task.runs == 100 and [p.trials for p in cfg.task.protocol.phases] == [100, 100]
-    # everything else (env, agent, monitors, recording) is the job's own
-    assert (
-        short.agent == cfg.agent and short.env == cfg.env and short.task.record == cfg.task.record
-    )
-
-
-def test_no_warm_up_when_joblib_runs_the_jobs_in_process(cobel, tmp_path):
-    proc = cobel("run", "-m", "task=tmaze_extinction", "seed=1,2", *TINY, "hydra.launcher.n_jobs=1")
-    sweep = sweep_dir_of(proc)
-    assert "warm joblib workers" not in proc.stdout + proc.stderr
-    assert {json.loads((sweep / str(j) / "job.json").read_text())["status"] for j in (0, 1)} == {
-        "completed"
-    }

@@ -6,7 +6,9 @@ a half-written file, even if the run is killed while writing it.
 
 from __future__ import annotations
 
+import copy
 import datetime as _dt
+import functools
 import hashlib
 import importlib.metadata
 import json
@@ -100,7 +102,16 @@ def config_hash(config: Mapping[str, Any]) -> str:
 
 
 def package_versions() -> dict[str, str]:
-    """Versions of Python and the key packages that are installed (via importlib.metadata)."""
+    """Versions of Python and the key packages that are installed (via importlib.metadata).
+
+    Looked up once per process (~20 ms; a sweep worker runs many jobs): what a process has
+    imported does not change while it runs.
+    """
+    return dict(_package_versions())
+
+
+@functools.cache
+def _package_versions() -> dict[str, str]:
     versions = {"python": platform.python_version(), "cobelrun": cobelrun.__version__}
     for name in _PACKAGES:
         try:
@@ -128,6 +139,9 @@ def _git(args: list[str], cwd: Path) -> str | None:
 def git_info(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """Commit and dirty flag of the git repository containing ``path``, or None.
 
+    Asked once per process and folder (three ``git`` calls, ~10 ms): a sweep worker's jobs
+    record the state of the repository when the worker started, i.e. of the code it runs.
+
     Parameters
     ----------
     path : str or Path
@@ -139,6 +153,12 @@ def git_info(path: str | os.PathLike[str]) -> dict[str, Any] | None:
         ``{"commit": <sha>, "dirty": bool, "root": <top-level folder>}``; None when ``path`` is
         not in a git repository, git is missing, or git does not answer within 2 s.
     """
+    info = _git_info(str(Path(path).absolute()))
+    return copy.deepcopy(info)
+
+
+@functools.cache
+def _git_info(path: str) -> dict[str, Any] | None:
     cwd = Path(path)
     if not cwd.is_dir():
         return None

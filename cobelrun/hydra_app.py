@@ -83,6 +83,17 @@ def _writable_root(path: Path) -> None:
         ) from None
 
 
+def _parse(overrides: list[str]) -> list[Any]:
+    """Hydra's parse of command-line overrides, a syntax error as a one-line ConfigError."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    try:
+        return OverridesParser.create().parse_overrides(overrides)
+    except OverrideParseException as exc:
+        raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
+
+
 @contextlib.contextmanager
 def composer() -> Iterator[Callable[..., DictConfig]]:
     """Compose configs as ``cobel run`` does, with errors as one-line ConfigErrors.
@@ -95,17 +106,10 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException, MissingConfigException, OverrideParseException
-
-    register_resolvers()
+    from hydra.errors import HydraException, MissingConfigException
 
     def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
-        try:
-            parsed = OverridesParser.create().parse_overrides(overrides)
-        except OverrideParseException as exc:
-            raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
-        _check_choices(parsed)
+        _check_choices(_parse(overrides))
         try:
             return compose("config", overrides=overrides, return_hydra_config=return_hydra_config)
         except MissingConfigException as exc:
@@ -127,26 +131,20 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
         GlobalHydra.instance().clear()
 
 
-def validate(overrides: list[str], multirun: bool) -> DictConfig:
+def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dict]]:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
-    Returns the composed config of the first combination, ``hydra`` node included.
+    Returns the composed config of the first combination, ``hydra`` node included, and for a
+    sweep its jobs (``cobelrun.sweep.plan``; empty for a single run).
     """
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import OverrideParseException
-
     from cobelrun.runner import build_task
+    from cobelrun.sweep import plan
 
-    first = overrides
+    first, jobs = overrides, []
     if multirun:
-        try:
-            parsed = OverridesParser.create().parse_overrides(overrides)
-        except OverrideParseException as exc:
-            raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
-        _check_choices(parsed)  # every swept value, not only the first combination's
-        combos = BasicSweeper.split_arguments(parsed, None)
-        first = list(combos[0][0]) if combos and combos[0] else overrides
+        _check_choices(_parse(overrides))  # every swept value, not only the first combination's
+        _, jobs = plan(overrides)
+        first = jobs[0]["overrides"] if jobs else overrides
     with composer() as compose:
         cfg = compose(first, return_hydra_config=True)
     if not multirun:
@@ -157,7 +155,7 @@ def validate(overrides: list[str], multirun: bool) -> DictConfig:
         _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     build_task(job_cfg, probe_agent=True)
-    return cfg
+    return cfg, jobs
 
 
 def job(cfg: DictConfig) -> str:
@@ -167,7 +165,6 @@ def job(cfg: DictConfig) -> str:
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
 
-    register_resolvers()
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     if str(hc.mode) == "RunMode.MULTIRUN":
@@ -239,19 +236,18 @@ def default_launcher(overrides: list[str]) -> list[str]:
     return []
 
 
-def sweep_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path]:
+def sweep_folder(overrides: list[str], cfg: DictConfig, jobs: list[dict]) -> tuple[list[str], Path]:
     """The sweep folder, and the override that sets it when the user did not.
 
     Unless ``hydra.sweep.dir`` is given, it is ``$COBEL_RESULTS/<task>/sweeps/<id>`` where
     ``<id>`` hashes the jobs' overrides (``cobelrun.sweep.sweep_id``), so the same sweep
     command always uses the same folder and resumes it.
     """
-    from cobelrun.sweep import plan, sweep_id
+    from cobelrun.sweep import sweep_id
 
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     if "hydra.sweep.dir" in keys:
         return [], Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
-    _, jobs = plan(overrides)
     root = Path(os.environ.get("COBEL_RESULTS") or "results")
     sweep_dir = (root / str(cfg.task.name) / "sweeps" / sweep_id(jobs)).absolute()
     return [f"hydra.sweep.dir={_quote(str(sweep_dir))}"], sweep_dir
@@ -262,7 +258,7 @@ def report_sweep(sweep_dir: Path) -> int:
     from cobelrun.sweep import job_rows, read_json, summary
 
     try:
-        rows = job_rows(sweep_dir)
+        rows = job_rows(sweep_dir, write=False)  # the sweeper has just written jobs.csv
     except CobelError as exc:
         print(f"cobel: error: {exc}", file=sys.stderr)
         return 1
@@ -289,7 +285,6 @@ def launch(args: list[str]) -> int:
 
     from hydra._internal.utils import _run_hydra, get_args_parser
 
-    register_resolvers()
     parser = get_args_parser()
     parser.prog = "cobel run"
     parsed = parser.parse_args(args)
@@ -304,9 +299,9 @@ def launch(args: list[str]) -> int:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
     if not informational:
-        cfg = validate(overrides, multirun)
+        cfg, jobs = validate(overrides, multirun)
         if multirun:
-            extra, sweep_dir = sweep_folder(overrides, cfg)
+            extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
             _writable_root(sweep_dir)
             parsed.overrides = [*overrides, *extra]
             os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])

@@ -88,6 +88,7 @@ def load_sweep(sweep_dir: str | Path, table: str = "trials") -> pd.DataFrame:
     For sweeps too large for memory, run ``cobel collect`` and use :func:`load_collected` with
     ``columns`` / ``filters``.
     """
+    from cobelrun.io.manifest import DONE_MARKER
     from cobelrun.sweep import COLLECTED_DIR, collect, index
 
     sweep_dir = Path(sweep_dir)
@@ -96,9 +97,7 @@ def load_sweep(sweep_dir: str | Path, table: str = "trials") -> pd.DataFrame:
     if done.empty:
         raise CobelError(f"no job of {sweep_dir} is done yet; see `cobel status {sweep_dir}`")
     collected = sweep_dir / COLLECTED_DIR / f"{table}.parquet"
-    newest = max(
-        (Path(d) / ".done").stat().st_mtime for d in done["run_dir"] if (Path(d) / ".done").exists()
-    )
+    newest = max((Path(d) / DONE_MARKER).stat().st_mtime for d in done["run_dir"])
     if collected.is_file() and collected.stat().st_mtime >= newest:
         frame = pd.read_parquet(collected)
         if set(frame["job"].unique()) == set(done["job"].astype(int)):

@@ -20,12 +20,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from cobelrun.config import instantiate
 from cobelrun.errors import CobelError, ConfigError
-from cobelrun.io.manifest import Manifest
+from cobelrun.io.manifest import DONE_MARKER, Manifest
 from cobelrun.monitors import Monitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import RecordConfig, RunRecorder
 
-DONE_MARKER = ".done"
 TASK_KEYS = (
     "name", "description", "runs", "protocol", "monitors", "record", "save_agents", "job",
 )  # fmt: skip

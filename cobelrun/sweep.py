@@ -33,12 +33,11 @@ from pathlib import Path
 from typing import Any
 
 from cobelrun.errors import CobelError
-from cobelrun.io.manifest import _write_json_atomic, config_hash
+from cobelrun.io.manifest import DONE_MARKER, _write_json_atomic, config_hash
 
 SWEEP_FILE = "sweep.json"
 INDEX_FILE = "jobs.csv"
 JOB_FILE = "job.json"
-DONE_MARKER = ".done"
 COLLECTED_DIR = "collected"
 #: what a re-run removes from a job folder before starting again (stale outputs)
 RUN_OUTPUTS = ("trials.parquet", "steps.parquet", "run.mcap", "manifest.json", "plot.png")
@@ -81,12 +80,20 @@ def read_json(path: Path) -> dict[str, Any] | None:
         return None
 
 
-def is_complete(run_dir: str | os.PathLike[str], config_hash: str | None = None) -> bool:
-    """True when ``run_dir`` holds a completed run (done marker) of the config ``config_hash``."""
+def is_complete(
+    run_dir: str | os.PathLike[str],
+    config_hash: str | None = None,
+    manifest: Mapping[str, Any] | None = None,
+) -> bool:
+    """True when ``run_dir`` holds a completed run (done marker) of the config ``config_hash``.
+
+    ``manifest``: the folder's manifest when the caller has already read it.
+    """
     run_dir = Path(run_dir)
     if not (run_dir / DONE_MARKER).is_file():
         return False
-    manifest = read_json(run_dir / "manifest.json")
+    if manifest is None:
+        manifest = read_json(run_dir / "manifest.json")
     if manifest is None or manifest.get("status") != "completed":
         return False
     return config_hash is None or manifest.get("config_hash") == config_hash
@@ -228,7 +235,7 @@ def job_state(run_dir: Path) -> dict[str, Any]:
     manifest = read_json(run_dir / "manifest.json") or {}
     if job.get("status") == "queued":
         status = "queued"
-    elif is_complete(run_dir):
+    elif is_complete(run_dir, manifest=manifest):
         status = "done"
     elif job.get("status") == "failed" or manifest.get("status") == "failed":
         status = "failed"

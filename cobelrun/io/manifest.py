@@ -57,6 +57,10 @@ _PACKAGES = (
 _GIT_TIMEOUT_S = 2.0
 
 
+#: written last into a run folder, only when the run completed
+DONE_MARKER = ".done"
+
+
 def _plain(obj: Any) -> Any:
     """Convert configs (dicts, OmegaConf containers, numpy values, paths) to JSON-able data."""
     if isinstance(obj, Mapping):

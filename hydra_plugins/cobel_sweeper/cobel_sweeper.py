@@ -32,8 +32,6 @@ from omegaconf import OmegaConf
 log = logging.getLogger(__name__)
 
 FINAL = ("completed", "failed", "interrupted")
-#: config groups of cobel's primary config (a swept choice may change the config's keys)
-GROUP_KEYS = ("task", "env", "agent", "protocol")
 
 
 class CobelSweeper(BasicSweeper):
@@ -164,7 +162,9 @@ class CobelSweeper(BasicSweeper):
         from cobelrun.sweep import one_line
 
         assert self.hydra_context is not None and self.config is not None
-        groups = [k for k in swept if k.split("@")[0] in GROUP_KEYS or "/" in k]
+        from cobelrun.config import GROUPS  # a swept choice may change the config's keys
+
+        groups = [k for k in swept if k.split("@")[0] in GROUPS or "/" in k]
         seen: dict[tuple[str, str], str | None] = {}
         broken: dict[int, str] = {}
         for j in jobs:
@@ -228,7 +228,9 @@ class _Watcher:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        if self.dirs and sys.stderr.isatty() and os.environ.get("COBEL_PROGRESS", "1") != "0":
+        from cobelrun.progress import progress_enabled
+
+        if self.dirs and progress_enabled():
             self._thread = threading.Thread(target=self._run, daemon=True)
             self._thread.start()
 

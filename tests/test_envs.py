@@ -173,3 +173,14 @@ def test_render_ansi() -> None:
     env.reset(seed=0)
     assert env.render() == "A.G\n"
     assert GridWorldEnv().render() is None
+
+
+@pytest.mark.parametrize("bad", [2, -1, True, np.array([1, 0]), 0.5])
+def test_two_afc_rejects_invalid_actions(bad):
+    from cobelrun.envs.choice import TwoAFCEnv
+
+    env = TwoAFCEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="allowed: integers 0..1|allowed: 0..1"):
+        env.step(bad)
+    assert env.step(np.int64(1))[2] is True  # numpy integers are fine

@@ -43,6 +43,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import RolloutReturn
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.networks import set_torch_threads
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -57,14 +58,6 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
-
-
-def set_torch_threads(n: int | None) -> None:
-    """Use ``n`` intra-op threads (None: leave torch's setting). cobel's default is 1."""
-    if n is not None:
-        if n < 1:
-            raise ConfigError(f"agent.torch_threads must be >= 1 or null, got {n}")
-        torch.set_num_threads(int(n))
 
 
 class TrialRecorder(gym.Wrapper):

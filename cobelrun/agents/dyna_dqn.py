@@ -34,9 +34,8 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
-from cobelrun.agents.dqn import set_torch_threads
 from cobelrun.agents.memory import TabularMemory
-from cobelrun.agents.networks import Network, build_network
+from cobelrun.agents.networks import Network, build_network, set_torch_threads
 from cobelrun.errors import ConfigError, allowed_list
 from cobelrun.records import TrialBatch
 

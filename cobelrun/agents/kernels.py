@@ -165,23 +165,6 @@ def q_update(Q, mask, use_mask, s, a, r, s2, terminal, lr, gamma):
     Q[s, a] += lr * (target - Q[s, a])
 
 
-@njit(cache=True, inline="always")
-def start_state(env_rng, starts):
-    """Draw a start state exactly as ``GridWorldEnv.reset`` does."""
-    return starts[randint(env_rng, starts.shape[0])]
-
-
-@njit(cache=True, inline="always")
-def transition(env_rng, deterministic, next_state, T_cum, s, a):
-    """Next state exactly as ``GridWorldEnv.step`` does (a draw only if T is stochastic)."""
-    if deterministic:
-        return next_state[s, a]
-    u = env_rng.random()
-    s2 = np.searchsorted(T_cum[s, a], u, side="right")
-    n = T_cum.shape[2]
-    return s2 if s2 < n else n - 1
-
-
 # -- model memory (TabularMemory's arrays) ------------------------------------------------
 @njit(cache=True, inline="always")
 def memory_store(

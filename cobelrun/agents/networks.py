@@ -30,6 +30,14 @@ ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 }
 
 
+def set_torch_threads(n: int | None) -> None:
+    """Use ``n`` intra-op threads (None: leave torch's setting). cobel's default is 1."""
+    if n is not None:
+        if n < 1:
+            raise ConfigError(f"agent.torch_threads must be >= 1 or null, got {n}")
+        torch.set_num_threads(int(n))
+
+
 class Network(abc.ABC):
     """A (multi-head) regression network trained with MSE.
 
@@ -168,11 +176,6 @@ class TorchMLP(Network):
     def predict(self, x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return self._forward(self._tensor(x)).numpy()
-
-    def predict_tensor(self, x: torch.Tensor) -> torch.Tensor:
-        """:meth:`predict` on tensors, without gradients (for agents that stay in torch)."""
-        with torch.no_grad():
-            return self._forward(x)
 
     def train_step(
         self,

@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from cobelrun.envs.base import check_action
 from cobelrun.errors import ConfigError
 
 
@@ -111,8 +112,6 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
         return self.observations[self._state].copy(), self._info()
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        a = int(np.asarray(action).reshape(-1)[0]) if np.ndim(action) else int(action)
-        if a not in (0, 1):
-            raise ValueError(f"invalid action {action!r}; allowed: 0 (left), 1 (right)")
+        a = check_action(action, 2, ("left", "right"))
         reward = self.reward if a == self._state % 2 else 0.0
         return self.observations[self._state].copy(), reward, True, False, self._info()

@@ -205,8 +205,14 @@ class ImageObservation(ObservationModule):
             from cobelrun.render import cache
 
             if not cache.building():
-                self._images = cache.load(self.cache_request())
-                self._obs_table = self.process(self._images)
+                self._load_offline()
+
+    def _load_offline(self) -> None:
+        """Load this module's pre-rendered views and process them into the observation table."""
+        from cobelrun.render import cache
+
+        self._images = cache.load(self.cache_request())
+        self._obs_table = self.process(self._images)
 
     def cache_request(self) -> Any:
         """The render-cache request (scene, camera, poses, renderer) of this module."""
@@ -261,11 +267,9 @@ class ImageObservation(ObservationModule):
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
         if self._obs_table is not None:
             return self._obs_table[node, heading].copy()
-        if self.render == "offline":
-            from cobelrun.render import cache
-
-            self._images = cache.load(self.cache_request())
-            self._obs_table = self.process(self._images)
+        if self.render == "offline":  # bound while the cache was being built
+            self._load_offline()
+            assert self._obs_table is not None
             return self._obs_table[node, heading].copy()
         return self.process(self.render_raw(node, heading))
 

@@ -60,7 +60,7 @@ class Topology:
     states : (N,) int64 or None
         For graphs built from a :class:`~cobelrun.envs.world.World`: the world state of each node.
     name : str
-        Builder name, part of the render-cache key.
+        Builder name (e.g. "hex", "delaunay"): a label for the graph, kept with it.
     """
 
     positions: np.ndarray
@@ -116,15 +116,6 @@ class Topology:
         """(N,) number of outgoing edges per node."""
         return (self.neighbours >= 0).sum(axis=1)
 
-    def spec(self) -> dict[str, Any]:
-        """Plain-data description (JSON-ready) used in render-cache keys."""
-        return {
-            "name": self.name,
-            "positions": np.round(self.positions, 6).tolist(),
-            "directions": np.round(self.directions, 9).tolist(),
-            "cells": None if self.cells is None else np.asarray(self.cells).tolist(),
-        }
-
     # ------------------------------------------------------------------ references
     def node(self, ref: Any) -> int:
         """Resolve a node reference: index, place name, or (for grid-derived graphs) [row, col]."""
@@ -160,10 +151,6 @@ class Topology:
                     return int(hit[0])
                 raise LayoutError(f"{what}: cell {items} is not a node of this graph")
         raise ConfigError(f"{what}: {ref!r} is not a node reference; use an index or a place name")
-
-    def nearest(self, x: float, y: float) -> int:
-        """Index of the node closest to ``(x, y)``."""
-        return int(np.argmin(np.hypot(self.positions[:, 0] - x, self.positions[:, 1] - y)))
 
     def heading_index(self, angle_deg: float) -> int:
         """Index of the direction closest to ``angle_deg`` (degrees, counter-clockwise from +x)."""

@@ -242,12 +242,9 @@ def plot_frame_times(table: pd.DataFrame, axes: Sequence[Any] | None = None) -> 
 
 
 def machine() -> dict[str, Any]:
-    from importlib.metadata import PackageNotFoundError, version
+    from cobelrun.render.scene import pybullet_version
 
-    try:
-        pyb = version("pybullet")
-    except PackageNotFoundError:
-        pyb = None
+    pyb = pybullet_version()
     return {"cpus": os.cpu_count(), "python": platform.python_version(),
             "platform": platform.platform(), "pybullet": pyb}  # fmt: skip
 

@@ -121,19 +121,47 @@ def _check_type(where: str, value: Any, annotation: Any) -> None:
     raise ConfigError(f"{where} must be {wanted}, got {value!r}")
 
 
+def _parameters(target: Any) -> tuple[dict[str, inspect.Parameter], dict[str, Any]]:
+    """A callable's parameters and type hints; for a class whose ``__init__`` passes
+    ``**kwargs`` on to its base class, the base's parameters too (so they are checked)."""
+
+    def hints_of(fn: Any) -> dict[str, Any]:
+        try:
+            return typing.get_type_hints(fn)
+        except Exception:
+            return {}
+
+    if not inspect.isclass(target):
+        sig = inspect.signature(target)
+        return {n: p for n, p in sig.parameters.items()}, hints_of(target)
+    params: dict[str, inspect.Parameter] = {}
+    hints: dict[str, Any] = {}
+    for cls in target.__mro__:
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            continue
+        sig = inspect.signature(init)
+        own = {n: p for n, p in sig.parameters.items() if n != "self"}
+        kwargs = [n for n, p in own.items() if p.kind is inspect.Parameter.VAR_KEYWORD]
+        for n, p in own.items():
+            if n not in kwargs:
+                params.setdefault(n, p)
+        hints = {**hints_of(init), **hints}
+        if not kwargs:
+            return params, hints
+    return params, hints  # every __init__ up to object took **kwargs
+
+
 def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str] = ()) -> None:
     """Check a ``_target_`` node's keys and scalar types against the target's signature.
 
     Unknown keys (typos) and values of the wrong type become one-line ConfigErrors that name
-    the key and what is allowed. Nested ``_target_`` nodes are checked too.
+    the key and what is allowed. Nested ``_target_`` nodes are checked too. A class whose
+    ``__init__`` takes ``**kwargs`` is taken to pass them to its base class's ``__init__``,
+    whose parameters are then the allowed extra keys.
     """
     target = _target(where, node)
-    sig = inspect.signature(target)
-    try:
-        hints = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
-    except Exception:
-        hints = {}
-    params = {n: p for n, p in sig.parameters.items() if n != "self"}
+    params, hints = _parameters(target)
     takes_kwargs = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
     allowed = [
         n for n, p in params.items()

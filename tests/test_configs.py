@@ -97,3 +97,21 @@ def test_every_protocol_composes(protocol: str):
     cfg = _compose(f"protocol={protocol}")
     p = Protocol.from_config(OmegaConf.to_container(cfg.task.protocol, resolve=True))
     assert p.n_trials > 0 and p.max_steps > 0
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("epsilonn", 0.1, "unknown key 'agent.epsilonn'"),  # a typo of a base-class key
+        ("epsilon", "abc", "agent.epsilon must be"),  # a base-class key of the wrong type
+    ],
+)
+def test_keys_passed_on_to_a_base_class_are_checked(key, value, message):
+    """Dyna-DSR takes Dyna-DQN's parameters as **kwargs; validation follows them to the base."""
+    from cobelrun.config import validate_node
+    from cobelrun.errors import ConfigError
+
+    node = {"_target_": "cobelrun.agents.DynaDSR", "reward_learning_rate": 0.1, key: value}
+    with pytest.raises(ConfigError, match=message):
+        validate_node("agent", node, provided=("env",))
+    validate_node("agent", {"_target_": "cobelrun.agents.DynaDSR", "epsilon": 0.2})

@@ -181,6 +181,6 @@ def test_two_afc_rejects_invalid_actions(bad):
 
     env = TwoAFCEnv()
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="allowed: integers 0..1|allowed: 0..1"):
+    with pytest.raises(ValueError, match=r"invalid action .*allowed: (integers )?0\.\.1"):
         env.step(bad)
     assert env.step(np.int64(1))[2] is True  # numpy integers are fine

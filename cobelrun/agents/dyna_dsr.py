@@ -21,7 +21,6 @@ per step, target rate 0.01, always bootstrap, dense 64 tanh -> 64 tanh -> linear
 
 from __future__ import annotations
 
-import inspect
 from typing import Any
 
 import gymnasium as gym
@@ -29,7 +28,7 @@ import numpy as np
 
 from cobelrun.agents.dyna_dqn import DynaDeepAgent, allowed_next
 from cobelrun.agents.networks import Network
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError
 
 
 class DynaDSR(DynaDeepAgent):
@@ -48,14 +47,8 @@ class DynaDSR(DynaDeepAgent):
     """
 
     def __init__(self, env: gym.Env, *, reward_learning_rate: float = 0.1, **kwargs: Any) -> None:
-        allowed = [n for n in inspect.signature(DynaDeepAgent.__init__).parameters
-                   if n not in ("self", "env")]  # fmt: skip
-        for key in kwargs:
-            if key not in allowed:
-                raise ConfigError(
-                    f"unknown key 'agent.{key}'{suggest(key, allowed)}; "
-                    f"allowed: {allowed_list(['reward_learning_rate', *allowed])}"
-                )
+        # keys and types of **kwargs are checked against DynaDeepAgent's signature by
+        # cobelrun.config.validate_node (it follows **kwargs into the base class)
         if reward_learning_rate <= 0:
             raise ConfigError(f"agent.reward_learning_rate must be > 0, got {reward_learning_rate}")
         self.reward_learning_rate = float(reward_learning_rate)

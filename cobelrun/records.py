@@ -8,6 +8,7 @@ batches into table columns; writers persist them. No per-step Python is needed o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +35,12 @@ class TrialBatch:
         Reward received on arriving in ``step_next_state``.
     extra : dict
         Agent-specific per-trial arrays (e.g. ``loss``), each of shape (n,).
+    start_pose : (n, 3) float64 or None
+        Pose ``(x, y, heading)`` at each trial's start (world units, heading in radians).
+    step_pose : (total_steps, 3) float64 or None
+        Pose after each step. Agents that run the Python step loop fill both from the env's
+        pose contract; compiled tabular agents leave them None and :meth:`with_poses` derives
+        them from the states (``DiscreteStates.poses_of``) when a consumer asks.
     """
 
     start_state: np.ndarray
@@ -47,6 +54,8 @@ class TrialBatch:
     step_next_state: np.ndarray
     step_reward: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    start_pose: np.ndarray | None = None
+    step_pose: np.ndarray | None = None
 
     @property
     def n_trials(self) -> int:
@@ -65,10 +74,37 @@ class TrialBatch:
         idx = np.arange(self.n_steps, dtype=np.int64)
         return idx - np.repeat(self.offsets[:-1], self.steps) + 1
 
+    def with_poses(self, env: Any) -> TrialBatch:
+        """This batch with ``start_pose``/``step_pose`` filled in from ``env``'s
+        :class:`~cobelrun.envs.base.DiscreteStates` contract where they are missing (the
+        batch is changed in place and returned). Envs without poses leave them None."""
+        from cobelrun.envs.base import DiscreteStates
+
+        base = getattr(env, "unwrapped", env)
+        if self.step_pose is None and isinstance(base, DiscreteStates):
+            self.start_pose = base.poses_of(self.start_state)
+            self.step_pose = base.poses_of(self.step_next_state, self.step_action)
+        return self
+
+    def poses(self) -> np.ndarray | None:
+        """(n_steps + n, 3) poses in time order: each trial's start pose, then its steps'."""
+        if self.start_pose is None or self.step_pose is None:
+            return None
+        n = self.n_trials
+        out = np.empty((self.n_steps + n, 3))
+        start_pos = self.offsets[:-1] + np.arange(n)
+        is_start = np.zeros(out.shape[0], bool)
+        is_start[start_pos] = True
+        out[is_start] = self.start_pose
+        out[~is_start] = self.step_pose
+        return out
+
     @classmethod
-    def from_trials(cls, trials: list[dict[str, np.ndarray]]) -> TrialBatch:
+    def from_trials(cls, trials: list[dict[str, Any]]) -> TrialBatch:
         """Build a batch from per-trial dicts with keys ``states`` (n_steps + 1), ``actions``,
-        ``rewards`` (n_steps each) and ``terminated`` (bool): the slow path's format."""
+        ``rewards`` (n_steps each) and ``terminated`` (bool), and optionally ``poses``
+        ((n_steps + 1, 3), the start pose then the pose after each step): the slow path's
+        format."""
         steps = np.array([len(t["actions"]) for t in trials], dtype=np.int64)
         offsets = np.zeros(len(trials) + 1, dtype=np.int64)
         np.cumsum(steps, out=offsets[1:])
@@ -88,4 +124,16 @@ class TrialBatch:
             step_action=cat("actions", slice(None), np.int64),
             step_next_state=cat("states", slice(1, None), np.int64),
             step_reward=cat("rewards", slice(None), np.float64),
+            **_poses(trials),
         )
+
+
+def _poses(trials: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """``start_pose``/``step_pose`` of per-trial dicts that all carry ``poses``."""
+    if not trials or not all(t.get("poses") is not None for t in trials):
+        return {}
+    poses = [np.asarray(t["poses"], np.float64).reshape(-1, 3) for t in trials]
+    return {
+        "start_pose": np.stack([p[0] for p in poses]),
+        "step_pose": np.concatenate([p[1:] for p in poses]),
+    }

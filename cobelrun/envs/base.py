@@ -1,12 +1,247 @@
-"""Pieces shared by cobel's environments: protocol-changeable worlds and action checking."""
+"""Environment contracts and the pieces cobel's environments share.
+
+Consumers (runner, recorder, monitors, agents, exports) never probe an environment with
+``hasattr`` or check its class: they ask one of the runtime-checkable protocols below, each a
+capability an environment declares by implementing its methods on ``env.unwrapped``:
+
+:class:`Changeable`
+    A protocol phase may change rewards, terminal states/regions and starts
+    (``apply_changes``) and a new run restores the world as built (``reset_world``).
+:class:`Posed`
+    The agent's pose ``(x, y, heading)`` in world units (heading in radians, counter-clockwise
+    from +x), for grids, graphs and continuous arenas alike.
+:class:`DiscreteStates`
+    Integer states with named places (``state_index("right_arm")``) and the pose of any state,
+    vectorised (``poses_of(states, actions)``), so compiled agents need not track poses.
+:class:`TabularModel`
+    A known transition table (``world.T``, ``world.rewards``, ...) that tabular and Dyna agents
+    plan with, and the ``action_mask`` of actions that leave a state.
+:class:`HasGeometry`
+    The maze, graph or arena as data (:class:`Geometry`), for plots, MCAP scenes and exports.
+:class:`RendersAtPose`
+    The observation at an arbitrary pose, e.g. for activity maps between graph nodes.
+
+:func:`capabilities` lists what an environment offers; :func:`require` turns a missing
+capability into a one-line :class:`~cobelrun.errors.ConfigError`.
+"""
 
 from __future__ import annotations
 
+import json
 import operator
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from cobelrun.errors import ConfigError
+
+__all__ = [
+    "CONTRACTS",
+    "Changeable",
+    "ChangeableWorld",
+    "DiscreteStates",
+    "Geometry",
+    "HasGeometry",
+    "Posed",
+    "RendersAtPose",
+    "TabularModel",
+    "capabilities",
+    "check_action",
+    "require",
+]
 
 
+# ---------------------------------------------------------------------------- contracts
+@runtime_checkable
+class Changeable(Protocol):
+    """Rewards, terminals and starts changed by protocol phases."""
+
+    def apply_changes(
+        self,
+        rewards: Mapping[Any, float] | None = None,
+        terminals: Mapping[Any, bool] | None = None,
+        starts: Iterable[Any] | None = None,
+    ) -> None: ...
+
+    def reset_world(self) -> None: ...
+
+
+@runtime_checkable
+class Posed(Protocol):
+    """The agent's current pose in world units."""
+
+    def agent_pose(self) -> np.ndarray:
+        """``(x, y, heading)``: position and heading in radians (CCW from +x), float64 (3,)."""
+        ...
+
+
+@runtime_checkable
+class DiscreteStates(Protocol):
+    """Integer states: count, named references and their poses."""
+
+    @property
+    def n_states(self) -> int: ...
+
+    def state_index(self, ref: Any) -> int:
+        """The state of a reference: an index, a place name or a ``[row, col]`` cell."""
+        ...
+
+    def poses_of(self, states: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+        """(k, 3) poses of ``states``; ``actions`` (the action that led to each, -1 for none)
+        give headings where the action defines one."""
+        ...
+
+
+@runtime_checkable
+class TabularModel(Protocol):
+    """A known tabular world (``T[s, a, s']``, rewards, terminal, starts) and its action mask."""
+
+    @property
+    def world(self) -> Any: ...
+
+    def action_mask(self) -> np.ndarray: ...
+
+
+@runtime_checkable
+class HasGeometry(Protocol):
+    """The environment's layout as data."""
+
+    def geometry(self) -> Geometry: ...
+
+
+@runtime_checkable
+class RendersAtPose(Protocol):
+    """Observations at arbitrary poses (between graph nodes, anywhere in an arena)."""
+
+    def render_at_pose(self, x: float, y: float, heading: float) -> Any: ...
+
+
+#: Every contract by the name agents and monitors use in ``requires``.
+CONTRACTS: dict[str, type] = {
+    "changeable": Changeable,
+    "pose": Posed,
+    "discrete_states": DiscreteStates,
+    "tabular_model": TabularModel,
+    "geometry": HasGeometry,
+    "render_at_pose": RendersAtPose,
+}
+
+
+def capabilities(env: Any) -> list[str]:
+    """Names of the contracts ``env`` (or its unwrapped env) implements."""
+    base = getattr(env, "unwrapped", env)
+    return [name for name, proto in CONTRACTS.items() if isinstance(base, proto)]
+
+
+def require(env: Any, needs: Iterable[str], who: str) -> None:
+    """Raise a one-line ConfigError if ``env`` lacks one of the contracts ``needs``."""
+    base = getattr(env, "unwrapped", env)
+    for name in needs:
+        if name not in CONTRACTS:
+            raise ValueError(f"unknown contract {name!r}; known: {', '.join(CONTRACTS)}")
+        if not isinstance(base, CONTRACTS[name]):
+            have = ", ".join(capabilities(base)) or "none"
+            raise ConfigError(
+                f"{who} needs an environment with '{name}', which {type(base).__name__} "
+                f"does not offer (it offers: {have})"
+            )
+
+
+# ---------------------------------------------------------------------------- geometry
+@dataclass
+class Geometry:
+    """A layout as plain data (world units), saved with every run as ``world.json``.
+
+    Attributes
+    ----------
+    kind : {"grid", "graph", "arena", "none"}
+        What the layout is.
+    bounds : (xmin, ymin, xmax, ymax)
+        Bounding box of everything the agent can reach.
+    walls : (m, 4) float64
+        Wall segments ``x0, y0, x1, y1`` (grid walls, arena outline edges, obstacle edges).
+    cells : (k, 2) float64
+        Centres of free grid cells (size ``cell_size``); empty for graphs and arenas.
+    cell_size : float
+        Side of a grid cell.
+    nodes : (N, 2) float64
+        Graph node positions (graphs; grids give their free cells as nodes too).
+    edges : (E, 2) int64
+        Undirected graph edges between node indices.
+    outline : (P, 2) float64
+        Arena outline polygon (closed implicitly); empty for grids and graphs.
+    regions : dict
+        Named regions, each ``{"shape": "point"|"circle"|"polygon", ...}``: ``x, y`` (point,
+        circle), ``radius`` (circle), ``points`` (polygon). Goals, starts and places.
+    """
+
+    kind: str
+    bounds: tuple[float, float, float, float]
+    walls: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    cell_size: float = 1.0
+    nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    outline: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    regions: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    KINDS = ("grid", "graph", "arena", "none")
+
+    def __post_init__(self) -> None:
+        if self.kind not in self.KINDS:
+            raise ValueError(f"geometry kind {self.kind!r}; allowed: {', '.join(self.KINDS)}")
+        self.bounds = tuple(float(b) for b in self.bounds)  # type: ignore[assignment]
+        self.walls = np.asarray(self.walls, np.float64).reshape(-1, 4)
+        self.cells = np.asarray(self.cells, np.float64).reshape(-1, 2)
+        self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 2)
+        self.edges = np.asarray(self.edges, np.int64).reshape(-1, 2)
+        self.outline = np.asarray(self.outline, np.float64).reshape(-1, 2)
+        self.cell_size = float(self.cell_size)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (lists of floats)."""
+        return {
+            "kind": self.kind,
+            "bounds": list(self.bounds),
+            "walls": self.walls.tolist(),
+            "cells": self.cells.tolist(),
+            "cell_size": self.cell_size,
+            "nodes": self.nodes.tolist(),
+            "edges": self.edges.tolist(),
+            "outline": self.outline.tolist(),
+            "regions": self.regions,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Geometry:
+        known = {"kind", "bounds", "walls", "cells", "cell_size", "nodes", "edges", "outline",
+                 "regions"}  # fmt: skip
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown geometry keys {unknown}; allowed: {sorted(known)}")
+        return cls(**dict(data))
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), separators=(",", ":"))
+
+
+def point_region(x: float, y: float) -> dict[str, Any]:
+    return {"shape": "point", "x": float(x), "y": float(y)}
+
+
+def headings_of_moves(actions: np.ndarray, table: np.ndarray, default: float) -> np.ndarray:
+    """Heading (radians) of each move in ``actions`` from a per-action ``table``; ``default``
+    where an action is -1 (trial start)."""
+    actions = np.asarray(actions, np.int64)
+    out = np.full(actions.shape, float(default))
+    ok = actions >= 0
+    out[ok] = table[actions[ok]]
+    return out
+
+
+# ---------------------------------------------------------------------------- shared parts
 class ChangeableWorld:
     """Mixin for environments whose ``world`` a protocol changes between phases.
 
@@ -30,6 +265,23 @@ class ChangeableWorld:
     def reset_world(self) -> None:
         """Restore the world to :attr:`base_world` (undo every :meth:`apply_changes`)."""
         self._world = self._base_world.copy()
+
+    @property
+    def n_states(self) -> int:
+        """Number of states of the world."""
+        return int(self._world.n_states)
+
+    def state_index(self, ref: Any) -> int:
+        """The state of ``ref``: an index, a place name (``"right_arm"``) or ``[row, col]``."""
+        return int(self._world.state(ref))
+
+    def _place_regions(self) -> dict[str, dict[str, Any]]:
+        """Named places and start states as point regions (for :class:`Geometry`)."""
+        w = self._world
+        regions = {name: point_region(*w.coords[s]) for name, s in w.places.items()}
+        for s in np.unique(w.starts):
+            regions.setdefault(f"start_{int(s)}", point_region(*w.coords[s]))
+        return regions
 
     def apply_changes(
         self,

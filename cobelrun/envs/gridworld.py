@@ -8,11 +8,15 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from cobelrun.envs.base import ChangeableWorld, check_action
+from cobelrun.envs.base import ChangeableWorld, Geometry, check_action, headings_of_moves
 from cobelrun.envs.world import World, tmaze_paper
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 _ARROWS = ("<", "^", ">", "v")
+#: heading (radians, CCW from +x) of the moves left, up, right, down
+ACTION_HEADING = np.array([np.pi, np.pi / 2, 0.0, -np.pi / 2])
+#: heading at trial start: facing up
+START_HEADING = np.pi / 2
 
 
 class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
@@ -94,6 +98,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         self.action_space = spaces.Discrete(world.n_actions)
         self.observation_space = self._make_observation_space()
         self._state = int(self._world.starts[0])
+        self._heading = START_HEADING
         self._steps = 0
 
     # ------------------------------------------------------------------ world access
@@ -122,6 +127,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         super().reset(seed=seed)
         starts = self._world.starts
         self._state = int(starts[self.np_random.integers(0, len(starts))])
+        self._heading = START_HEADING
         self._steps = 0
         return self._observe(self._state), self._info(self._state)
 
@@ -138,6 +144,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             cum = np.cumsum(world.T[s, a])
             s2 = min(int(np.searchsorted(cum, u, side="right")), world.n_states - 1)
         self._state = s2
+        self._heading = float(ACTION_HEADING[a])
         self._steps += 1
         reward = float(world.rewards[s2])
         terminated = bool(world.terminal[s2])
@@ -165,6 +172,41 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             chars.append(ch)
         rows = ["".join(chars[r * w.width : (r + 1) * w.width]) for r in range(w.height)]
         return "\n".join(rows) + "\n"
+
+    # ------------------------------------------------------------------ contracts
+    def agent_pose(self) -> np.ndarray:
+        """``(x, y, heading)``: the cell's coordinates and the direction of the last move
+        (facing up, pi/2, at trial start)."""
+        x, y = self._world.coords[self._state]
+        return np.array([x, y, self._heading])
+
+    def poses_of(self, states: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+        """(k, 3) poses of ``states``; the heading is the compass direction of the action that
+        led there (``-1`` or no actions: facing up)."""
+        states = np.asarray(states, np.int64)
+        out = np.empty((states.shape[0], 3))
+        out[:, :2] = self._world.coords[states]
+        acts = np.full(states.shape, -1) if actions is None else actions
+        out[:, 2] = headings_of_moves(acts, ACTION_HEADING, START_HEADING)
+        return out
+
+    def geometry(self) -> Geometry:
+        """The grid as data: free cells, a wall segment wherever a move is blocked (outer
+        walls, wall cells, two-way walls and one-way doors), places and starts."""
+        w = self._world
+        free = np.flatnonzero(~w.blocked)
+        xy = w.coords[free]
+        intended = np.argmax(w.T[free], axis=2)  # (k, A): the move's main outcome
+        stays = intended == free[:, None]
+        # wall side of each action (left, up, right, down) relative to the cell centre
+        side = np.array([[-0.5, -0.5, -0.5, 0.5], [-0.5, 0.5, 0.5, 0.5],
+                         [0.5, -0.5, 0.5, 0.5], [-0.5, -0.5, 0.5, -0.5]])  # fmt: skip
+        k, a = np.nonzero(stays)
+        segs = np.round(np.tile(xy[k], 2) + side[a], 9)
+        segs = np.unique(segs, axis=0) if segs.size else segs
+        lo, hi = xy.min(axis=0) - 0.5, xy.max(axis=0) + 0.5
+        return Geometry(kind="grid", bounds=(lo[0], lo[1], hi[0], hi[1]), walls=segs, cells=xy,
+                        nodes=xy, regions=self._place_regions())  # fmt: skip
 
     # ------------------------------------------------------------------ hooks for subclasses
     def _make_observation_space(self) -> spaces.Space:

@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.envs import topology as topo
-from cobelrun.envs.base import ChangeableWorld, check_action
+from cobelrun.envs.base import ChangeableWorld, Geometry, check_action
 from cobelrun.envs.observations import ObservationModule, PoseObservation
 from cobelrun.envs.world import World, _finite, _pairs
 from cobelrun.errors import ConfigError, LayoutError
@@ -272,6 +272,32 @@ class TopologyEnv(ChangeableWorld, gym.Env):
     def state(self) -> int:
         """Current node."""
         return self._node
+
+    def agent_pose(self) -> np.ndarray:
+        """``(x, y, heading)`` of the current node and heading (radians)."""
+        x, y = self.topology.positions[self._node]
+        return np.array([x, y, self.topology.directions[self._heading]])
+
+    def poses_of(self, states: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+        """(k, 3) poses of nodes ``states``. A node does not carry a heading (turns change it
+        in place), so the heading is the start heading (or pi/2 where that is random); runs
+        through the step loop record the true heading from :meth:`agent_pose`."""
+        states = np.asarray(states, np.int64)
+        out = np.empty((states.shape[0], 3))
+        out[:, :2] = self.topology.positions[states]
+        h = self._start_heading
+        out[:, 2] = np.pi / 2 if h is None else self.topology.directions[h]
+        return out
+
+    def geometry(self) -> Geometry:
+        """The graph as data: node positions, undirected edges, places and starts."""
+        top = self.topology
+        src, d = np.nonzero(top.neighbours >= 0)
+        dst = top.neighbours[src, d]
+        edges = np.unique(np.sort(np.stack([src, dst], axis=1), axis=1), axis=0)
+        lo, hi = top.positions.min(axis=0) - 0.5, top.positions.max(axis=0) + 0.5
+        return Geometry(kind="graph", bounds=(lo[0], lo[1], hi[0], hi[1]),
+                        nodes=top.positions, edges=edges, regions=self._place_regions())  # fmt: skip
 
     def observe_pose(self, node: int, heading: int) -> Any:
         """The observation at any pose (e.g. for activity maps), noise drawn from ``np_random``."""

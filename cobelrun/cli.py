@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -177,7 +177,9 @@ STATUS_STYLE = {
 
 @app.command("status")
 def status_cmd(
-    sweep_dir: Annotated[Path, typer.Argument(help="A sweep folder written by `cobel run -m`.")],
+    sweep_dir: Annotated[
+        Path, typer.Argument(help="A sweep folder (`cobel run -m`) or a run folder.")
+    ],
     problems: Annotated[
         bool, typer.Option("--problems", "-p", help="List only jobs that are not done.")
     ] = False,
@@ -189,8 +191,13 @@ def status_cmd(
     from rich.console import Console
     from rich.table import Table
 
+    from cobelrun.io.run_folder import RunFolder
     from cobelrun.sweep import job_rows, read_sweep, summary
 
+    folder = RunFolder(sweep_dir)
+    if folder.manifest.is_file():  # a single run folder
+        run_status(folder)
+        return
     try:
         sweep = read_sweep(sweep_dir)
         rows = job_rows(sweep_dir)
@@ -221,6 +228,28 @@ def status_cmd(
     console.print(f"{len(rows)} jobs: " + ", ".join(parts))
     if counts["done"] < len(rows):
         console.print(f"resume (runs only what is not done): {sweep.get('command', '')}")
+        raise typer.Exit(1)
+
+
+def run_status(folder: Any) -> None:
+    """``cobel status RUN_DIR``: repair a killed run's files, then print its status."""
+    import json
+
+    from cobelrun.io.repair import repair_run
+
+    repaired = repair_run(folder.path)
+    manifest = json.loads(folder.manifest.read_text())
+    status = manifest.get("status", "unknown")
+    typer.echo(
+        f"{folder.path}: {status}" + (f" ({manifest['error']})" if manifest.get("error") else "")
+    )
+    for table, rows in repaired.get("tables", {}).items():
+        typer.echo(f"  repaired {folder.table(table).name}: {rows} rows kept")
+    if repaired.get("mcap"):
+        typer.echo(f"  repaired {folder.mcap.name}: summary rewritten, complete messages kept")
+    tables = folder.tables()
+    typer.echo(f"  tables: {', '.join(tables) or 'none'}")
+    if status != "completed":
         raise typer.Exit(1)
 
 

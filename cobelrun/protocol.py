@@ -106,11 +106,13 @@ class Protocol:
         """Apply a phase's changes to ``env`` (which must offer ``apply_changes``)."""
         if not (phase.rewards or phase.terminals or phase.starts is not None):
             return
+        from cobelrun.envs.base import Changeable
+
         base = env.unwrapped
-        if not hasattr(base, "apply_changes"):
+        if not isinstance(base, Changeable):
             raise ConfigError(
                 f"phase {phase.name!r} changes the environment, but {type(base).__name__} "
-                "does not support changes (no apply_changes)"
+                "does not support changes (no 'changeable' contract)"
             )
         base.apply_changes(
             rewards=phase.rewards or None, terminals=phase.terminals or None, starts=phase.starts

@@ -1,71 +1,82 @@
-"""RunRecorder: turns trial batches into table rows (through monitors) and streams them to disk.
+"""RunRecorder: routes monitor rows to table writers and poses/trial events to the MCAP stream.
 
-``trials.parquet`` gets one row per (run, trial); ``steps.parquet`` one row per recorded step;
-``run.mcap`` the agent's pose at every recorded step and trial start/end events, for replay in
-Foxglove. Everything is written in chunks as the run goes, so memory stays flat.
+The recorder knows no table by name: monitors declare their tables
+(:class:`~cobelrun.monitors.Table`), and per-trial columns of several monitors are joined side
+by side. Rows are buffered and handed to :class:`~cobelrun.io.parquet.PartedTableWriter` in
+parts, bounded by rows *and* time (``record.flush_seconds``, default 2 s), so a killed process
+loses at most the last couple of seconds; at the end the parts are merged into one Parquet file
+per table. Buffer changes run inside :meth:`SignalGuard.critical`, so Ctrl-C or SIGTERM never
+drops rows that were already taken from a buffer.
 """
 
 from __future__ import annotations
 
 import collections
-import json
-from collections.abc import Callable, Mapping, Sequence
+import contextlib
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
-from cobelrun.envs.gridworld import GridWorldEnv
 from cobelrun.errors import ConfigError
-from cobelrun.io.mcap import McapStreamWriter
-from cobelrun.io.parquet import ParquetStreamWriter
-from cobelrun.monitors import Monitor
+from cobelrun.io.parquet import PartedTableWriter
+from cobelrun.io.run_folder import RunFolder
+from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
-#: poses buffered before the MCAP writer is called (bounds memory, amortises per-call cost)
-MCAP_BATCH_POSES = 1 << 16
-#: heading (radians) of the gridworld actions left, up, right, down
-ACTION_HEADING = np.array([np.pi, np.pi / 2, 0.0, -np.pi / 2])
+#: Parquet key/value metadata schema version of cobel's tables
+SCHEMA_VERSION = "2"
 
 
 @dataclass(frozen=True)
 class RecordConfig:
-    """What to write per step.
+    """What to write, and how often.
 
     Attributes
     ----------
     steps
-        Write ``steps.parquet`` (needs a trajectory monitor).
+        Write per-step tables (``steps.parquet``; needs a trajectory monitor).
     mcap
-        Write ``run.mcap`` (pose stream and trial events).
+        Write ``run.mcap`` (maze scene, pose stream, trial events).
     runs
         ``"all"`` or a list of run indices (0-based) whose steps are recorded.
     trial_every
         Record the steps of every N-th trial (1 = every trial). Trial 1 is always recorded.
+    mcap_runs
+        Poses of the first N runs go into ``run.mcap`` (``"all"``: every run); trial events
+        are written for every run.
+    flush_seconds
+        Hand buffered rows to disk at least this often (bounds what a SIGKILL can lose).
     """
 
     steps: bool = True
     mcap: bool = True
     runs: str | Sequence[int] = "all"
     trial_every: int = 1
+    mcap_runs: int | str = 10
+    flush_seconds: float = 2.0
+
+    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds")
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
         cfg = dict(cfg or {})
-        allowed = ("steps", "mcap", "runs", "trial_every")
         for key in cfg:
-            if key not in allowed:
-                raise ConfigError(f"unknown key 'record.{key}'; allowed: {', '.join(allowed)}")
+            if key not in cls.KEYS:
+                raise ConfigError(f"unknown key 'record.{key}'; allowed: {', '.join(cls.KEYS)}")
         runs = cfg.get("runs", "all")
         if runs != "all" and (
             isinstance(runs, str)
             or not isinstance(runs, Sequence)
-            or not all(isinstance(r, int) and r >= 0 for r in runs)
+            or not all(isinstance(r, int) and not isinstance(r, bool) and r >= 0 for r in runs)
         ):
             raise ConfigError(f"record.runs must be 'all' or a list of run indices, got {runs!r}")
         every = cfg.get("trial_every", 1)
@@ -74,25 +85,115 @@ class RecordConfig:
         for key in ("steps", "mcap"):
             if not isinstance(cfg.get(key, True), bool):
                 raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
+        mcap_runs = cfg.get("mcap_runs", 10)
+        if mcap_runs != "all" and (
+            isinstance(mcap_runs, bool) or not isinstance(mcap_runs, int) or mcap_runs < 0
+        ):
+            raise ConfigError(
+                f"record.mcap_runs must be 'all' or an integer >= 0, got {mcap_runs!r}"
+            )
+        flush = cfg.get("flush_seconds", 2.0)
+        if isinstance(flush, bool) or not isinstance(flush, int | float) or not flush > 0:
+            raise ConfigError(f"record.flush_seconds must be a number > 0, got {flush!r}")
         return cls(
             steps=cfg.get("steps", True),
             mcap=cfg.get("mcap", True),
             runs=runs if runs == "all" else tuple(runs),
             trial_every=every,
+            mcap_runs=mcap_runs,
+            flush_seconds=float(flush),
         )
 
     def records_run(self, run: int) -> bool:
         return self.runs == "all" or run in self.runs
 
+    def mcap_run(self, run: int) -> bool:
+        return self.mcap_runs == "all" or run < int(self.mcap_runs)
+
+
+class SignalGuard:
+    """Ctrl-C and SIGTERM as :class:`KeyboardInterrupt`, but never inside a critical section
+    and never while files are being closed.
+
+    A signal inside :meth:`critical` is held and raised when the section ends; during
+    :meth:`closing` (the files are being finished) further signals are ignored with one
+    notice, so a second Ctrl-C cannot cut the shutdown short. Outside the main thread the
+    guard installs nothing (signals go to the main thread anyway).
+    """
+
+    def __init__(self) -> None:
+        self._depth = 0
+        self._pending: int | None = None
+        self._closing = False
+        self._noticed = False
+        self._previous: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self._closing:
+            if not self._noticed:
+                self._noticed = True
+                print("cobel: finishing the run's files, please wait", file=sys.stderr)
+            return
+        if self._depth:
+            self._pending = signum
+            return
+        self._closing = True  # the run is stopping: later signals must not cut the shutdown
+        raise Interrupted(signum)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[SignalGuard]:
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handler)
+        except ValueError:  # not the main thread
+            self._previous.clear()
+        try:
+            yield self
+        finally:
+            for sig, prev in self._previous.items():
+                signal.signal(sig, prev)
+            self._previous.clear()
+
+    @contextlib.contextmanager
+    def critical(self) -> Iterator[None]:
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+        if not self._depth and self._pending is not None and not self._closing:
+            signum, self._pending = self._pending, None
+            self._closing = True
+            raise Interrupted(signum)
+
+    @contextlib.contextmanager
+    def closing(self) -> Iterator[None]:
+        """Files are being finished: signals are ignored (with one notice) until the end."""
+        was, self._closing = self._closing, True
+        try:
+            yield
+        finally:
+            self._closing = was
+        if self._pending is not None and not was:
+            signum, self._pending = self._pending, None
+            raise Interrupted(signum)
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by SIGINT or SIGTERM."""
+
+    def __init__(self, signum: int = signal.SIGINT) -> None:
+        super().__init__(f"received signal {signum}")
+        self.signum = signum
+
 
 class WriterThread:
     """Runs write calls in submission order on one background thread.
 
-    The simulation hands finished arrays over and goes on: Arrow's Parquet encoder, zstd and
-    numpy's array operations release the GIL, so with two or more cores writing overlaps
-    simulating. At most ``max_pending`` calls wait (memory stays bounded); an exception in a
-    write is raised in the calling thread at the next :meth:`submit` or at :meth:`close`.
-    With ``enabled=False`` calls run immediately in the calling thread.
+    The simulation hands finished rows over and goes on (Arrow's Parquet encoder releases the
+    GIL). At most ``max_pending`` calls wait; an exception in a write is raised in the calling
+    thread at the next :meth:`submit` or at :meth:`close`. With ``enabled=False`` calls run
+    immediately in the calling thread.
     """
 
     def __init__(self, *, enabled: bool = True, max_pending: int = 8) -> None:
@@ -110,291 +211,243 @@ class WriterThread:
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(fn, *args))
 
-    def drain(self) -> None:
-        """Wait for every submitted call; raise the first error."""
-        while self._pending:
-            self._pending.popleft().result()
-
     def close(self) -> None:
         """Wait for pending calls (raising the first error) and stop the thread."""
         try:
-            self.drain()
+            while self._pending:
+                self._pending.popleft().result()
         finally:
             if self._pool is not None:
                 self._pool.shutdown(wait=True, cancel_futures=False)
 
 
-class ColumnBuffer:
-    """Collects column batches for one Parquet writer and hands them over in large pieces.
+class _TableSink:
+    """Buffered rows of one table, handed to its writer in parts (by rows or by time)."""
 
-    Per-call costs of Arrow conversion dominate when a phase yields only a few hundred rows;
-    joining batches until ``rows`` are pending makes one conversion per ~64k rows.
-    """
-
-    def __init__(self, write: Callable[[Mapping[str, Any]], None], rows: int = 1 << 16) -> None:
-        self._write = write
-        self._rows = rows
+    def __init__(self, writer: PartedTableWriter, rows: int, seconds: float) -> None:
+        self.writer = writer
+        self._rows, self._seconds = rows, seconds
         self._parts: list[Mapping[str, Any]] = []
         self._pending = 0
+        self._last = time.monotonic()
 
-    def add(self, columns: Mapping[str, Any], n: int, submit: Callable[..., None]) -> None:
-        self._parts.append(columns)
-        self._pending += n
-        if self._pending >= self._rows:
-            self.flush(submit)
+    def add(self, columns: Mapping[str, Any], n: int) -> bool:
+        """Buffer rows; True if a flush is due."""
+        if n:
+            self._parts.append(columns)
+            self._pending += n
+        return self._pending >= self._rows or (
+            self._pending and time.monotonic() - self._last >= self._seconds
+        )
 
-    def flush(self, submit: Callable[..., None]) -> None:
+    def take(self) -> pa.Table | None:
+        """The buffered rows as one Arrow table (the buffer is emptied only after the table
+        exists, inside the caller's critical section)."""
+        self._last = time.monotonic()
         if not self._parts:
-            return
-        parts, self._parts, self._pending = self._parts, [], 0
-        joined = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
-        submit(self._write, joined)
+            return None
+        names = self._parts[0].keys()
+        joined = {k: np.concatenate([np.asarray(p[k]) for p in self._parts]) for k in names}
+        table = self.writer.to_table(joined)
+        self._parts, self._pending = [], 0
+        return table
 
 
 class RunRecorder:
-    """Collects monitor columns for each batch and streams them to the run folder."""
+    """Feeds trial batches to the monitors and streams their tables to the run folder.
+
+    Parameters
+    ----------
+    folder
+        The run folder.
+    env
+        The environment (monitors and poses ask its contracts).
+    monitors
+        The task's monitors, in order (the trial-key monitor first).
+    record
+        What to write.
+    metadata
+        Key/value metadata for every Parquet table (version, config hash, seed).
+    guard
+        The run's :class:`SignalGuard` (a fresh one if not given).
+    background
+        Write on a second thread (sweeps switch it off: their jobs already fill the cores).
+    mcap_factory
+        Builds the MCAP writer: ``factory(path, geometry=..., start_ns=...)``.
+    """
+
+    ROW_GROUP_ROWS = 1 << 16
 
     def __init__(
         self,
-        run_dir: Path,
+        folder: RunFolder,
         env: Any,
-        monitors: Mapping[str, Monitor],
+        monitors: Sequence[Monitor],
         record: RecordConfig,
         *,
+        metadata: Mapping[str, str] | None = None,
+        guard: SignalGuard | None = None,
         background: bool = True,
+        geometry: Any = None,
     ) -> None:
+        self.folder = folder
         self.env = env
+        self.monitors = list(monitors)
         self.record_cfg = record
-        self.trial_monitors = [m for m in monitors.values() if m.table == "trials"]
-        self.step_monitors = [m for m in monitors.values() if m.table == "steps"]
-        trial_fields = [
-            pa.field("run", pa.int32()),
-            pa.field("trial", pa.int32()),
-            pa.field("phase", pa.string()),
-            pa.field("trial_in_phase", pa.int32()),
-            pa.field("start_state", pa.int64()),
-            pa.field("end_state", pa.int64()),
-            pa.field("terminated", pa.bool_()),
-        ]
-        for m in self.trial_monitors:
-            trial_fields += m.fields()
-        self._check_unique(trial_fields)
-        self.trials = ParquetStreamWriter(run_dir / "trials.parquet", pa.schema(trial_fields))
-        self.steps = None
-        if record.steps and self.step_monitors:
-            step_fields = [pa.field("run", pa.int32()), pa.field("trial", pa.int32())]
-            for m in self.step_monitors:
-                step_fields += m.fields()
-            self._check_unique(step_fields)
-            self.steps = ParquetStreamWriter(run_dir / "steps.parquet", pa.schema(step_fields))
-        self.mcap = McapStreamWriter(run_dir / "run.mcap") if record.mcap else None
-        self._poses: list[tuple[np.ndarray, np.ndarray]] = []  # (times, pose ids)
-        self._events: list[tuple[np.ndarray, list[bytes]]] = []
-        self._n_buffered = 0
-        # monitors with table "activity" take their own snapshots (ActivityMonitor)
-        self.activity_monitors = [m for m in monitors.values() if m.table == "activity"]
-        self.activity = None
-        if self.activity_monitors:
-            schema = pa.schema(self.activity_monitors[0].fields())
-            self.activity = ParquetStreamWriter(run_dir / "activity.parquet", schema)
-            for m in self.activity_monitors:
-                m.bind(self.activity.write)
-        self._clock = 0  # simulated ns
+        self.guard = guard or SignalGuard()
+        self.tables = self._declared_tables()
+        self._sinks: dict[str, _TableSink] = {}
+        for name, (per, fields) in self.tables.items():
+            if per == "step" and not record.steps:
+                continue
+            writer = PartedTableWriter(
+                folder.table(name), folder.parts(name), pa.schema(fields),
+                metadata={**(metadata or {}), "cobel.table": name, "cobel.rows": per,
+                          "cobel.schema_version": SCHEMA_VERSION},
+            )  # fmt: skip
+            self._sinks[name] = _TableSink(writer, self.ROW_GROUP_ROWS, record.flush_seconds)
+        for m in self.monitors:
+            m.bind(self._emit)
+        self.start_ns = time.time_ns()
+        self.mcap = None
+        if record.mcap:
+            from cobelrun.io.mcap import McapRecorder
+
+            self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns)
+        self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
-        # a gridworld action is a compass direction, so it gives the heading of the pose it
-        # leads to; other envs' actions (turns, choices) do not
-        base = env.unwrapped
-        self._headings_from_actions = isinstance(base, GridWorldEnv)
-        self._trial_rows = ColumnBuffer(self.trials.write)
-        self._step_rows = ColumnBuffer(self.steps.write) if self.steps is not None else None
 
-    @staticmethod
-    def _check_unique(fields: list[pa.Field]) -> None:
-        names = [f.name for f in fields]
-        dup = sorted({n for n in names if names.count(n) > 1})
-        if dup:
-            raise ConfigError(f"two monitors write the same column(s): {', '.join(dup)}")
+    def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
+        tables: dict[str, tuple[str, list[pa.Field]]] = {}
+        for m in self.monitors:
+            for t in m.tables():
+                if not isinstance(t, Table):
+                    raise ConfigError(f"monitor {type(m).__name__}.tables() must return Tables")
+                per, fields = tables.setdefault(t.name, (t.per, []))
+                if per != t.per:
+                    raise ConfigError(
+                        f"table '{t.name}' is declared with rows per {per} and per {t.per}"
+                    )
+                if per == "event" and fields:
+                    raise ConfigError(f"two monitors write the event table '{t.name}'")
+                fields += list(t.fields)
+        for name, (_, fields) in tables.items():
+            names = [f.name for f in fields]
+            dup = sorted({n for n in names if names.count(n) > 1})
+            if dup:
+                raise ConfigError(f"two monitors write the same column(s) of '{name}': "
+                                  f"{', '.join(dup)}")  # fmt: skip
+        return tables
 
-    def start_run(self, run: int) -> None:
-        for m in (*self.trial_monitors, *self.step_monitors):
-            m.start_run(run)
-
-    # -- activity snapshots (monitors that look at the agent, not at trial records) ---------
-    def start_agent(self, run: int, agent: Any) -> None:
-        """A run's agent was built: activity monitors check it and take their first snapshot."""
-        for m in self.activity_monitors:
-            m.start_agent(run, agent)
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start_run(self, run: int, agent: Any) -> None:
+        for m in self.monitors:
+            m.start_run(run, agent)
 
     def phase_callbacks(self, first_trial: int) -> list[Any]:
-        """Trial callbacks to pass to ``agent.train/test`` for a phase starting at ``first_trial``:
-        the activity monitors and every other monitor that is a ``TrialCallback`` (probes)."""
-        from cobelrun.agents.base import TrialCallback
+        """Trial callbacks the monitors need for a phase starting at ``first_trial`` (empty for
+        most tasks, so that compiled agents keep their fast path)."""
+        return [cb for m in self.monitors for cb in m.callbacks(first_trial)]
 
-        callbacks = [*self.activity_monitors]
-        callbacks += [m for m in (*self.trial_monitors, *self.step_monitors)
-                      if isinstance(m, TrialCallback)]  # fmt: skip
-        for m in callbacks:
-            if hasattr(m, "begin_phase"):
-                m.begin_phase(first_trial)
-        return callbacks
+    def end_run(self, run: int, agent: Any, last_trial: int) -> None:
+        for m in self.monitors:
+            m.end_run(run, agent, last_trial)
 
-    def end_agent(self, agent: Any, last_trial: int) -> None:
-        """A run is over: activity monitors take their final snapshot."""
-        for m in self.activity_monitors:
-            m.end_agent(agent, last_trial)
+    def _emit(self, table: str, columns: Mapping[str, Any]) -> None:
+        if table not in self.tables:
+            raise ConfigError(f"a monitor wrote to undeclared table '{table}'")
+        if table in self._sinks:
+            n = len(next(iter(columns.values()))) if columns else 0
+            self._add(table, columns, n)
 
+    def _add(self, table: str, columns: Mapping[str, Any], n: int) -> None:
+        sink = self._sinks[table]
+        with self.guard.critical():
+            if sink.add(columns, n):
+                self._flush(table)
+
+    def _flush(self, table: str) -> None:
+        sink = self._sinks[table]
+        part = sink.take()
+        if part is not None:
+            self._writer.submit(sink.writer.write_part, part)
+
+    # -- batches -------------------------------------------------------------------------------
     def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
-        """Write a batch of trials; ``first_trial`` is the 1-based trial number of its first."""
+        """Hand a batch of trials (1-based ``first_trial``) to every monitor and buffer the rows.
+
+        All tables of a batch are buffered in one critical section: a signal never leaves a
+        batch's trials without its steps."""
+        with self.guard.critical():
+            self._record(run, phase, first_trial, batch)
+
+    def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
         n = batch.n_trials
         if n == 0:
             return
-        trial = np.arange(first_trial, first_trial + n, dtype=np.int32)
-        cols: dict[str, Any] = {
-            "run": np.full(n, run, np.int32),
-            "trial": trial,
-            "phase": np.full(n, phase, dtype=object),
-            "trial_in_phase": np.arange(1, n + 1, dtype=np.int32),
-            "start_state": batch.start_state,
-            "end_state": batch.end_state,
-            "terminated": batch.terminated,
-        }
-        for m in self.trial_monitors:
-            cols.update(m.columns(batch, self.env))
-        self._trial_rows.add(cols, n, self._writer.submit)
-
-        if not self.record_cfg.records_run(run):
-            self._clock += int(batch.n_steps + n) * STEP_NS
-            return
+        info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
+        merged: dict[str, dict[str, Any]] = {}
+        for m in self.monitors:
+            for table, cols in m.on_batch(batch, info).items():
+                if table not in self.tables or self.tables[table][0] == "event":
+                    raise ConfigError(
+                        f"monitor {type(m).__name__} returned rows for '{table}', which is not "
+                        "one of its trial/step tables"
+                    )
+                merged.setdefault(table, {}).update(cols)
+        trial = info.trials(n)
         keep = (trial - 1) % self.record_cfg.trial_every == 0
-        if self.steps is not None:
-            step_keep = np.repeat(keep, batch.steps)
-            step_cols: dict[str, Any] = {
-                "run": np.full(int(step_keep.sum()), run, np.int32),
-                "trial": np.repeat(trial, batch.steps)[step_keep],
-            }
-            for m in self.step_monitors:
-                step_cols.update({k: v[step_keep] for k, v in m.columns(batch, self.env).items()})
-            self._step_rows.add(step_cols, len(step_cols["run"]), self._writer.submit)
-        if self.mcap is not None:
-            self._write_mcap(run, phase, trial, batch, keep)
-        else:
-            self._clock += int(batch.n_steps + n) * STEP_NS
+        records_run = self.record_cfg.records_run(run)
+        step_keep = np.repeat(keep, batch.steps) if records_run else None
+        for table, cols in merged.items():
+            if table not in self._sinks:
+                continue
+            if self.tables[table][0] == "step":
+                if step_keep is None:
+                    continue
+                cols = {k: np.asarray(v)[step_keep] for k, v in cols.items()}
+                rows = int(step_keep.sum())
+            else:
+                rows = n
+            self._add(table, cols, rows)
+        self._write_mcap(run, phase, trial, batch, merged.get("trials", {}))
 
     def _write_mcap(
-        self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, keep: np.ndarray
+        self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict
     ) -> None:
         n = batch.n_trials
-        # poses: per trial, the start state then every arrival state
         n_poses = batch.n_steps + n
-        is_start = np.zeros(n_poses, bool)
-        start_pos = batch.offsets[:-1] + np.arange(n)
-        is_start[start_pos] = True
-        states = np.empty(n_poses, np.int64)
-        states[is_start] = batch.start_state
-        states[~is_start] = batch.step_next_state
-        # pose id = state * 5 + heading code (0-3: the gridworld action that led there, 4: trial
-        # start or a heading the actions do not define, e.g. a topology env's turns)
-        code = np.full(n_poses, 4, np.int64)
-        if self._headings_from_actions:
-            code[~is_start] = batch.step_action
-        t = self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
-        pose_keep = np.repeat(keep, batch.steps + 1)
-        self._poses.append((t[pose_keep], (states * 5 + code)[pose_keep]))
-        self._n_buffered += int(pose_keep.sum())
-        end_pos = start_pos + batch.steps
-        idx = np.flatnonzero(keep)
-        if idx.size:
-            self._write_trial_events(run, phase, trial, batch, idx, t[start_pos], t[end_pos])
+        t = self.start_ns + self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
         self._clock += n_poses * STEP_NS
-        self._flush_mcap()
-
-    def _write_trial_events(
-        self,
-        run: int,
-        phase: str,
-        trial: np.ndarray,
-        batch: TrialBatch,
-        idx: np.ndarray,
-        t_start: np.ndarray,
-        t_end: np.ndarray,
-    ) -> None:
-        """Start and end ``cobel.TrialEvent`` of the trials ``idx``, built with one %-format per
-        kind and written in one batch (the bytes ``write_trial_event`` writes, field order
-        included; ~20x faster than one ``json.dumps`` + ``add_message`` per event)."""
-        reward = batch.reward[idx]
-        if not np.isfinite(reward).all():
-            raise ValueError("trial rewards must be finite to be written to run.mcap")
-        tail = ',"run":%d,"trial":%d,"phase":' + json.dumps(phase).replace("%", "%%") + "}"
-        start_fmt = '{"event":"start","start_state":%d' + tail
-        end_fmt = '{"event":"end","steps":%d,"reward":%r,"end_state":%d' + tail
-        n = idx.size
-        runs = [int(run)] * n
-        trials = trial[idx].tolist()
-        starts = "\n".join([start_fmt] * n) % tuple(
-            x
-            for row in zip(batch.start_state[idx].tolist(), runs, trials, strict=True)
-            for x in row
-        )
-        ends = "\n".join([end_fmt] * n) % tuple(
-            x
-            for row in zip(
-                batch.steps[idx].tolist(),
-                reward.tolist(),
-                batch.end_state[idx].tolist(),
-                runs,
-                trials,
-                strict=True,
-            )
-            for x in row
-        )
-        messages = [None] * (2 * n)
-        messages[0::2] = starts.encode().split(b"\n")
-        messages[1::2] = ends.encode().split(b"\n")
-        times = np.empty(2 * n, np.int64)
-        times[0::2] = t_start[idx]
-        times[1::2] = t_end[idx]
-        self._events.append((times, messages))
-
-    def _flush_mcap(self, force: bool = False) -> None:
-        """Write the buffered poses, then the buffered trial events, once enough are pending.
-
-        Batches of ~64k poses amortise the per-call cost of the vectorised writers (a T-maze
-        phase is only a few thousand poses); memory stays bounded by the batch size."""
-        if self.mcap is None or not (force or self._n_buffered >= MCAP_BATCH_POSES):
+        if self.mcap is None:
             return
-        if self._poses:
-            t = np.concatenate([p[0] for p in self._poses])
-            pose_id = np.concatenate([p[1] for p in self._poses])
-            coords = self.env.unwrapped.world.coords
-            headings = np.append(ACTION_HEADING, np.pi / 2)  # codes 0-3, and 4: facing up
+        start_pos = batch.offsets[:-1] + np.arange(n)
+        end_pos = start_pos + batch.steps
+        response = trial_cols.get("response")
+        with self.guard.critical():
+            if self.record_cfg.mcap_run(run):
+                poses = batch.with_poses(self.env).poses()
+                if poses is not None:
+                    self._writer.submit(self.mcap.write_poses, run, t, poses)
             self._writer.submit(
-                self.mcap.write_indexed_poses,
-                t,
-                pose_id,
-                np.repeat(coords[:, 0], 5),
-                np.repeat(coords[:, 1], 5),
-                np.tile(headings, coords.shape[0]),
-            )
-        if self._events:
-            times = np.concatenate([e[0] for e in self._events])
-            messages = [m for e in self._events for m in e[1]]
-            self._writer.submit(self.mcap.write_json_batch, self.mcap.TRIAL_TOPIC, times, messages)
-        self._poses, self._events, self._n_buffered = [], [], 0
+                self.mcap.write_trial_events, run, trial, phase, t[start_pos], t[end_pos],
+                batch.start_state, batch.end_state, batch.steps, batch.reward,
+                None if response is None else np.asarray(response),
+            )  # fmt: skip
 
+    # -- closing -------------------------------------------------------------------------------
     def close(self) -> None:
-        """Write what is buffered, wait for the writer thread, close every file."""
-        try:
-            self._trial_rows.flush(self._writer.submit)
-            if self._step_rows is not None:
-                self._step_rows.flush(self._writer.submit)
-            self._flush_mcap(force=True)
-        finally:
+        """Write what is buffered, wait for the writer thread, finish every file (further
+        signals are held off until the files are complete)."""
+        with self.guard.closing():
             try:
-                self._writer.close()
+                for table in self._sinks:
+                    self._flush(table)
             finally:
-                self._close_writers()
-
-    def _close_writers(self) -> None:
-        for w in (self.trials, self.steps, self.mcap, self.activity):
-            if w is not None:
-                w.close()
+                try:
+                    self._writer.close()
+                finally:
+                    for sink in self._sinks.values():
+                        sink.writer.close()
+                    if self.mcap is not None:
+                        self.mcap.close()

@@ -13,64 +13,63 @@ from typing import Any
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.io.run_folder import RunFolder
 
 
-def _run_dir(path: str | Path) -> Path:
-    p = Path(path)
-    if not p.is_dir():
-        raise CobelError(f"run folder {p} does not exist")
-    if not (p / "trials.parquet").is_file():
-        raise CobelError(f"{p} is not a cobel run folder (no trials.parquet)")
-    return p
+def _run_dir(path: str | Path) -> RunFolder:
+    folder = RunFolder(path)
+    if not folder.path.is_dir():
+        raise CobelError(f"run folder {folder.path} does not exist")
+    if not folder.table("trials").is_file():
+        raise CobelError(f"{folder.path} is not a cobel run folder (no trials table)")
+    return folder
 
 
-def load_trials(path: str | Path) -> pd.DataFrame:
-    """The ``trials`` table of a run folder."""
-    p = _run_dir(path) / "trials.parquet"
+def load_table(path: str | Path, table: str = "trials") -> pd.DataFrame:
+    """One table of a run folder: ``trials``, ``steps``, ``activity`` or any table a monitor
+    declared."""
+    folder = _run_dir(path)
+    p = folder.table(table)
+    if not p.is_file():
+        have = ", ".join(folder.tables()) or "none"
+        raise CobelError(f"{folder.path} has no '{table}' table; it has: {have}")
     try:
         return pd.read_parquet(p)
     except Exception as exc:
         raise CobelError(f"cannot read {p}: {exc}") from None
 
 
+def load_trials(path: str | Path) -> pd.DataFrame:
+    """The ``trials`` table of a run folder."""
+    return load_table(path, "trials")
+
+
 def load_steps(path: str | Path) -> pd.DataFrame:
-    """The ``steps`` table of a run folder."""
-    p = _run_dir(path) / "steps.parquet"
-    if not p.is_file():
-        raise CobelError(f"{p.parent} has no steps.parquet (steps were not recorded)")
-    return pd.read_parquet(p)
+    """The ``steps`` table of a run folder (steps must have been recorded)."""
+    return load_table(path, "steps")
 
 
 def load_activity(path: str | Path) -> pd.DataFrame:
     """The ``activity`` table of a run folder (unit activations written by an activity monitor)."""
-    p = _run_dir(path) / "activity.parquet"
-    if not p.is_file():
-        raise CobelError(f"{p.parent} has no activity.parquet (no activity monitor)")
-    return pd.read_parquet(p)
+    return load_table(path, "activity")
 
 
 def load_manifest(path: str | Path) -> dict[str, Any]:
-    """The run's ``manifest.json``."""
-    p = _run_dir(path) / "manifest.json"
+    """The run's manifest."""
+    p = _run_dir(path).manifest
     if not p.is_file():
-        raise CobelError(f"{p.parent} has no manifest.json")
+        raise CobelError(f"{p.parent} has no {p.name}")
     return json.loads(p.read_text())
 
 
 def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:
-    """One table (``trials``, ``steps`` or ``activity``) of a run folder.
+    """One table of a run folder (same as :func:`load_table`).
 
     Examples
     --------
     >>> trials = load_run("results/tmaze_extinction/2024-05-01/12-00-00_ab12cd34")  # doctest: +SKIP
     """
-    if table == "trials":
-        return load_trials(path)
-    if table == "steps":
-        return load_steps(path)
-    if table == "activity":
-        return load_activity(path)
-    raise CobelError(f"unknown table {table!r}; allowed: 'trials', 'steps', 'activity'")
+    return load_table(path, table)
 
 
 def load_jobs(sweep_dir: str | Path) -> pd.DataFrame:

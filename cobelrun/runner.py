@@ -6,11 +6,9 @@ trials, the recorder (monitors + writers) persists them, the manifest records st
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import signal
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,20 +16,22 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+import cobelrun
 from cobelrun.config import instantiate
+from cobelrun.envs.base import Changeable, HasGeometry
 from cobelrun.errors import CobelError, ConfigError
-from cobelrun.io.manifest import DONE_MARKER, Manifest
-from cobelrun.monitors import Monitor
+from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
+from cobelrun.io.run_folder import RunFolder
+from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
-from cobelrun.recorder import RecordConfig, RunRecorder
+from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
 
 TASK_KEYS = (
     "name", "description", "runs", "protocol", "monitors", "record", "save_agents", "job",
 )  # fmt: skip
 
 
-class Interrupted(KeyboardInterrupt):
-    """Raised in the main thread when the process receives SIGTERM."""
+__all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
 
 
 @dataclass
@@ -149,58 +149,54 @@ def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.ran
     return [run_seed(seed, r) for r in range(runs)]
 
 
-@contextlib.contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Turn SIGTERM into :class:`Interrupted` so writers close and the manifest says so."""
-
-    def handler(signum: int, frame: Any) -> None:
-        raise Interrupted(f"received signal {signum}")
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def saved_agent_file(load_from: str, run: int) -> Path:
     """The saved agent to continue run ``run`` from: ``load_from`` is a file (``{run}`` is
-    replaced by the run index) or a run folder holding ``agent_run{run}.*``."""
+    replaced by the run index) or a run folder holding ``agents/run_NNNN.npz``."""
     path = Path(load_from.replace("{run}", str(run)))
     if path.is_dir():
-        found = sorted(path.glob(f"agent_run{run}.*"))
-        if not found:
-            raise ConfigError(f"agent.load_from: {path} has no agent_run{run}.* for run {run}")
-        return found[0]
+        found = RunFolder(path).find_agent(run)
+        if found is None:
+            raise ConfigError(
+                f"agent.load_from: {path} has no saved agent for run {run} "
+                f"({RunFolder(path).agent(run).relative_to(path)})"
+            )
+        return found
     if not path.is_file():
         raise ConfigError(f"agent.load_from: {path} does not exist")
     return path
 
 
 def execute(
-    task: Task, run_dir: Path, progress: Any = None, *, background_writes: bool = True
+    task: Task,
+    run_dir: Path,
+    progress: Any = None,
+    *,
+    background_writes: bool = True,
+    guard: SignalGuard | None = None,
+    metadata: Mapping[str, str] | None = None,
 ) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
+    folder = RunFolder(run_dir)
     env = task.env
     base = env.unwrapped
-    recorder = RunRecorder(run_dir, env, task.monitors, task.record, background=background_writes)
+    geometry = base.geometry() if isinstance(base, HasGeometry) else None
+    if geometry is not None:
+        _write_json_atomic(folder.world, geometry.to_dict())
+    monitors = [TrialKeysMonitor(), *task.monitors.values()]
+    recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
+                           background=background_writes, geometry=geometry)  # fmt: skip
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
-            if hasattr(base, "reset_world"):
+            if isinstance(base, Changeable):
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
             if task.load_from is not None:
                 agent.load(saved_agent_file(task.load_from, run))
-            recorder.start_run(run)
-            recorder.start_agent(run, agent)
+            recorder.start_run(run, agent)
             first = 1
             for phase in task.protocol.phases:
                 task.protocol.apply(phase, env)
@@ -219,9 +215,10 @@ def execute(
                     progress(
                         run * per_run + first - 1, task.runs * per_run, run=run, runs=task.runs
                     )
-            recorder.end_agent(agent, first - 1)
+            recorder.end_run(run, agent, first - 1)
             if task.save_agents:
-                agent.save(run_dir / f"agent_run{run}")
+                folder.agents.mkdir(exist_ok=True)
+                agent.save(folder.agent(run))
     finally:
         recorder.close()
 
@@ -237,6 +234,7 @@ def run(
     free core; sweeps switch it off, since their parallel jobs already use every core.
     """
     run_dir = Path(run_dir)
+    folder = RunFolder(run_dir)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -244,7 +242,7 @@ def run(
     resolved = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(resolved, Mapping)
     task = build_task(cfg)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    folder.config.write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
     manifest = Manifest(run_dir)
     extra = (
         {"job": str(cfg.task.job._target_)}
@@ -252,17 +250,24 @@ def run(
         else {"runs": task.runs, "trials": task.protocol.n_trials}
     )
     manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
+    metadata = {"cobel.version": cobelrun.__version__, "cobel.seed": str(task.seed),
+                "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
-    with sigterm_as_interrupt():
+    guard = SignalGuard()
+    with guard.installed():
         try:
-            result = execute(task, run_dir, progress=progress, background_writes=background_writes)
+            result = execute(task, run_dir, progress=progress, background_writes=background_writes,
+                             guard=guard, metadata=metadata)  # fmt: skip
         except KeyboardInterrupt:
-            manifest.finish("interrupted")
+            with guard.closing():
+                manifest.finish("interrupted")
             raise
         except BaseException as exc:
-            manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
+            with guard.closing():
+                manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
             raise
-    summary = {"job_result": result} if isinstance(result, Mapping) else {}
-    manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
-    (run_dir / DONE_MARKER).write_text("completed\n")
+        with guard.closing():
+            summary = {"job_result": result} if isinstance(result, Mapping) else {}
+            manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
+            folder.done.write_text("completed\n")
     return run_dir

@@ -34,13 +34,13 @@ from typing import Any
 
 from cobelrun.errors import CobelError
 from cobelrun.io.manifest import DONE_MARKER, _write_json_atomic, config_hash
+from cobelrun.io.run_folder import RunFolder
 
 SWEEP_FILE = "sweep.json"
 INDEX_FILE = "jobs.csv"
-JOB_FILE = "job.json"
+JOB_FILE = RunFolder.JOB
 COLLECTED_DIR = "collected"
 #: what a re-run removes from a job folder before starting again (stale outputs)
-RUN_OUTPUTS = ("trials.parquet", "steps.parquet", "run.mcap", "manifest.json", "plot.png")
 #: statuses shown by `cobel status`
 STATUSES = ("done", "failed", "interrupted", "running", "queued", "missing")
 
@@ -93,19 +93,16 @@ def is_complete(
     if not (run_dir / DONE_MARKER).is_file():
         return False
     if manifest is None:
-        manifest = read_json(run_dir / "manifest.json")
+        manifest = read_json(RunFolder(run_dir).manifest)
     if manifest is None or manifest.get("status") != "completed":
         return False
     return config_hash is None or manifest.get("config_hash") == config_hash
 
 
 def clear_outputs(run_dir: Path) -> None:
-    """Remove the done marker first, then stale outputs of an earlier attempt."""
-    for name in (DONE_MARKER, *RUN_OUTPUTS):
-        try:
-            (run_dir / name).unlink()
-        except FileNotFoundError:
-            pass
+    """Remove the done marker first, then every output of an earlier attempt (the run folder
+    owner knows the layout: tables, MCAP, agents, world, parts)."""
+    RunFolder(run_dir).clear()
 
 
 def write_job_status(run_dir: Path, status: str, **fields: Any) -> dict[str, Any]:
@@ -230,9 +227,17 @@ def read_sweep(sweep_dir: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def job_state(run_dir: Path) -> dict[str, Any]:
-    """Status of one job folder: status, error, config_hash, duration_s, started_at."""
+    """Status of one job folder: status, error, config_hash, duration_s, started_at.
+
+    A folder left by a killed job is repaired first (tables merged, MCAP finished, manifest
+    marked interrupted; :func:`cobelrun.io.repair.repair_run`)."""
+    from cobelrun.io.repair import repair_run
+
+    repaired = repair_run(run_dir)
     job = read_json(run_dir / JOB_FILE) or {}
-    manifest = read_json(run_dir / "manifest.json") or {}
+    if repaired.get("status") == "interrupted" and job.get("status") == "running":
+        job = write_job_status(run_dir, "interrupted")
+    manifest = read_json(RunFolder(run_dir).manifest) or {}
     if job.get("status") == "queued":
         status = "queued"
     elif is_complete(run_dir, manifest=manifest):
@@ -371,11 +376,11 @@ def collect(
         pvalues[key] = dict(zip(jobs, vals, strict=True))
     written: dict[str, Path] = {}
     total = sum(
-        1 for t in tables for j in jobs if (job_dir(sweep_dir, j) / f"{t}.parquet").is_file()
+        1 for t in tables for j in jobs if RunFolder(job_dir(sweep_dir, j)).table(t).is_file()
     )
     n = 0
     for table in tables:
-        files = [(j, job_dir(sweep_dir, j) / f"{table}.parquet") for j in jobs]
+        files = [(j, RunFolder(job_dir(sweep_dir, j)).table(table)) for j in jobs]
         files = [(j, f) for j, f in files if f.is_file()]
         if not files:
             continue

@@ -51,13 +51,14 @@ def test_run_tmaze_extinction_writes_a_complete_run_folder(cobel, tmp_path):
     assert trials["trial"].min() == 1 and trials["trial"].max() == 20
     assert set(trials["phase"]) == {"acquisition", "extinction"}
     steps = pd.read_parquet(run / "steps.parquet")
-    assert list(steps.columns[:8]) == [
+    assert list(steps.columns[:9]) == [
         "run",
         "trial",
         "step",
         "state",
         "x",
         "y",
+        "heading",
         "action",
         "reward",
     ]
@@ -202,8 +203,7 @@ def test_interrupted_run_leaves_readable_files(tmp_path, sig):
     )  # fmt: skip
     deadline = time.time() + 60
     while time.time() < deadline:
-        m = out / "manifest.json"
-        if m.is_file() and (out / "trials.parquet").is_file():
+        if (out / "manifest.json").is_file() and (out / "world.json").is_file():
             break
         time.sleep(0.1)
     time.sleep(1.5)  # let some runs finish

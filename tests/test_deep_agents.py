@@ -15,6 +15,8 @@ import pandas as pd
 import pytest
 from gymnasium import spaces
 
+from cobelrun.io.run_folder import RunFolder
+
 pytest.importorskip("torch")
 pytest.importorskip("stable_baselines3")
 
@@ -400,7 +402,7 @@ def test_cli_two_afc_and_plot(cobel, tmp_path: Path) -> None:
     run_dir = Path(res.stdout.strip().splitlines()[-1])
     trials = pd.read_parquet(run_dir / "trials.parquet")
     assert len(trials) == 100 and set(trials["reward"]) <= {0.0, 1.0}
-    assert (run_dir / "agent_run0.pt").is_file() and (run_dir / "agent_run1.pt").is_file()
+    assert RunFolder(run_dir).find_agent(0) and RunFolder(run_dir).find_agent(1)
     plot = cobel("plot", str(run_dir))
     assert plot.returncode == 0, plot.stderr
 
@@ -418,7 +420,7 @@ def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -
     assert sorted(activity["trial"].unique()) == [0, 2, 4, 5]
     assert set(activity["layer"]) == {"sr/output"}
     assert len(activity) == 4 * 40 * 160  # snapshots x probes x units
-    assert (run_dir / "agent_run0.npz").is_file()
+    assert RunFolder(run_dir).agent(0).is_file()
     assert cobel("plot", str(run_dir)).returncode == 0
     # continue from the saved agent; the direct protocol is one rewarded phase
     more = cobel("run", "task=latent_learning", "protocol=direct", "task.runs=1",

@@ -39,7 +39,8 @@ def test_blas_threads_set_and_read_back():
 def test_frame_time_job_in_process(tmp_path, monkeypatch):
     """The job measures size x agent x mode, builds the offline cache itself, and the runner
     writes the manifest and done marker around it."""
-    from cobelrun.runner import DONE_MARKER, run
+    from cobelrun.io.run_folder import DONE_MARKER
+    from cobelrun.runner import run
 
     monkeypatch.setenv("COBEL_CACHE", str(tmp_path / "shared-cache"))
     cfg = compose([*TINY, "task.job.agents.dqn=null", "+task.job.agents.random=random"])

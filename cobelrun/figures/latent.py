@@ -16,6 +16,7 @@ import pandas as pd
 
 from cobelrun.errors import CobelError
 from cobelrun.figures import save_figure
+from cobelrun.io.run_folder import RunFolder
 
 REWARDED = "rewarded"
 GROUP_COLORS = {"latent": "tab:blue", "direct": "tab:orange"}
@@ -218,7 +219,7 @@ def world_of(run_dir: str | Path):
 
     from cobelrun.config import instantiate
 
-    cfg = OmegaConf.load(Path(run_dir) / "config.yaml")
+    cfg = OmegaConf.load(RunFolder(run_dir).config)
     return instantiate("env", cfg.env).unwrapped.world
 
 
@@ -244,8 +245,8 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
         groups[name], folder[name] = trials, d
     activity = world = None
     latent_dir = folder.get("latent")
-    if latent_dir is not None and (latent_dir / "activity.parquet").is_file():
-        activity = pd.read_parquet(latent_dir / "activity.parquet")
+    if latent_dir is not None and RunFolder(latent_dir).table("activity").is_file():
+        activity = pd.read_parquet(RunFolder(latent_dir).table("activity"))
         world = world_of(latent_dir)
     fig, _ = draw_fig7(groups, activity, world)
     fig.suptitle("Latent learning in the Blodgett maze (Fig. 7)", fontsize=10)

@@ -57,8 +57,7 @@ _PACKAGES = (
 _GIT_TIMEOUT_S = 2.0
 
 
-#: written last into a run folder, only when the run completed
-DONE_MARKER = ".done"
+from cobelrun.io.run_folder import DONE_MARKER  # noqa: E402, F401 (re-exported)
 
 
 def _plain(obj: Any) -> Any:

@@ -823,3 +823,36 @@ class McapStreamWriter:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"McapStreamWriter({str(self.path)!r}, topics={self.topics}, {state})"
+
+
+class McapRecorder:
+    """Interim adapter of the recorder's MCAP API over :class:`McapStreamWriter` (replaced by
+    the foxglove-sdk writer)."""
+
+    TRIAL_TOPIC = McapStreamWriter.TRIAL_TOPIC
+
+    def __init__(self, path: str | os.PathLike[str], *, geometry: Any = None,
+                 start_ns: int | None = None, metadata: Mapping[str, str] | None = None) -> None:  # fmt: skip
+        self._w = McapStreamWriter(path)
+
+    def write_poses(self, run: int, t_ns: np.ndarray, poses: np.ndarray) -> None:
+        self._w.write_poses(t_ns, poses[:, 0], poses[:, 1], poses[:, 2])
+
+    def write_trial_events(self, run, trial, phase, t_start, t_end, start_state, end_state,
+                           steps, reward, response=None) -> None:  # fmt: skip
+        for i in range(len(trial)):
+            self._w.write_trial_event(int(t_start[i]), event="start", run=run, trial=int(trial[i]),
+                                      phase=phase, start_state=int(start_state[i]))  # fmt: skip
+            self._w.write_trial_event(int(t_end[i]), event="end", run=run, trial=int(trial[i]),
+                                      phase=phase, steps=int(steps[i]), reward=float(reward[i]),
+                                      end_state=int(end_state[i]))  # fmt: skip
+
+    def flush(self) -> None:
+        self._w.flush()
+
+    def close(self) -> None:
+        self._w.close()
+
+
+def repair_mcap(path: str | os.PathLike[str]) -> bool:
+    return False

@@ -15,6 +15,7 @@ rows written with the default row groups.
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
@@ -24,7 +25,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-__all__ = ["ParquetStreamWriter"]
+__all__ = ["ParquetStreamWriter", "PartedTableWriter", "merge_parts"]
 
 
 _NUMPY_OF = {
@@ -244,3 +245,148 @@ class ParquetStreamWriter:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"ParquetStreamWriter({str(self.path)!r}, rows={self.rows_written}, {state})"
+
+
+def _write_atomic(table: pa.Table, path: Path, compression: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    pq.write_table(table, str(tmp), compression=compression)
+    os.replace(tmp, path)
+
+
+class PartedTableWriter:
+    """A table written as complete Parquet parts while a run goes, merged into one file at the end.
+
+    Every :meth:`write_part` call writes one part file (temporary name + rename), so whatever
+    was handed over survives a killed process and stays readable; :meth:`close` merges the
+    parts in order into ``path`` (row groups of ``row_group_rows``) and removes them. A run
+    killed with SIGKILL leaves its parts behind; :func:`merge_parts` (``cobel status`` /
+    ``cobel collect`` call it through :func:`cobelrun.io.repair.repair_run`) merges them later.
+
+    Parameters
+    ----------
+    path
+        The final table file.
+    parts_dir
+        Folder for the parts (created on the first part).
+    schema
+        Columns and types; ``metadata`` is added to the schema's key/value metadata.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        parts_dir: str | os.PathLike[str],
+        schema: pa.Schema,
+        *,
+        metadata: Mapping[str, str] | None = None,
+        compression: str = "zstd",
+        row_group_rows: int = 1 << 16,
+    ) -> None:
+        if not isinstance(schema, pa.Schema):
+            raise TypeError(f"schema must be a pyarrow.Schema, got {type(schema).__name__}")
+        meta = dict(schema.metadata or {})
+        meta.update({k.encode(): str(v).encode() for k, v in (metadata or {}).items()})
+        self.path = Path(path)
+        self.parts_dir = Path(parts_dir)
+        self.schema = schema.with_metadata(meta)
+        self.compression = compression
+        self.row_group_rows = int(row_group_rows)
+        self._names = list(schema.names)
+        self._n_parts = 0
+        self.rows_written = 0
+        self._closed = False
+
+    def to_table(self, columns: Mapping[str, Any]) -> pa.Table:
+        """Columns (exactly the schema's, equal lengths) as an Arrow table."""
+        keys = set(columns)
+        if keys != set(self._names):
+            missing = [n for n in self._names if n not in keys]
+            extra = sorted(str(k) for k in keys - set(self._names))
+            raise ValueError(
+                f"{self.path.name}: missing columns {missing}, unknown columns {extra}; "
+                f"expected exactly {self._names}"
+            )
+        arrays = []
+        n = None
+        for field in self.schema:
+            v = np.asarray(columns[field.name])
+            if v.ndim != 1:
+                raise ValueError(f"{self.path.name}: column '{field.name}' must be 1-D")
+            if n is not None and v.shape[0] != n:
+                raise ValueError(
+                    f"{self.path.name}: column '{field.name}' has {v.shape[0]} rows, expected {n}"
+                )
+            n = v.shape[0]
+            try:
+                arrays.append(_to_arrow(v, field.type))
+            except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+                raise ValueError(
+                    f"{self.path.name}: column '{field.name}' cannot be stored as {field.type}: {exc}"
+                ) from exc
+        return pa.Table.from_arrays(arrays, schema=self.schema)
+
+    def write_part(self, columns: Mapping[str, Any] | pa.Table) -> None:
+        """Write one part (a complete Parquet file) with these rows."""
+        if self._closed:
+            raise RuntimeError(f"table writer for {self.path} is closed")
+        table = columns if isinstance(columns, pa.Table) else self.to_table(columns)
+        if table.num_rows == 0:
+            return
+        self.parts_dir.mkdir(parents=True, exist_ok=True)
+        _write_atomic(table, self.parts_dir / f"part-{self._n_parts:06d}.parquet", "lz4")
+        self._n_parts += 1
+        self.rows_written += table.num_rows
+
+    def close(self) -> None:
+        """Merge the parts into the final file and remove them; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        merge_parts(self.parts_dir, self.path, self.schema, compression=self.compression,
+                    row_group_rows=self.row_group_rows)  # fmt: skip
+
+
+def merge_parts(
+    parts_dir: str | os.PathLike[str],
+    path: str | os.PathLike[str],
+    schema: pa.Schema | None = None,
+    *,
+    compression: str = "zstd",
+    row_group_rows: int = 1 << 16,
+) -> int:
+    """Merge ``parts_dir/part-*.parquet`` (in name order) into ``path`` and remove the parts.
+
+    The merged file is written under a temporary name and renamed, so ``path`` is either the
+    old file or the complete new one. Unreadable parts (a kill while a part was written leaves
+    only its temporary file, which is skipped) are never merged. Returns the number of rows.
+    """
+    parts_dir, path = Path(parts_dir), Path(path)
+    parts = sorted(parts_dir.glob("part-*.parquet")) if parts_dir.is_dir() else []
+    if schema is None:
+        if not parts:
+            return 0
+        schema = pq.read_schema(parts[0])
+    tmp = path.with_name(f".{path.name}.tmp")
+    rows = 0
+    with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
+        pending: list[pa.RecordBatch] = []
+        n_pending = 0
+        for part in parts:
+            for batch in pq.ParquetFile(part).iter_batches(batch_size=row_group_rows):
+                pending.append(batch)
+                n_pending += batch.num_rows
+                if n_pending >= row_group_rows:
+                    writer.write_table(pa.Table.from_batches(pending, schema=schema),
+                                       row_group_size=row_group_rows)  # fmt: skip
+                    rows += n_pending
+                    pending, n_pending = [], 0
+        if pending:
+            writer.write_table(pa.Table.from_batches(pending, schema=schema))
+            rows += n_pending
+    os.replace(tmp, path)
+    if parts_dir.is_dir():
+        shutil.rmtree(parts_dir)
+        root = parts_dir.parent
+        if root.is_dir() and not any(root.iterdir()):
+            root.rmdir()
+    return rows

@@ -1,52 +1,179 @@
 """Monitors collect measurements from trial batches; writers persist them.
 
-A monitor contributes columns to the ``trials`` table (one row per trial) or the ``steps``
-table (one row per step). Monitors never do I/O.
+Every monitor declares the tables it writes (:class:`Table`: a name, Arrow fields and a row
+kind) and gets one lifecycle from the recorder:
+
+``setup(env)``
+    once, after composition: resolve place names, check the environment's contracts.
+``start_run(run, agent)``
+    before each independent agent's first trial.
+``on_batch(batch, info)``
+    after each phase's trials: return columns per table (``{table: {column: array}}``).
+``end_run(run, agent, last_trial)``
+    after the run's last trial.
+
+Rows of ``per="trial"`` tables (one per trial) and ``per="step"`` tables (one per step, which
+``task.record`` may thin out) from several monitors are joined side by side, so each adds
+columns; ``per="event"`` tables get whole rows from one monitor, whenever it calls the
+``emit(table, columns)`` function it was bound to (activity snapshots, replay events).
+Monitors never do I/O, and the recorder knows no table by name: a new monitor is one class
+and one YAML entry.
 """
 
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
 
+from cobelrun.envs.base import require
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 
 __all__ = [
+    "BatchInfo",
     "EscapeLatencyMonitor",
     "Monitor",
     "ResponseMonitor",
     "RewardMonitor",
+    "Table",
     "TrajectoryMonitor",
+    "TrialKeysMonitor",
 ]
+
+#: row kinds of a table
+ROW_KINDS = ("trial", "step", "event")
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table a monitor writes: ``<name>.parquet`` in the run folder.
+
+    Attributes
+    ----------
+    name
+        Table name (``trials``, ``steps``, ``activity``, ...).
+    fields
+        The monitor's columns (Arrow fields).
+    per
+        ``"trial"``: one row per trial; ``"step"``: one row per recorded step;
+        ``"event"``: rows the monitor emits itself.
+    """
+
+    name: str
+    fields: tuple[pa.Field, ...]
+    per: str = "trial"
+
+    def __post_init__(self) -> None:
+        if self.per not in ROW_KINDS:
+            raise ValueError(f"table {self.name!r}: per={self.per!r}; allowed: {ROW_KINDS}")
+        object.__setattr__(self, "fields", tuple(self.fields))
+
+
+@dataclass(frozen=True)
+class BatchInfo:
+    """Where a batch of trials belongs: run, phase and the 1-based trial numbers."""
+
+    run: int
+    phase: str
+    first_trial: int
+    env: Any
+
+    def trials(self, n: int) -> np.ndarray:
+        return np.arange(self.first_trial, self.first_trial + n, dtype=np.int32)
+
+
+Emit = Callable[[str, Mapping[str, Any]], None]
 
 
 class Monitor(abc.ABC):
-    """Base class. Subclasses set ``table`` and implement :meth:`fields` and :meth:`columns`."""
+    """Base class: declare :meth:`tables`, fill them in :meth:`on_batch` (or emit rows)."""
 
-    #: ``"trials"`` or ``"steps"``
-    table: str = "trials"
+    #: env contracts (names in :data:`cobelrun.envs.base.CONTRACTS`) this monitor needs
+    requires: ClassVar[tuple[str, ...]] = ()
 
-    def setup(self, env: Any) -> None:  # noqa: B027 (optional hook)
-        """Resolve anything that depends on the environment (e.g. place names)."""
+    _emit: Emit | None = None
 
-    def start_run(self, run: int) -> None:  # noqa: B027 (optional hook)
-        """Reset per-run state (called before each independent agent)."""
+    @abc.abstractmethod
+    def tables(self) -> list[Table]:
+        """The tables (and this monitor's columns in them)."""
+
+    def setup(self, env: Any) -> None:
+        """Check the env's contracts, resolve what depends on it (place names, probes)."""
+        require(env, self.requires, f"monitor {type(self).__name__}")
+
+    def bind(self, emit: Emit) -> None:
+        """The recorder's sink for rows of this monitor's ``per="event"`` tables."""
+        self._emit = emit
+
+    def emit(self, table: str, columns: Mapping[str, Any]) -> None:
+        if self._emit is None:
+            raise RuntimeError(f"{type(self).__name__} is not bound to a recorder")
+        self._emit(table, columns)
+
+    def start_run(self, run: int, agent: Any = None) -> None:  # noqa: B027 (optional hook)
+        """A new independent agent starts (reset per-run state)."""
+
+    def callbacks(self, first_trial: int) -> list[Any]:
+        """Per-step/trial-end hooks (``TrialCallback``) this monitor needs during a phase that
+        starts at trial ``first_trial``; none by default (agents then keep compiled paths)."""
+        return []
+
+    def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
+        """Columns for the batch's rows, by table name."""
+        return {}
+
+    def end_run(self, run: int, agent: Any, last_trial: int) -> None:  # noqa: B027
+        """The run's last trial is over."""
+
+
+class TrialKeysMonitor(Monitor):
+    """The key columns of the ``trials`` table: run, trial (1-based across phases), phase,
+    trial within the phase, start and end state, terminated. Always the first monitor."""
+
+    def tables(self) -> list[Table]:
+        return [Table("trials", (
+            pa.field("run", pa.int32()), pa.field("trial", pa.int32()),
+            pa.field("phase", pa.string()), pa.field("trial_in_phase", pa.int32()),
+            pa.field("start_state", pa.int64()), pa.field("end_state", pa.int64()),
+            pa.field("terminated", pa.bool_()),
+        ))]  # fmt: skip
+
+    def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
+        n = batch.n_trials
+        return {"trials": {
+            "run": np.full(n, info.run, np.int32), "trial": info.trials(n),
+            "phase": np.full(n, info.phase, dtype=object),
+            "trial_in_phase": np.arange(1, n + 1, dtype=np.int32),
+            "start_state": batch.start_state, "end_state": batch.end_state,
+            "terminated": batch.terminated,
+        }}  # fmt: skip
+
+
+class TrialColumnsMonitor(Monitor):
+    """A monitor that adds columns to the ``trials`` table: define :meth:`fields` and
+    :meth:`columns`."""
 
     @abc.abstractmethod
     def fields(self) -> list[pa.Field]:
-        """The columns this monitor writes (Arrow fields)."""
+        """This monitor's columns."""
 
     @abc.abstractmethod
     def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
-        """This monitor's columns for a batch of trials."""
+        """Its values for a batch of trials."""
+
+    def tables(self) -> list[Table]:
+        return [Table("trials", tuple(self.fields()))]
+
+    def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
+        return {"trials": self.columns(batch, info.env)}
 
 
-class RewardMonitor(Monitor):
+class RewardMonitor(TrialColumnsMonitor):
     """Reward collected per trial (sum over the trial's steps)."""
 
     def fields(self) -> list[pa.Field]:
@@ -56,7 +183,7 @@ class RewardMonitor(Monitor):
         return {"reward": batch.reward}
 
 
-class EscapeLatencyMonitor(Monitor):
+class EscapeLatencyMonitor(TrialColumnsMonitor):
     """Escape latency per trial, written to the ``steps`` column.
 
     Parameters
@@ -80,7 +207,7 @@ class EscapeLatencyMonitor(Monitor):
         return {"steps": batch.steps - self.offset}
 
 
-class ResponseMonitor(Monitor):
+class ResponseMonitor(TrialColumnsMonitor):
     """Response coding: 1 if a trial ended in one of ``states``, else 0; and its running sum.
 
     Parameters
@@ -106,12 +233,15 @@ class ResponseMonitor(Monitor):
         self.before = np.zeros(0, np.int64)
         self._cumulative = 0
 
-    def setup(self, env: Any) -> None:
-        world = env.unwrapped.world
-        self.states = np.array([world.state(r) for r in self.refs], dtype=np.int64)
-        self.before = np.array([world.state(r) for r in self.before_refs], dtype=np.int64)
+    requires = ("discrete_states",)
 
-    def start_run(self, run: int) -> None:
+    def setup(self, env: Any) -> None:
+        super().setup(env)
+        base = env.unwrapped
+        self.states = np.array([base.state_index(r) for r in self.refs], dtype=np.int64)
+        self.before = np.array([base.state_index(r) for r in self.before_refs], dtype=np.int64)
+
+    def start_run(self, run: int, agent: Any = None) -> None:
         self._cumulative = 0
 
     def fields(self) -> list[pa.Field]:
@@ -142,30 +272,36 @@ class ResponseMonitor(Monitor):
 
 
 class TrajectoryMonitor(Monitor):
-    """Every step: state, position, action, reward and next state (the ``steps`` table)."""
+    """Every step: run, trial, step, state, pose (x, y, heading), action, reward and next state
+    (the ``steps`` table). Positions come from the env's pose contract (``x``/``y`` of the state
+    the action was taken in); envs without poses write NaN."""
 
-    table = "steps"
+    def tables(self) -> list[Table]:
+        return [Table("steps", (
+            pa.field("run", pa.int32()), pa.field("trial", pa.int32()),
+            pa.field("step", pa.int32()), pa.field("state", pa.int64()),
+            pa.field("x", pa.float64()), pa.field("y", pa.float64()),
+            pa.field("heading", pa.float32()), pa.field("action", pa.int16()),
+            pa.field("reward", pa.float64()), pa.field("next_state", pa.int64()),
+        ), per="step")]  # fmt: skip
 
-    def fields(self) -> list[pa.Field]:
-        return [
-            pa.field("step", pa.int32()),
-            pa.field("state", pa.int64()),
-            pa.field("x", pa.float64()),
-            pa.field("y", pa.float64()),
-            pa.field("action", pa.int16()),
-            pa.field("reward", pa.float64()),
-            pa.field("next_state", pa.int64()),
-        ]
-
-    def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
-        coords = env.unwrapped.world.coords
-        xy = coords[batch.step_state]
-        return {
+    def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
+        n = batch.n_trials
+        poses = batch.with_poses(info.env).poses()
+        if poses is None:
+            before = np.full((batch.n_steps, 3), np.nan)
+        else:  # the pose each action was taken in: drop each trial's last pose
+            last = batch.offsets[1:] + np.arange(n)
+            keep = np.ones(poses.shape[0], bool)
+            keep[last] = False
+            before = poses[keep]
+        return {"steps": {
+            "run": np.full(batch.n_steps, info.run, np.int32),
+            "trial": np.repeat(info.trials(n), batch.steps),
             "step": batch.step_index().astype(np.int32),
             "state": batch.step_state,
-            "x": xy[:, 0],
-            "y": xy[:, 1],
+            "x": before[:, 0], "y": before[:, 1], "heading": before[:, 2].astype(np.float32),
             "action": batch.step_action.astype(np.int16),
             "reward": batch.step_reward,
             "next_state": batch.step_next_state,
-        }
+        }}  # fmt: skip

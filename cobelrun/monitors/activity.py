@@ -14,16 +14,27 @@ means the per-step Python path.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import pyarrow as pa
 
 from cobelrun.agents.base import TrialCallback
+from cobelrun.envs.base import DiscreteStates
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import Monitor
-from cobelrun.records import TrialBatch
+from cobelrun.monitors import Monitor, Table
+
+
+@runtime_checkable
+class HasActivations(Protocol):
+    """Agents whose named layers can be read out (DQNAgent, DynaDQN, DynaDSR)."""
+
+    def layer_names(self) -> list[str]: ...
+
+    def activations(
+        self, observations: np.ndarray, layers: Sequence[str]
+    ) -> dict[str, np.ndarray]: ...
 
 
 class ActivityMonitor(Monitor, TrialCallback):
@@ -40,8 +51,6 @@ class ActivityMonitor(Monitor, TrialCallback):
         state), or the state indices of an environment that observes indices.
     """
 
-    table = "activity"
-
     def __init__(
         self, layers: Sequence[str] | None = None, every: int = 10, probes: Any = None
     ) -> None:
@@ -50,7 +59,6 @@ class ActivityMonitor(Monitor, TrialCallback):
         self.layers = None if layers is None else [str(x) for x in layers]
         self.every = every
         self.probes = None if probes is None else np.asarray(probes)
-        self._sink: Callable[[dict[str, Any]], None] | None = None
         self._run = 0
         self._first = 1
         self._last = -1
@@ -63,35 +71,25 @@ class ActivityMonitor(Monitor, TrialCallback):
         obs = getattr(base, "observations", None)
         if obs is not None:
             self.probes = np.asarray(obs)
-        elif hasattr(base, "world"):
-            self.probes = np.arange(base.world.n_states)
+        elif isinstance(base, DiscreteStates):
+            self.probes = np.arange(base.n_states)
         else:
             raise ConfigError(
                 f"activity monitor: {type(base).__name__} has no per-state observations; "
                 "give probe observations with 'probes'"
             )
 
-    def bind(self, sink: Callable[[dict[str, Any]], None]) -> None:
-        """Where snapshots go (the recorder's ``activity`` writer)."""
-        self._sink = sink
-
-    def fields(self) -> list[pa.Field]:
-        return [
-            pa.field("run", pa.int32()),
-            pa.field("trial", pa.int32()),
-            pa.field("layer", pa.string()),
-            pa.field("unit", pa.int32()),
-            pa.field("probe", pa.int32()),
-            pa.field("value", pa.float32()),
-        ]
-
-    def columns(self, batch: TrialBatch, env: Any) -> dict[str, np.ndarray]:
-        return {}
+    def tables(self) -> list[Table]:
+        return [Table("activity", (
+            pa.field("run", pa.int32()), pa.field("trial", pa.int32()),
+            pa.field("layer", pa.string()), pa.field("unit", pa.int32()),
+            pa.field("probe", pa.int32()), pa.field("value", pa.float32()),
+        ), per="event")]  # fmt: skip
 
     # -- timing ------------------------------------------------------------------------------
-    def start_agent(self, run: int, agent: Any) -> None:
+    def start_run(self, run: int, agent: Any = None) -> None:
         """A new agent (run): check it exposes activations and take the trial-0 snapshot."""
-        if not hasattr(agent, "activations"):
+        if not isinstance(agent, HasActivations):
             raise ConfigError(
                 f"activity monitor: agent {type(agent).__name__} exposes no layer activations "
                 "(deep agents do: DQNAgent, DynaDQN, DynaDSR)"
@@ -101,16 +99,17 @@ class ActivityMonitor(Monitor, TrialCallback):
             self.layers = list(agent.layer_names())
         self.snapshot(agent, 0)
 
-    def begin_phase(self, first_trial: int) -> None:
+    def callbacks(self, first_trial: int) -> list[Any]:
         """The next trials passed to the callback are numbered from ``first_trial``."""
         self._first = first_trial
+        return [self]
 
     def _on_trial_end(self, agent: Any, trial: int, record: dict[str, Any]) -> None:
         t = self._first + trial
         if t % self.every == 0:
             self.snapshot(agent, t)
 
-    def end_agent(self, agent: Any, last_trial: int) -> None:
+    def end_run(self, run: int, agent: Any, last_trial: int) -> None:
         """The run is over: snapshot its last trial unless that was just done."""
         if self._last != last_trial:
             self.snapshot(agent, last_trial)
@@ -118,7 +117,7 @@ class ActivityMonitor(Monitor, TrialCallback):
     def snapshot(self, agent: Any, trial: int) -> None:
         assert self.layers is not None and self.probes is not None
         acts = agent.activations(self.probes, self.layers)
-        cols: dict[str, list[np.ndarray]] = {f.name: [] for f in self.fields()}
+        cols: dict[str, list[np.ndarray]] = {f.name: [] for f in self.tables()[0].fields}
         for layer, arr in acts.items():
             arr = np.asarray(arr, dtype=np.float32).reshape(len(self.probes), -1)
             n_probes, n_units = arr.shape
@@ -130,5 +129,5 @@ class ActivityMonitor(Monitor, TrialCallback):
             cols["probe"].append(np.repeat(np.arange(n_probes, dtype=np.int32), n_units))
             cols["value"].append(arr.ravel())
         self._last = trial
-        if self._sink is not None and cols["run"]:
-            self._sink({k: np.concatenate(v) for k, v in cols.items()})
+        if cols["run"]:
+            self.emit("activity", {k: np.concatenate(v) for k, v in cols.items()})

@@ -25,11 +25,11 @@ import pyarrow as pa
 
 from cobelrun.agents.base import TrialCallback
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import Monitor
+from cobelrun.monitors import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
 
 
-class GreedyProbeMonitor(Monitor, TrialCallback):
+class GreedyProbeMonitor(TrialColumnsMonitor, TrialCallback):
     """Fraction of probe observations on which the greedy action is correct, every trial.
 
     Parameters
@@ -72,11 +72,12 @@ class GreedyProbeMonitor(Monitor, TrialCallback):
                 f"greedy probe: {len(self.probes)} probes but {self.correct.size} correct actions"
             )
 
-    def start_run(self, run: int) -> None:
+    def start_run(self, run: int, agent: Any = None) -> None:
         self._values = []
 
-    def begin_phase(self, first_trial: int) -> None:
+    def callbacks(self, first_trial: int) -> list[Any]:
         self._values = []
+        return [self]
 
     def fields(self) -> list[pa.Field]:
         return [pa.field(self.column, pa.float64())]

@@ -129,6 +129,7 @@ def measure(
     ``"random"``. ``phase`` gives the rewards and terminals to apply (a protocol phase).
     """
     from cobelrun.config import instantiate
+    from cobelrun.envs.base import Changeable
     from cobelrun.protocol import Protocol
     from cobelrun.runner import run_seed
 
@@ -136,7 +137,7 @@ def measure(
     try:
         agent_seed, env_seed = run_seed(seed, 0)
         base = env.unwrapped
-        if hasattr(base, "reset_world"):
+        if isinstance(base, Changeable):
             base.reset_world()
         if phase is not None:  # after reset_world, which undoes changes (as in the runner)
             protocol = Protocol.from_config({"max_steps": steps, "phases": [dict(phase)]})

@@ -35,7 +35,7 @@ SETTINGS = {
         "task.runs=1000",
         "task.record.steps=false",
         "task.record.mcap=false",
-    ],  # fmt: skip
+    ],
 }
 
 

@@ -247,16 +247,26 @@ class ParquetStreamWriter:
         return f"ParquetStreamWriter({str(self.path)!r}, rows={self.rows_written}, {state})"
 
 
-def _write_atomic(table: pa.Table, path: Path, compression: str) -> None:
+#: parts are Arrow IPC files (LZ4): cheap to write, complete after every rename; the Parquet
+#: encoding (the expensive part) runs once, when the parts are merged
+PART_SUFFIX = ".arrow"
+_IPC_OPTIONS = pa.ipc.IpcWriteOptions(compression="lz4")
+
+
+def _write_part(table: pa.Table, path: Path) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
-    pq.write_table(table, str(tmp), compression=compression)
+    with (
+        pa.OSFile(str(tmp), "wb") as sink,
+        pa.ipc.new_file(sink, table.schema, options=_IPC_OPTIONS) as w,
+    ):
+        w.write_table(table)
     os.replace(tmp, path)
 
 
 class PartedTableWriter:
-    """A table written as complete Parquet parts while a run goes, merged into one file at the end.
+    """A table written in complete parts while a run goes, merged into one Parquet file at the end.
 
-    Every :meth:`write_part` call writes one part file (temporary name + rename), so whatever
+    Every :meth:`write_part` call writes one part (an Arrow IPC file; temporary name + rename), so whatever
     was handed over survives a killed process and stays readable; :meth:`close` merges the
     parts in order into ``path`` (row groups of ``row_group_rows``) and removes them. A run
     killed with SIGKILL leaves its parts behind; :func:`merge_parts` (``cobel status`` /
@@ -333,7 +343,7 @@ class PartedTableWriter:
         if table.num_rows == 0:
             return
         self.parts_dir.mkdir(parents=True, exist_ok=True)
-        _write_atomic(table, self.parts_dir / f"part-{self._n_parts:06d}.parquet", "lz4")
+        _write_part(table, self.parts_dir / f"part-{self._n_parts:06d}{PART_SUFFIX}")
         self._n_parts += 1
         self.rows_written += table.num_rows
 
@@ -354,32 +364,36 @@ def merge_parts(
     compression: str = "zstd",
     row_group_rows: int = 1 << 16,
 ) -> int:
-    """Merge ``parts_dir/part-*.parquet`` (in name order) into ``path`` and remove the parts.
+    """Merge ``parts_dir/part-*.arrow`` (in name order) into ``path`` and remove the parts.
 
     The merged file is written under a temporary name and renamed, so ``path`` is either the
     old file or the complete new one. Unreadable parts (a kill while a part was written leaves
     only its temporary file, which is skipped) are never merged. Returns the number of rows.
     """
     parts_dir, path = Path(parts_dir), Path(path)
-    parts = sorted(parts_dir.glob("part-*.parquet")) if parts_dir.is_dir() else []
+    parts = sorted(parts_dir.glob(f"part-*{PART_SUFFIX}")) if parts_dir.is_dir() else []
     if schema is None:
         if not parts:
             return 0
-        schema = pq.read_schema(parts[0])
+        with pa.OSFile(str(parts[0]), "rb") as src:
+            schema = pa.ipc.open_file(src).schema
     tmp = path.with_name(f".{path.name}.tmp")
     rows = 0
     with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
         pending: list[pa.RecordBatch] = []
         n_pending = 0
         for part in parts:
-            for batch in pq.ParquetFile(part).iter_batches(batch_size=row_group_rows):
-                pending.append(batch)
-                n_pending += batch.num_rows
-                if n_pending >= row_group_rows:
-                    writer.write_table(pa.Table.from_batches(pending, schema=schema),
-                                       row_group_size=row_group_rows)  # fmt: skip
-                    rows += n_pending
-                    pending, n_pending = [], 0
+            with pa.OSFile(str(part), "rb") as src:
+                reader = pa.ipc.open_file(src)
+                for i in range(reader.num_record_batches):
+                    batch = reader.get_batch(i)
+                    pending.append(batch)
+                    n_pending += batch.num_rows
+                    if n_pending >= row_group_rows:
+                        writer.write_table(pa.Table.from_batches(pending, schema=schema),
+                                           row_group_size=row_group_rows)  # fmt: skip
+                        rows += n_pending
+                        pending, n_pending = [], 0
         if pending:
             writer.write_table(pa.Table.from_batches(pending, schema=schema))
             rows += n_pending

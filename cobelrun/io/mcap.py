@@ -475,8 +475,11 @@ def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> li
 
     out: list[SceneEntity] = []
     floor_cubes = [
-        CubePrimitive(pose=_pose(x, y, -0.01 * s), size=Vector3(x=s * 0.96, y=s * 0.96, z=0.02 * s),
-                      color=_FLOOR)  # fmt: skip
+        CubePrimitive(
+            pose=_pose(x, y, -0.01 * s),
+            size=Vector3(x=s * 0.96, y=s * 0.96, z=0.02 * s),
+            color=_FLOOR,
+        )
         for x, y in g.cells.tolist()
     ]
     floor_lines = []
@@ -500,16 +503,20 @@ def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> li
             walls.append(
                 CubePrimitive(
                     pose=_pose((x0 + x1) / 2, (y0 + y1) / 2, WALL_HEIGHT * s / 2, angle),
-                    size=Vector3(x=length + WALL_THICKNESS * s, y=WALL_THICKNESS * s,
-                                 z=WALL_HEIGHT * s),  # fmt: skip
+                    size=Vector3(
+                        x=length + WALL_THICKNESS * s, y=WALL_THICKNESS * s, z=WALL_HEIGHT * s
+                    ),
                     color=_WALL,
                 )
             )
         out.append(entity("walls", cubes=walls))
     if len(g.nodes) and len(g.edges):  # a graph (a grid's nodes are its cells: drawn as floor)
         nodes = [
-            SpherePrimitive(pose=_pose(x, y, 0.05 * s), size=Vector3(x=0.1 * s, y=0.1 * s,
-                            z=0.1 * s), color=_GRAPH)  # fmt: skip
+            SpherePrimitive(
+                pose=_pose(x, y, 0.05 * s),
+                size=Vector3(x=0.1 * s, y=0.1 * s, z=0.1 * s),
+                color=_GRAPH,
+            )
             for x, y in g.nodes.tolist()
         ]
         pts = [Point3(x=x, y=y, z=0.05 * s) for x, y in g.nodes[g.edges.reshape(-1)].tolist()]
@@ -518,6 +525,7 @@ def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> li
         out.append(entity("graph", spheres=nodes, lines=[edges]))
     if g.regions:
         cylinders, lines, texts = [], [], []
+        labels_at: dict[tuple[float, float], int] = {}  # regions at one spot: labels stacked
         for i, (name, reg) in enumerate(sorted(g.regions.items())):
             color = _REGION_COLORS[i % len(_REGION_COLORS)]
             shape = reg.get("shape", "point")
@@ -536,7 +544,9 @@ def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> li
                     pose=_pose(x, y, 0.02 * s), size=Vector3(x=d, y=d, z=0.04 * s),
                     bottom_scale=1.0, top_scale=1.0, color=color,
                 ))  # fmt: skip
-            texts.append(TextPrimitive(pose=_pose(x, y, 0.3 * s), billboard=True, font_size=12.0,
+            above = labels_at[(x, y)] = labels_at.get((x, y), -1) + 1
+            texts.append(TextPrimitive(pose=_pose(x, y, (0.3 + 0.25 * above) * s), billboard=True,
+                                       font_size=12.0,
                                        scale_invariant=True, color=_LABEL, text=name))  # fmt: skip
         out.append(entity("regions", cylinders=cylinders, lines=lines, texts=texts))
     return out
@@ -584,7 +594,7 @@ def repair_mcap(path: str | os.PathLike[str]) -> bool:
                 try:
                     make_reader(f).get_summary()
                     return False
-                except Exception:  # noqa: BLE001 - any parse error means: rebuild
+                except Exception:  # any parse error means: rebuild
                     pass
     data = path.read_bytes()
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".repair", dir=path.parent)
@@ -638,9 +648,7 @@ def _rewrite(data: bytes, out: Any) -> None:
         elif isinstance(rec, Metadata):
             writer.add_metadata(rec.name, dict(rec.metadata))
         elif isinstance(rec, Attachment):
-            writer.add_attachment(
-                rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data
-            )
+            writer.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
     start()
     writer.finish()
 
@@ -674,13 +682,13 @@ def _complete_records(data: bytes) -> Iterator[Any]:
             try:
                 chunk = Chunk.read(body)
                 records = breakup_chunk(chunk, validate_crc=True)
-            except Exception:  # noqa: BLE001 - a damaged chunk ends what can be trusted
+            except Exception:  # a damaged chunk ends what can be trusted
                 return
             yield from records
         elif opcode in readers:
             try:
                 yield readers[opcode](body, length)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 return
         pos = body_start + length
 
@@ -745,7 +753,7 @@ def _partial_chunk(data: bytes, body_start: int) -> Iterator[Any]:
                 yield Schema.read(body)
             else:
                 return
-        except Exception:  # noqa: BLE001
+        except Exception:
             return
         q += 9 + length
 

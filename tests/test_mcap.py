@@ -314,7 +314,7 @@ _WRITER = textwrap.dedent(
     x = np.arange(n_flushed + n_more, dtype=float)
     poses = np.column_stack([x % 11, x % 7, x / 100])
     t = start + np.arange(len(x), dtype=np.int64) * 1000
-    rec = McapRecorder(path, start_ns=start, chunk_size=32_768, geometry=Geometry(kind="graph", bounds=(0, 0, 1, 1),
+    rec = McapRecorder(path, start_ns=start, geometry=Geometry(kind="graph", bounds=(0, 0, 1, 1),
                        nodes=[[0, 0], [1, 1]], edges=[[0, 1]]))
     rec.write_poses(0, t[:n_flushed], poses[:n_flushed])
     rec.flush()
@@ -325,9 +325,24 @@ _WRITER = textwrap.dedent(
 )
 
 
+def _messages_in_complete_chunks(path: Path) -> int:
+    """Messages in the chunks of an unfinished MCAP that were written completely."""
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    n = 0
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f, emit_chunks=True).records:
+                if type(rec).__name__ == "Chunk":
+                    n += sum(type(r).__name__ == "Message" for r in breakup_chunk(rec))
+        except Exception:  # the file breaks off
+            pass
+    return n
+
+
 def test_repair_after_sigkill(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
-    n_flushed, n_more = 3000, 5000
+    n_flushed, n_more = 2000, 40_000  # 2 full 1 MiB chunks after the flush, then a partial one
     proc = subprocess.Popen(
         [sys.executable, "-c", _WRITER, str(path), str(START), str(n_flushed), str(n_more)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -345,14 +360,26 @@ def test_repair_after_sigkill(tmp_path: Path) -> None:
     shutil.copy(path, killed)
     with open(killed, "rb") as f, pytest.raises(Exception):  # noqa: B017
         list(make_reader(f).iter_messages())
+    in_chunks = _messages_in_complete_chunks(killed)
     assert repair_mcap(path) is True
-    msgs = read(path)
-    assert msgs[0][0] == "/maze"
-    poses = [m for m in msgs if m[0] == "/run_0000/pose"]
-    # everything flushed survives, in order, and what follows is a prefix of the rest
-    assert n_flushed <= len(poses) <= n_flushed + n_more
+    with open(path, "rb") as f:
+        raw = [(c.topic, m) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
+    assert raw[0][0] == "/maze"
+    poses = [m for topic, m in raw if topic == "/run_0000/pose"]
+    # everything flushed survives, in order, and then a prefix of the rest: whole chunks and
+    # the complete messages of the chunk being written when the process was killed
+    assert len(raw) > in_chunks > n_flushed
+    assert len(poses) < n_flushed + n_more
+    assert [m.log_time for m in poses] == (START + np.arange(len(poses)) * 1000).tolist()
+    assert [m.sequence for m in poses] == list(range(1, len(poses) + 1))
     x = np.arange(n_flushed + n_more, dtype=float)
-    assert [m[2] for m in poses] == (START + np.arange(len(poses)) * 1000).tolist()
-    assert [m[3].pose.position.x for m in poses] == (x[: len(poses)] % 11).tolist()
-    assert [m[3].pose.position.y for m in poses] == (x[: len(poses)] % 7).tolist()
-    assert len(poses) > n_flushed  # complete chunks written after the flush are kept too
+    factory = DecoderFactory()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        for schema, channel, m in reader.iter_messages(topics=["/run_0000/pose"]):
+            i = (m.log_time - START) // 1000
+            if i % 97 == 0 or i == len(poses) - 1:  # decode a sample
+                p = factory.decoder_for(channel.message_encoding, schema)(m.data)
+                assert (p.pose.position.x, p.pose.position.y) == (x[i] % 11, x[i] % 7)

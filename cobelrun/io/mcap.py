@@ -331,13 +331,13 @@ class McapRecorder:
         runs = [int(run)] * n
         starts = ("\n".join([start_fmt] * n) % tuple(
             v for row in zip(ints["start_state"], runs, ints["trial"], strict=True) for v in row
-        )).split("\n")  # fmt: skip
+        )).encode().split(b"\n")  # fmt: skip
         end_cols: list[list[Any]] = [ints["steps"], rew.tolist(), ints["end_state"]]
         if resp is not None:
             end_cols.append(resp)
         ends = ("\n".join([end_fmt] * n) % tuple(
             v for row in zip(*end_cols, runs, ints["trial"], strict=True) for v in row
-        )).split("\n")  # fmt: skip
+        )).encode().split(b"\n")  # fmt: skip
         log = self._trial.log
         for a, b, t0, t1 in zip(starts, ends, ts.tolist(), te.tolist(), strict=True):
             log(a, log_time=t0)

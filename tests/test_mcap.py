@@ -220,6 +220,10 @@ def test_bad_input_fails_clearly(tmp_path: Path) -> None:
             rec.write_image(0, START, np.zeros((4, 4), np.uint8))
         rec.write_poses(0, t[:0], np.zeros((0, 3)))  # empty: nothing written
     assert read(tmp_path / "run.mcap") == []
+    bad = Geometry(kind="arena", bounds=(0, 0, 1, 1), regions={"goal": {"shape": "circle"}})
+    with pytest.raises(KeyError):
+        McapRecorder(tmp_path / "bad.mcap", geometry=bad)
+    assert read(tmp_path / "bad.mcap") == []  # closed, complete, readable
 
 
 def test_close_is_idempotent_and_final(tmp_path: Path) -> None:

@@ -199,14 +199,18 @@ class McapRecorder:
         self._closed = False
         self._poses: dict[str, PoseInFrameChannel] = {}
         self._cameras: dict[int, RawImageChannel] = {}
-        self._trial = foxglove.Channel(
-            self.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA, context=self._context
-        )
-        meta = {str(k): str(v) for k, v in (metadata or {}).items()}
-        meta.setdefault("start_ns", str(self.start_ns))
-        self._writer.write_metadata("cobel", meta)
-        if geometry is not None:
-            self._write_scene(geometry)
+        try:
+            self._trial = foxglove.Channel(
+                self.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA, context=self._context
+            )
+            meta = {str(k): str(v) for k, v in (metadata or {}).items()}
+            meta.setdefault("start_ns", str(self.start_ns))
+            self._writer.write_metadata("cobel", meta)
+            if geometry is not None:
+                self._write_scene(geometry)
+        except BaseException:
+            self.close()  # a complete (if empty) file, never a half-open writer
+            raise
 
     # ------------------------------------------------------------------ poses
     def _pose_channel(self, topic: str, run: int | None) -> PoseInFrameChannel:

@@ -51,8 +51,9 @@ class RecordConfig:
     trial_every
         Record the steps of every N-th trial (1 = every trial). Trial 1 is always recorded.
     mcap_runs
-        Poses of the first N runs go into ``run.mcap`` (``"all"``: every run); trial events
-        are written for every run.
+        Poses and trial events of the first N runs go into ``run.mcap`` (``"all"``: every
+        run). ``trials.parquet`` holds every trial; events of 20,000 runs would make the
+        viewer file ~230 MB.
     flush_seconds
         Hand buffered rows to disk at least this often (bounds what a SIGKILL can lose).
     """
@@ -313,7 +314,8 @@ class RunRecorder:
         if record.mcap:
             from cobelrun.io.mcap import McapRecorder
 
-            self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns)
+            self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns,
+                                     metadata=dict(metadata or {}))  # fmt: skip
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
 
@@ -424,11 +426,12 @@ class RunRecorder:
         start_pos = batch.offsets[:-1] + np.arange(n)
         end_pos = start_pos + batch.steps
         response = trial_cols.get("response")
+        if not self.record_cfg.mcap_run(run):
+            return  # trials.parquet holds every trial; the viewer file stays small (issue 19)
         with self.guard.critical():
-            if self.record_cfg.mcap_run(run):
-                poses = batch.with_poses(self.env).poses()
-                if poses is not None:
-                    self._writer.submit(self.mcap.write_poses, run, t, poses)
+            poses = batch.with_poses(self.env).poses()
+            if poses is not None:
+                self._writer.submit(self.mcap.write_poses, run, t, poses)
             self._writer.submit(
                 self.mcap.write_trial_events, run, trial, phase, t[start_pos], t[end_pos],
                 batch.start_state, batch.end_state, batch.steps, batch.reward,

@@ -13,6 +13,7 @@ import pytest
 from mcap.reader import make_reader
 
 from tests.conftest import cobel_exe
+from tests.test_mcap import read as read_mcap
 
 TINY = ["task.runs=3", "task.protocol.phases.0.trials=10", "task.protocol.phases.1.trials=10"]
 
@@ -66,12 +67,20 @@ def test_run_tmaze_extinction_writes_a_complete_run_folder(cobel, tmp_path):
     manifest = json.loads((run / "manifest.json").read_text())
     assert manifest["status"] == "completed" and manifest["seed"] == 0
     assert "numpy" in manifest["versions"]
-    with open(run / "run.mcap", "rb") as f:
-        reader = make_reader(f, validate_crcs=True)
-        schemas = {s.name for s in reader.get_summary().schemas.values()}
-        n = sum(1 for _ in reader.iter_messages(topics=["/pose"]))
-    assert "foxglove.PoseInFrame" in schemas
-    assert n == len(steps) + len(trials)
+    messages = read_mcap(run / "run.mcap")
+    topics = {m[0] for m in messages}
+    assert topics == {"/maze", "/trial", "/run_0000/pose", "/run_0001/pose", "/run_0002/pose"}
+    poses = [m for m in messages if m[0].endswith("/pose")]
+    assert len(poses) == len(steps) + len(trials)  # each trial's start, then every step
+    assert {m[1] for m in poses} == {"foxglove.PoseInFrame"}
+    ends = [m[3] for m in messages if m[0] == "/trial" and m[3]["event"] == "end"]
+    assert sorted((e["run"], e["trial"]) for e in ends) == sorted(
+        zip(trials["run"], trials["trial"], strict=True)
+    )  # 1-based trials, every one of them
+    by_key = trials.set_index(["run", "trial"])["response"]
+    assert all(e["response"] == by_key[(e["run"], e["trial"])] for e in ends)
+    start = json.loads((run / "manifest.json").read_text())["started_at"]
+    assert min(m[2] for m in messages) > 1_700_000_000 * 10**9, start  # real time, not 1970
 
     plot = cobel("plot", str(run))
     assert plot.returncode == 0, plot.stderr

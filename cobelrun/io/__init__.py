@@ -7,7 +7,13 @@ them (also from ``with`` on an exception or Ctrl-C) leaves complete, readable fi
 from __future__ import annotations
 
 from cobelrun.io.manifest import Manifest, config_hash
-from cobelrun.io.mcap import McapStreamWriter
+from cobelrun.io.mcap import McapRecorder, repair_mcap
 from cobelrun.io.parquet import ParquetStreamWriter
 
-__all__ = ["Manifest", "McapStreamWriter", "ParquetStreamWriter", "config_hash"]
+__all__ = [
+    "Manifest",
+    "McapRecorder",
+    "ParquetStreamWriter",
+    "config_hash",
+    "repair_mcap",
+]

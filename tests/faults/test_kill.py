@@ -23,6 +23,7 @@ import pandas as pd
 import pytest
 
 from tests.conftest import cobel_exe
+from tests.test_mcap import read as read_mcap
 
 RUNS = 400
 ARGS = ["task=tmaze_extinction", f"task.runs={RUNS}", "task.record.flush_seconds=0.25",
@@ -104,6 +105,7 @@ def test_signal_loses_no_finished_trial(tmp_path, reference, case, seed):
     check_prefix(steps, reference["steps"], "steps")
     # nothing simulated is dropped: the steps of exactly the recorded trials are there
     assert n > 0 and len(steps) == reference["trials"]["steps"].iloc[:n].sum()
+    assert any(m[0].endswith("/pose") for m in read_mcap(out / "run.mcap"))  # indexed reader
     print(f"{case} seed {seed}: {n} trial rows kept, all of them the reference's")
 
 
@@ -125,6 +127,7 @@ def test_sigkill_loses_at_most_the_last_flush(tmp_path, reference, seed):
     steps = pd.read_parquet(out / "steps.parquet")
     n = check_prefix(trials, reference["trials"], "trials")
     check_prefix(steps, reference["steps"], "steps")
+    assert any(m[0] == "/maze" for m in read_mcap(out / "run.mcap"))  # repaired: indexed reader
     print(f"SIGKILL seed {seed}: {n} trial rows and {len(steps)} step rows kept")
     # a second status does nothing more
     again = subprocess.run([*cobel_exe(), "status", str(out)], capture_output=True, text=True)

@@ -56,6 +56,10 @@ class RecordConfig:
         viewer file ~230 MB.
     flush_seconds
         Hand buffered rows to disk at least this often (bounds what a SIGKILL can lose).
+    images
+        Also write the env's camera frames (``env.render()``, ``rgb_array``) of the MCAP runs
+        as ``foxglove.RawImage`` (``/run_0007/camera``); per-step hooks make compiled agents
+        take their Python path.
     """
 
     steps: bool = True
@@ -64,8 +68,9 @@ class RecordConfig:
     trial_every: int = 1
     mcap_runs: int | str = 10
     flush_seconds: float = 2.0
+    images: bool = False
 
-    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds")
+    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds", "images")
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
@@ -83,8 +88,8 @@ class RecordConfig:
         every = cfg.get("trial_every", 1)
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ConfigError(f"record.trial_every must be an integer >= 1, got {every!r}")
-        for key in ("steps", "mcap"):
-            if not isinstance(cfg.get(key, True), bool):
+        for key in ("steps", "mcap", "images"):
+            if not isinstance(cfg.get(key, key != "images"), bool):
                 raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
         mcap_runs = cfg.get("mcap_runs", 10)
         if mcap_runs != "all" and (
@@ -103,6 +108,7 @@ class RecordConfig:
             trial_every=every,
             mcap_runs=mcap_runs,
             flush_seconds=float(flush),
+            images=cfg.get("images", False),
         )
 
     def records_run(self, run: int) -> bool:
@@ -254,6 +260,34 @@ class _TableSink:
         return table
 
 
+class _FrameGrabber:
+    """Grabs ``env.render()`` at each trial start and after each step (the poses' times)."""
+
+    def __init__(self, env: Any) -> None:
+        from cobelrun.agents.base import TrialCallback
+
+        grabber = self
+
+        class Hook(TrialCallback):
+            def _on_trial_start(self, agent: Any, trial: int, state: int) -> None:
+                grabber.grab()
+
+            def _on_step(self, agent: Any, trial: int, step: int, transition: Any) -> bool:
+                grabber.grab()
+                return True
+
+        self.env, self.hook, self.frames = env, Hook(), []
+
+    def grab(self) -> None:
+        frame = self.env.render()
+        if frame is not None:
+            self.frames.append(np.ascontiguousarray(frame, dtype=np.uint8))
+
+    def take(self, n: int) -> list[np.ndarray]:
+        frames, self.frames = self.frames[:n], self.frames[n:]
+        return frames
+
+
 class RunRecorder:
     """Feeds trial batches to the monitors and streams their tables to the run folder.
 
@@ -318,6 +352,7 @@ class RunRecorder:
                                      metadata=dict(metadata or {}))  # fmt: skip
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
+        self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
 
     def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
         tables: dict[str, tuple[str, list[pa.Field]]] = {}
@@ -346,10 +381,14 @@ class RunRecorder:
         for m in self.monitors:
             m.start_run(run, agent)
 
-    def phase_callbacks(self, first_trial: int) -> list[Any]:
+    def phase_callbacks(self, first_trial: int, run: int = 0) -> list[Any]:
         """Trial callbacks the monitors need for a phase starting at ``first_trial`` (empty for
-        most tasks, so that compiled agents keep their fast path)."""
-        return [cb for m in self.monitors for cb in m.callbacks(first_trial)]
+        most tasks, so that compiled agents keep their fast path), plus the camera grabber of
+        ``record.images``."""
+        callbacks = [cb for m in self.monitors for cb in m.callbacks(first_trial)]
+        if self._frames is not None and self.record_cfg.mcap_run(run):
+            callbacks.append(self._frames.hook)
+        return callbacks
 
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:
         for m in self.monitors:
@@ -432,6 +471,9 @@ class RunRecorder:
             poses = batch.with_poses(self.env).poses()
             if poses is not None:
                 self._writer.submit(self.mcap.write_poses, run, t, poses)
+            if self._frames is not None:
+                for t_ns, image in zip(t, self._frames.take(n_poses), strict=False):
+                    self._writer.submit(self.mcap.write_image, run, int(t_ns), image)
             self._writer.submit(
                 self.mcap.write_trial_events, run, trial, phase, t[start_pos], t[end_pos],
                 batch.start_state, batch.end_state, batch.steps, batch.reward,

@@ -103,6 +103,11 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     record = RecordConfig.from_config(
         OmegaConf.to_container(task_cfg.record, resolve=True) if "record" in task_cfg else None
     )
+    if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
+        raise ConfigError(
+            "task.record.images needs an env that renders camera images (render_mode "
+            "rgb_array: the 3D mazes with +env.render_mode=rgb_array)"
+        )
     return Task(
         name=str(task_cfg.name),
         env=env,
@@ -202,7 +207,7 @@ def execute(
                 task.protocol.apply(phase, env)
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
-                callbacks = recorder.phase_callbacks(first)
+                callbacks = recorder.phase_callbacks(first, run)
                 batch = (
                     go(phase.trials, max_steps, callbacks)
                     if callbacks

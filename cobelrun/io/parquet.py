@@ -378,6 +378,7 @@ def merge_parts(
         with pa.OSFile(str(parts[0]), "rb") as src:
             schema = pa.ipc.open_file(src).schema
     tmp = path.with_name(f".{path.name}.tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
     rows = 0
     with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
         pending: list[pa.RecordBatch] = []

@@ -1,0 +1,118 @@
+"""The recorder: declared tables, time-bounded parts, camera frames, metadata."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from cobelrun.envs import GridWorldEnv, tmaze_paper
+from cobelrun.errors import ConfigError
+from cobelrun.io.run_folder import RunFolder
+from cobelrun.monitors import Monitor, RewardMonitor, Table, TrialKeysMonitor
+from cobelrun.recorder import RecordConfig, RunRecorder
+from cobelrun.records import TrialBatch
+from tests.test_mcap import read as read_mcap
+
+
+def batch(n: int = 4, steps: int = 3) -> TrialBatch:
+    trials = [{"states": [38] + [31] * steps, "actions": [1] * steps, "rewards": [0.0] * steps,
+               "terminated": False} for _ in range(n)]  # fmt: skip
+    return TrialBatch.from_trials(trials)
+
+
+class Snapshots(Monitor):
+    """An event table: one row per run start."""
+
+    def tables(self):
+        return [Table("snapshots", (pa.field("run", pa.int32()),), per="event")]
+
+    def start_run(self, run, agent=None):
+        self.emit("snapshots", {"run": np.array([run], np.int32)})
+
+
+def test_tables_are_declared_joined_and_carry_metadata(tmp_path):
+    env = GridWorldEnv(tmaze_paper())
+    monitors = [TrialKeysMonitor(), RewardMonitor(), Snapshots()]
+    rec = RunRecorder(RunFolder(tmp_path), env, monitors, RecordConfig(mcap=False),
+                      metadata={"cobel.seed": "3"}, background=False)  # fmt: skip
+    for run in range(2):
+        rec.start_run(run, None)
+        rec.record(run, "a", 1, batch())
+    rec.close()
+    trials = pq.read_table(tmp_path / "trials.parquet")
+    assert trials.column_names == ["run", "trial", "phase", "trial_in_phase", "start_state",
+                                   "end_state", "terminated", "reward"]  # fmt: skip
+    assert trials.num_rows == 8
+    meta = trials.schema.metadata
+    assert meta[b"cobel.seed"] == b"3" and meta[b"cobel.table"] == b"trials"
+    assert meta[b"cobel.schema_version"] == b"2"
+    assert pq.read_table(tmp_path / "snapshots.parquet")["run"].to_pylist() == [0, 1]
+    assert not (tmp_path / ".parts").exists()
+
+
+def test_duplicate_columns_and_undeclared_tables_are_errors(tmp_path):
+    env = GridWorldEnv(tmaze_paper())
+    with pytest.raises(ConfigError, match="same column"):
+        RunRecorder(RunFolder(tmp_path), env, [TrialKeysMonitor(), RewardMonitor(),
+                    RewardMonitor()], RecordConfig(mcap=False))  # fmt: skip
+
+    class Stray(Monitor):
+        def tables(self):
+            return []
+
+        def on_batch(self, b, info):
+            return {"elsewhere": {"x": np.zeros(b.n_trials)}}
+
+    rec = RunRecorder(RunFolder(tmp_path / "b"), env, [TrialKeysMonitor(), Stray()],
+                      RecordConfig(mcap=False), background=False)  # fmt: skip
+    with pytest.raises(ConfigError, match="'elsewhere'"):
+        rec.record(0, "a", 1, batch())
+    rec.close()
+
+
+def test_rows_reach_disk_within_flush_seconds(tmp_path):
+    env = GridWorldEnv(tmaze_paper())
+    rec = RunRecorder(RunFolder(tmp_path), env, [TrialKeysMonitor()],
+                      RecordConfig(mcap=False, flush_seconds=0.05), background=False)  # fmt: skip
+    rec.record(0, "a", 1, batch())
+    assert not (tmp_path / ".parts").exists()  # 4 rows: buffered
+    time.sleep(0.06)
+    rec.record(0, "a", 5, batch())
+    parts = list((tmp_path / ".parts" / "trials").iterdir())
+    assert len(parts) == 1  # both batches, handed over as one complete part
+    with pa.OSFile(str(parts[0]), "rb") as f:
+        assert pa.ipc.open_file(f).read_all().num_rows == 8
+    rec.close()
+    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 8
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [({"flush_seconds": 0}, "flush_seconds"), ({"mcap_runs": -1}, "mcap_runs"),
+     ({"images": "yes"}, "images"), ({"trial_every": 0}, "trial_every")],
+)  # fmt: skip
+def test_record_config_errors(bad, match):
+    with pytest.raises(ConfigError, match=match):
+        RecordConfig.from_config(bad)
+
+
+def test_camera_frames_of_a_3d_maze_go_to_the_mcap(cobel, tmp_path):
+    out = tmp_path / "run"
+    proc = cobel("run", "task=tmaze_extinction_3d", "task.runs=1", "task.protocol.phases.0.trials=2",
+                 "task.protocol.phases.1.trials=1", "+env.render_mode=rgb_array",
+                 "task.record.images=true", f"hydra.run.dir={out}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    messages = read_mcap(out / "run.mcap")
+    frames = [m for m in messages if m[0] == "/run_0000/camera"]
+    poses = [m for m in messages if m[0] == "/run_0000/pose"]
+    assert len(frames) == len(poses) > 0
+    assert [m[2] for m in frames] == [m[2] for m in poses]  # one frame per pose, same times
+    assert frames[0][1] == "foxglove.RawImage" and frames[0][3].encoding == "rgb8"
+    bad = cobel("run", "task=tmaze_extinction", "task.record.images=true",
+                f"hydra.run.dir={tmp_path / 'bad'}")  # fmt: skip
+    assert bad.returncode == 2 and "render_mode rgb_array" in bad.stderr
+    assert not (tmp_path / "bad").exists()

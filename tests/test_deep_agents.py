@@ -400,7 +400,7 @@ def test_cli_two_afc_and_plot(cobel, tmp_path: Path) -> None:
     run_dir = Path(res.stdout.strip().splitlines()[-1])
     trials = pd.read_parquet(run_dir / "trials.parquet")
     assert len(trials) == 100 and set(trials["reward"]) <= {0.0, 1.0}
-    assert (run_dir / "agent_run0.pt").is_file() and (run_dir / "agent_run1.pt").is_file()
+    assert (run_dir / "agent_run0.npz").is_file() and (run_dir / "agent_run1.npz").is_file()
     plot = cobel("plot", str(run_dir))
     assert plot.returncode == 0, plot.stderr
 

@@ -24,7 +24,7 @@ import abc
 import json
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -305,6 +305,7 @@ class Agent(abc.ABC):
 
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         """Called after each ``env.reset()`` (default: nothing)."""
+        return None  # a hook: nothing by default
 
     def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
         """The action to take on ``obs``; agents that use the base loop implement this."""
@@ -312,9 +313,11 @@ class Agent(abc.ABC):
 
     def observe(self, transition: Transition, learn: bool) -> None:
         """Called after every step; agents learn here when ``learn`` (default: nothing)."""
+        return None  # a hook: nothing by default
 
     def end_trial(self, learn: bool) -> None:
         """Called when a trial ends, before the callbacks' ``on_trial_end`` (default: nothing)."""
+        return None  # a hook: nothing by default
 
     # -- inference -------------------------------------------------------------------------------
     @abc.abstractmethod
@@ -340,6 +343,7 @@ class Agent(abc.ABC):
 
     def check_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         """Checks across arrays beyond the schema; raise ValueError with what is wrong."""
+        return None  # a hook: nothing by default
 
     def state_meta(self) -> dict[str, Any]:
         """JSON-ready state that is not an array (saved in ``__meta__["state"]``)."""
@@ -348,6 +352,7 @@ class Agent(abc.ABC):
     def set_state_meta(self, meta: Mapping[str, Any]) -> None:
         """Check (ValueError) and keep :meth:`state_meta` of a file; called by :meth:`load`
         before :meth:`set_state`, and it must not change the agent yet."""
+        return None  # a hook: nothing by default
 
     @classmethod
     def agent_name(cls) -> str:
@@ -385,7 +390,7 @@ class Agent(abc.ABC):
         shape, dtype kind, an index out of range or a non-finite value. Nothing is changed
         unless every check passes.
         """
-        arrays, meta = self._read_checked(Path(path))
+        arrays, _meta = self._read_checked(Path(path))
         self.set_state(arrays)
 
     def _read_checked(self, path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

@@ -470,8 +470,7 @@ class DQNAgent(Agent):
     def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         m = self.model
         m.policy.load_state_dict(
-            {k[len("policy.") :]: torch.tensor(v) for k, v in arrays.items()
-             if k.startswith("policy.")}  # fmt: skip
+            {k[len("policy.") :]: torch.tensor(v) for k, v in arrays.items() if k[:7] == "policy."}
         )
         state = {
             i: {

@@ -281,7 +281,9 @@ class DynaDeepAgent(Agent):
     def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         for name, net in self._all_networks().items():
             prefix = f"{name}."
-            net.set_weights({k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)})
+            net.set_weights(
+                {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+            )
         self.memory.load_state_dict(arrays)
 
 

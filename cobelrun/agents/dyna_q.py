@@ -165,7 +165,7 @@ class DynaQ(Agent):
             return self._run_compiled(n_trials, max_steps, learn)
         # the Python engine: the base step loop with the same compiled building blocks, called
         # in the same order as run_trials, so both engines give identical results
-        from cobelrun.agents import kernels
+        import cobelrun.agents.kernels as kernels
 
         self._k = kernels
         self._loop_mask = self._mask()

@@ -10,8 +10,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from cobelrun.agents.codes import SAMPLING
 from cobelrun.agents.base import ArraySpec
+from cobelrun.agents.codes import SAMPLING
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 __all__ = ["TabularMemory"]

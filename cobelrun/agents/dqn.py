@@ -260,6 +260,7 @@ class DQNAgent(Agent):
         self._np_state = np.random.RandomState(int(np_seed)).get_state()
         self._torch_state = torch.Generator().manual_seed(int(torch_seed)).get_state()
         self.recorder = TrialRecorder(env)
+        self._pending_groups: list[dict[str, Any]] | None = None  # from a file being loaded
         algo: type[TrialDQN] = TrialDQN
         kwargs: dict[str, Any] = {}
         if self.prioritized:
@@ -480,9 +481,7 @@ class DQNAgent(Agent):
             }
             for i in range(len(self._adam_params()))
         }
-        groups = getattr(self, "_pending_groups", None)
-        if groups is None:
-            groups = m.policy.optimizer.state_dict()["param_groups"]
+        groups = self._pending_groups or m.policy.optimizer.state_dict()["param_groups"]
         m.policy.optimizer.load_state_dict({"state": state, "param_groups": groups})
         self._pending_groups = None
         m.num_timesteps = int(arrays["num_timesteps"])

@@ -11,6 +11,7 @@ import pytest
 
 from cobelrun.envs import GridWorldEnv, tmaze_paper
 from cobelrun.errors import ConfigError
+from cobelrun.io.agents_archive import runs_in
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, RewardMonitor, Table, TrialKeysMonitor
 from cobelrun.recorder import RecordConfig, RunRecorder
@@ -116,3 +117,41 @@ def test_camera_frames_of_a_3d_maze_go_to_the_mcap(cobel, tmp_path):
                 f"hydra.run.dir={tmp_path / 'bad'}")  # fmt: skip
     assert bad.returncode == 2 and "render_mode rgb_array" in bad.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_agents_of_a_job_go_into_one_archive(cobel, tmp_path):
+    out = tmp_path / "run"
+    proc = cobel("run", "task=tmaze_extinction", "task.runs=12", "task.save_agents=[0,5,11]",
+                 f"hydra.run.dir={out}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    folder = RunFolder(out)
+    assert runs_in(folder.agents_archive) == [0, 5, 11]
+    assert not folder.agents.exists() and not folder.agent_parts.exists()
+    # +agent.load_from picks run r's member and checks it against the agent's schema
+    cont = cobel("run", "task=tmaze_extinction", "task.runs=1", f"+agent.load_from={out}",
+                 f"hydra.run.dir={tmp_path / 'continued'}")  # fmt: skip
+    assert cont.returncode == 0, cont.stderr
+    missing = cobel("run", "task=tmaze_extinction", "task.runs=2", f"+agent.load_from={out}",
+                    f"hydra.run.dir={tmp_path / 'missing'}")  # fmt: skip
+    assert missing.returncode != 0 and "no saved agent for run 1" in missing.stderr
+    bad = cobel("run", "task=tmaze_extinction", "task.save_agents=sometimes")
+    assert bad.returncode == 2 and "all, last, none or a list" in bad.stderr
+
+
+def test_a_corrupt_archive_member_is_a_clear_error(tmp_path):
+    import io
+    import zipfile
+
+    from cobelrun.agents import DynaQ
+    from cobelrun.errors import ConfigError as Err
+
+    env = GridWorldEnv(tmaze_paper())
+    agent = DynaQ(env, seed=0)
+    buf = io.BytesIO()
+    np.savez(buf, Q=np.full((49, 4), np.nan))
+    with zipfile.ZipFile(tmp_path / "agents.zip", "w") as zf:
+        zf.writestr("run_0000.npz", buf.getvalue())
+    folder = RunFolder(tmp_path)
+    source, label = folder.open_agent(0)
+    with pytest.raises(Err, match=r"agents.zip:run_0000.npz"):
+        agent.load(source, source=label)

@@ -21,12 +21,13 @@ when the agent is built.
 from __future__ import annotations
 
 import abc
+import io
 import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, BinaryIO, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -359,30 +360,43 @@ class Agent(abc.ABC):
         """The name a saved file records: ``module.Class``."""
         return f"{cls.__module__}.{cls.__qualname__}"
 
-    def save(self, path: str | Path) -> Path:
-        """Write the learned state to ``PATH.npz`` (no pickle) and return the file written.
-
-        The archive holds the arrays of :meth:`get_state` and ``__meta__``: JSON with the agent
-        class, schema version, hyperparameters and :meth:`state_meta`. Written to a temporary
-        file first, then renamed, so a crash never leaves a half-written agent.
-        """
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
+    def dump(self, fh: BinaryIO, *, compress: bool = False) -> None:
+        """Write the learned state as an npz archive to an open binary file: the arrays of
+        :meth:`get_state` and ``__meta__`` (JSON with the agent class, schema version,
+        hyperparameters and :meth:`state_meta`). No pickle."""
         meta = {"format": FILE_FORMAT, "agent": self.agent_name(),
                 "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
                 "state": self.state_meta()}  # fmt: skip
         arrays = self.get_state()
         if META_KEY in arrays:
             raise ValueError(f"state key {META_KEY!r} is reserved")
+        write = np.savez_compressed if compress else np.savez
+        write(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
+
+    def to_bytes(self, *, compress: bool = True) -> bytes:
+        """:meth:`dump` into memory (one member of a job's agents archive)."""
+        buf = io.BytesIO()
+        self.dump(buf, compress=compress)
+        return buf.getvalue()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the learned state to ``PATH.npz`` (see :meth:`dump`) and return the file.
+
+        Written to a temporary file first, then renamed, so a crash never leaves a
+        half-written agent.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
         tmp = path.with_name(path.name + ".tmp")
         with open(tmp, "wb") as fh:
-            np.savez(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
+            self.dump(fh)
         os.replace(tmp, path)
         return path
 
-    def load(self, path: str | Path) -> None:
-        """Restore a state written by :meth:`save`, after checking the whole file.
+    def load(self, path: str | Path | BinaryIO, *, source: str | None = None) -> None:
+        """Restore a state written by :meth:`save` (a path, or an open binary file such as a
+        member of an agents archive, named ``source`` in errors), after checking it whole.
 
         Raises a one-line :class:`~cobelrun.errors.ConfigError` naming the file, the key and
         what was expected if the file is not an npz (or needs pickle), was written by another
@@ -390,12 +404,17 @@ class Agent(abc.ABC):
         shape, dtype kind, an index out of range or a non-finite value. Nothing is changed
         unless every check passes.
         """
-        arrays, _meta = self._read_checked(Path(path))
+        target = path if hasattr(path, "read") else Path(path)  # type: ignore[arg-type]
+        arrays, _meta = self._read_checked(target, source)  # type: ignore[arg-type]
         self.set_state(arrays)
 
-    def _read_checked(self, path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def _read_checked(
+        self, path: Path | BinaryIO, source: str | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        name = source or path
+
         def fail(what: str) -> ConfigError:
-            return ConfigError(f"cannot load agent from {path}: {what}")
+            return ConfigError(f"cannot load agent from {name}: {what}")
 
         try:
             with np.load(path, allow_pickle=False) as data:

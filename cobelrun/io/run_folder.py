@@ -8,10 +8,12 @@
       world.json           the environment's geometry (plots, viewers, exports read it)
       <table>.parquet      one file per table a monitor declares (trials, steps, activity, ...)
       run.mcap             pose stream, trial events and maze scene (Foxglove)
-      agents/run_0007.npz  each run's trained agent
+      agents.zip           every run's trained agent (member run_0007.npz); older
+                           folders have agents/run_0007.npz
       job.json             sweep bookkeeping (sweeps only)
       .parts/<table>/      table parts while a run is going (merged into <table>.parquet at
-                           the end; left behind only by a killed run, see :func:`repair`)
+                           the end; left behind only by a killed run, see :mod:`cobelrun.io.repair`)
+      .parts-agents/       batches of agents while a run is going (merged into agents.zip)
       .done                written last, only when the run completed
 
 Readers and writers ask :class:`RunFolder` for paths; no other module spells a file name.
@@ -19,10 +21,12 @@ Readers and writers ask :class:`RunFolder` for paths; no other module spells a f
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 __all__ = ["DONE_MARKER", "RunFolder"]
 
@@ -44,7 +48,9 @@ class RunFolder:
     WORLD = "world.json"
     MCAP = "run.mcap"
     AGENTS = "agents"
+    AGENTS_ARCHIVE = "agents.zip"
     PARTS = ".parts"
+    AGENT_PARTS = ".parts-agents"
     JOB = "job.json"
     DONE = DONE_MARKER
     TABLE_SUFFIX = ".parquet"
@@ -89,6 +95,15 @@ class RunFolder:
     def agents(self) -> Path:
         return self.path / self.AGENTS
 
+    @property
+    def agents_archive(self) -> Path:
+        """All agents of the job in one file (members ``run_0007.npz``)."""
+        return self.path / self.AGENTS_ARCHIVE
+
+    @property
+    def agent_parts(self) -> Path:
+        return self.path / self.AGENT_PARTS
+
     def table(self, name: str) -> Path:
         """The Parquet file of table ``name`` (``trials``, ``steps``, ``activity``, ...)."""
         return self.path / f"{name}{self.TABLE_SUFFIX}"
@@ -98,18 +113,22 @@ class RunFolder:
         return self.path / self.PARTS / name
 
     def agent(self, run: int) -> Path:
-        """Run ``run``'s saved agent: ``agents/run_0007.npz``."""
+        """A single saved agent file of run ``run`` (``agents/run_0007.npz``; older layout)."""
         return self.agents / f"run_{int(run):04d}.npz"
 
-    def find_agent(self, run: int) -> Path | None:
-        """Run ``run``'s saved agent, in this layout or the older ``agent_run{N}.*``."""
+    def open_agent(self, run: int) -> tuple[Any, str] | None:
+        """Run ``run``'s saved agent as ``(file, label)``: the member of ``agents.zip``, or a
+        file of an older layout (``agents/run_0007.npz``, ``agent_run7.npz``); None if absent."""
+        from cobelrun.io.agents_archive import member_name, read_agent
+
+        if self.agents_archive.is_file():
+            data = read_agent(self.agents_archive, run)
+            if data is not None:
+                return io.BytesIO(data), f"{self.agents_archive}:{member_name(run)}"
         path = self.agent(run)
-        if path.is_file():
-            return path
-        found = sorted(self.agents.glob(f"{path.stem}.*")) + sorted(
-            self.path.glob(f"agent_run{int(run)}.*")
-        )
-        return found[0] if found else None
+        found = [path] if path.is_file() else []
+        found += sorted(self.path.glob(f"agent_run{int(run)}.*"))
+        return (found[0], str(found[0])) if found else None
 
     # -- what is there -----------------------------------------------------------------------
     def tables(self) -> list[str]:
@@ -127,7 +146,8 @@ class RunFolder:
         """Every file or folder a run writes that exists now (``job.json`` excluded: it belongs
         to the sweep). A rerun removes exactly these."""
         fixed = [self.config, self.manifest, self.world, self.mcap, self.agents, self.done,
-                 self.path / self.PARTS, *(self.path / p for p in self.PLOTS)]  # fmt: skip
+                 self.agents_archive, self.agent_parts, self.path / self.PARTS,
+                 *(self.path / p for p in self.PLOTS)]  # fmt: skip
         seen = set()
         for p in [*fixed, *(self.table(t) for t in self.tables()),
                   *self.path.glob("agent_run*.*"), *self.path.glob(f".{self.MCAP}.*")]:  # fmt: skip

@@ -404,11 +404,10 @@ class RunRecorder:
             m.end_run(run, agent, last_trial)
 
     def save_agent(self, run: int, agent: Any) -> None:
-        """Add run ``run``'s trained agent to the job's ``agents.zip`` (written in batches)."""
+        """Add run ``run``'s trained agent to the job's ``agents.npz`` (written in batches)."""
         assert self.agents is not None, "the recorder was built without save_agents"
-        data = agent.to_bytes()
         with self.guard.critical():
-            if self.agents.add(run, data):
+            if self.agents.add(run, agent.get_state(), agent.saved_meta()):
                 self._writer.submit(self.agents.write_batch, self.agents.take())
 
     def _emit(self, table: str, columns: Mapping[str, Any]) -> None:

@@ -78,10 +78,10 @@ class TrialBatch:
         """This batch with ``start_pose``/``step_pose`` filled in from ``env``'s
         :class:`~cobelrun.envs.base.DiscreteStates` contract where they are missing (the
         batch is changed in place and returned). Envs without poses leave them None."""
-        from cobelrun.envs.base import DiscreteStates
+        from cobelrun.envs.base import DiscreteStates, supports
 
         base = getattr(env, "unwrapped", env)
-        if self.step_pose is None and isinstance(base, DiscreteStates):
+        if self.step_pose is None and supports(base, DiscreteStates):
             self.start_pose = base.poses_of(self.start_state)
             self.step_pose = base.poses_of(self.step_next_state, self.step_action)
         return self

@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import cobelrun
 from cobelrun.config import instantiate
-from cobelrun.envs.base import Changeable, HasGeometry
+from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
 from cobelrun.io.run_folder import RunFolder
@@ -47,7 +47,7 @@ class Task:
     runs: int
     seed: int
     load_from: str | None = None
-    #: runs whose trained agents go into ``agents.zip``
+    #: runs whose trained agents go into ``agents.npz``
     save_agents: frozenset[int] = frozenset()
     #: A custom job (``task.job``) that replaces the protocol loop: ``job(config, run_dir,
     #: progress=...) -> dict | None`` (the dict goes into the manifest).
@@ -158,22 +158,35 @@ def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.ran
     return [run_seed(seed, r) for r in range(runs)]
 
 
-def saved_agent(load_from: str, run: int) -> tuple[Any, str]:
-    """The saved agent to continue run ``run`` from, as ``(file, label)``: ``load_from`` is a
-    file (``{run}`` is replaced by the run index) or a run folder (its ``agents.zip`` member
-    ``run_NNNN.npz``, or an older layout's agent file)."""
+def load_saved_agent(agent: Any, load_from: str, run: int) -> None:
+    """Continue run ``run`` from a saved agent: ``load_from`` is a file (``{run}`` is replaced
+    by the run index) or a run folder (run ``run`` of its ``agents.npz``, or an older layout's
+    agent file). The state is checked against the agent's schema before anything changes."""
+    from cobelrun.io.agents_archive import read_agent
+
     path = Path(load_from.replace("{run}", str(run)))
     if path.is_dir():
-        found = RunFolder(path).open_agent(run)
-        if found is None:
+        folder = RunFolder(path)
+        if folder.agents_archive.is_file():
+            try:
+                found = read_agent(folder.agents_archive, run)
+            except Exception as exc:  # a damaged archive: zip, npy header, layout
+                raise ConfigError(
+                    f"cannot load agent from {folder.agents_archive}: {exc}"
+                ) from None
+            if found is not None:
+                agent.load_state(*found, source=f"{folder.agents_archive} (run {run})")
+                return
+        legacy = folder.legacy_agent(run)
+        if legacy is None:
             raise ConfigError(
                 f"agent.load_from: {path} has no saved agent for run {run} "
-                f"(task.save_agents decides which runs are saved)"
+                "(task.save_agents decides which runs are saved)"
             )
-        return found
-    if not path.is_file():
+        path = legacy
+    elif not path.is_file():
         raise ConfigError(f"agent.load_from: {path} does not exist")
-    return path, str(path)
+    agent.load(path)
 
 
 def agents_to_save(spec: Any, runs: int) -> frozenset[int]:
@@ -220,13 +233,12 @@ def execute(
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
-            if isinstance(base, Changeable):
+            if supports(base, Changeable):
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
             if task.load_from is not None:
-                source, label = saved_agent(task.load_from, run)
-                agent.load(source, source=label)
+                load_saved_agent(agent, task.load_from, run)
             recorder.start_run(run, agent)
             first = 1
             for phase in task.protocol.phases:

@@ -385,7 +385,7 @@ def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -
     assert sorted(activity["trial"].unique()) == [0, 2, 4, 5]
     assert set(activity["layer"]) == {"sr/output"}
     assert len(activity) == 4 * 40 * 160  # snapshots x probes x units
-    assert RunFolder(run_dir).open_agent(0) is not None
+    assert 0 in runs_in(RunFolder(run_dir).agents_archive)
     assert cobel("plot", str(run_dir)).returncode == 0
     # continue from the saved agent; the direct protocol is one rewarded phase
     more = cobel("run", "task=latent_learning", "protocol=direct", "task.runs=1",

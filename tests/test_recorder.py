@@ -138,20 +138,42 @@ def test_agents_of_a_job_go_into_one_archive(cobel, tmp_path):
     assert bad.returncode == 2 and "all, last, none or a list" in bad.stderr
 
 
-def test_a_corrupt_archive_member_is_a_clear_error(tmp_path):
-    import io
-    import zipfile
-
-    from cobelrun.agents import DynaQ
-    from cobelrun.errors import ConfigError as Err
+def test_archive_round_trip_and_corrupt_state_is_a_clear_error(tmp_path):
+    from cobelrun.agents import MFEC, DynaQ
+    from cobelrun.io.agents_archive import AgentArchive, read_agent
+    from cobelrun.runner import load_saved_agent
 
     env = GridWorldEnv(tmaze_paper())
-    agent = DynaQ(env, seed=0)
-    buf = io.BytesIO()
-    np.savez(buf, Q=np.full((49, 4), np.nan))
-    with zipfile.ZipFile(tmp_path / "agents.zip", "w") as zf:
-        zf.writestr("run_0000.npz", buf.getvalue())
     folder = RunFolder(tmp_path)
-    source, label = folder.open_agent(0)
-    with pytest.raises(Err, match=r"agents.zip:run_0000.npz"):
-        agent.load(source, source=label)
+    archive = AgentArchive(folder.agents_archive, folder.agent_parts, flush_seconds=1e9,
+                           max_bytes=1)  # one part per agent  # fmt: skip
+    agents = [DynaQ(env, seed=s) for s in range(3)]
+    for run, agent in enumerate(agents):
+        agent.train(5, 35)
+        assert archive.add(run, agent.get_state(), agent.saved_meta())
+        archive.write_batch(archive.take())
+    archive.close()
+    assert runs_in(folder.agents_archive) == [0, 1, 2] and not folder.agent_parts.exists()
+    for run, agent in enumerate(agents):
+        fresh = DynaQ(env, seed=99)
+        load_saved_agent(fresh, str(tmp_path), run)
+        np.testing.assert_array_equal(fresh.Q, agent.Q)
+    # a tampered state is refused with the archive and run named
+    arrays, meta = read_agent(folder.agents_archive, 1)
+    arrays["Q"] = np.full_like(arrays["Q"], np.nan)
+    with pytest.raises(ConfigError, match=r"agents.npz \(run 1\).*'Q'"):
+        DynaQ(env).load_state(arrays, meta, source=f"{folder.agents_archive} (run 1)")
+    # agents whose arrays differ in size between runs (MFEC buffers) fit the run axis
+    m_env = GridWorldEnv(tmaze_paper())
+    mfec = [MFEC(m_env, seed=s) for s in range(2)]
+    mfec[0].train(3, 35)
+    arch = AgentArchive(tmp_path / "m.npz", tmp_path / "mparts")
+    for run, agent in enumerate(mfec):
+        arch.add(run, agent.get_state(), agent.saved_meta())
+    arch.close()
+    a0, _ = read_agent(tmp_path / "m.npz", 0)
+    a1, _ = read_agent(tmp_path / "m.npz", 1)
+    assert (
+        a0["a0.values"].shape != a1["a0.values"].shape
+        or a0["a1.values"].shape != a1["a1.values"].shape
+    )

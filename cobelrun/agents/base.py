@@ -21,7 +21,6 @@ when the agent is built.
 from __future__ import annotations
 
 import abc
-import io
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -364,20 +363,19 @@ class Agent(abc.ABC):
         """Write the learned state as an npz archive to an open binary file: the arrays of
         :meth:`get_state` and ``__meta__`` (JSON with the agent class, schema version,
         hyperparameters and :meth:`state_meta`). No pickle."""
-        meta = {"format": FILE_FORMAT, "agent": self.agent_name(),
-                "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
-                "state": self.state_meta()}  # fmt: skip
+        meta = self.saved_meta()
         arrays = self.get_state()
         if META_KEY in arrays:
             raise ValueError(f"state key {META_KEY!r} is reserved")
         write = np.savez_compressed if compress else np.savez
         write(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
 
-    def to_bytes(self, *, compress: bool = True) -> bytes:
-        """:meth:`dump` into memory (one member of a job's agents archive)."""
-        buf = io.BytesIO()
-        self.dump(buf, compress=compress)
-        return buf.getvalue()
+    def saved_meta(self) -> dict[str, Any]:
+        """The JSON metadata saved with the state: file format, agent class, schema version,
+        hyperparameters and :meth:`state_meta`."""
+        return {"format": FILE_FORMAT, "agent": self.agent_name(),
+                "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
+                "state": self.state_meta()}  # fmt: skip
 
     def save(self, path: str | Path) -> Path:
         """Write the learned state to ``PATH.npz`` (see :meth:`dump`) and return the file.
@@ -438,6 +436,23 @@ class Agent(abc.ABC):
                 raise ValueError
         except ValueError:
             raise fail(f"{META_KEY!r} is not a JSON object") from None
+        self._check_loaded(raw, meta, fail)
+        return raw, meta
+
+    def load_state(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any],
+                   source: str) -> None:  # fmt: skip
+        """Restore a state from arrays and metadata read elsewhere (a job's agents archive),
+        with the same checks as :meth:`load`; errors name ``source``."""
+
+        def fail(what: str) -> ConfigError:
+            return ConfigError(f"cannot load agent from {source}: {what}")
+
+        raw = dict(arrays)
+        self._check_loaded(raw, dict(meta), fail)
+        self.set_state(raw)
+
+    def _check_loaded(self, raw: dict[str, np.ndarray], meta: dict[str, Any], fail: Any) -> None:
+        """Every check of a saved state; raises ``fail(what)`` (a ConfigError)."""
         if meta.get("agent") != self.agent_name():
             raise fail(f"it holds agent {meta.get('agent')!r}, expected {self.agent_name()!r}")
         if meta.get("schema_version") != self.state_version:
@@ -460,4 +475,3 @@ class Agent(abc.ABC):
             self.set_state_meta(meta.get("state") or {})
         except ValueError as exc:
             raise fail(str(exc)) from None
-        return raw, meta

@@ -8,12 +8,12 @@
       world.json           the environment's geometry (plots, viewers, exports read it)
       <table>.parquet      one file per table a monitor declares (trials, steps, activity, ...)
       run.mcap             pose stream, trial events and maze scene (Foxglove)
-      agents.zip           every run's trained agent (member run_0007.npz); older
-                           folders have agents/run_0007.npz
+      agents.npz           every saved run's trained agent, with a run axis
+                           (:mod:`cobelrun.io.agents_archive`)
       job.json             sweep bookkeeping (sweeps only)
       .parts/<table>/      table parts while a run is going (merged into <table>.parquet at
                            the end; left behind only by a killed run, see :mod:`cobelrun.io.repair`)
-      .parts-agents/       batches of agents while a run is going (merged into agents.zip)
+      .parts-agents/       batches of agents while a run is going (merged into agents.npz)
       .done                written last, only when the run completed
 
 Readers and writers ask :class:`RunFolder` for paths; no other module spells a file name.
@@ -21,12 +21,10 @@ Readers and writers ask :class:`RunFolder` for paths; no other module spells a f
 
 from __future__ import annotations
 
-import io
 import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 __all__ = ["DONE_MARKER", "RunFolder"]
 
@@ -48,7 +46,7 @@ class RunFolder:
     WORLD = "world.json"
     MCAP = "run.mcap"
     AGENTS = "agents"
-    AGENTS_ARCHIVE = "agents.zip"
+    AGENTS_ARCHIVE = "agents.npz"
     PARTS = ".parts"
     AGENT_PARTS = ".parts-agents"
     JOB = "job.json"
@@ -97,7 +95,7 @@ class RunFolder:
 
     @property
     def agents_archive(self) -> Path:
-        """All agents of the job in one file (members ``run_0007.npz``)."""
+        """All saved agents of the job in one file, with a run axis."""
         return self.path / self.AGENTS_ARCHIVE
 
     @property
@@ -116,19 +114,12 @@ class RunFolder:
         """A single saved agent file of run ``run`` (``agents/run_0007.npz``; older layout)."""
         return self.agents / f"run_{int(run):04d}.npz"
 
-    def open_agent(self, run: int) -> tuple[Any, str] | None:
-        """Run ``run``'s saved agent as ``(file, label)``: the member of ``agents.zip``, or a
-        file of an older layout (``agents/run_0007.npz``, ``agent_run7.npz``); None if absent."""
-        from cobelrun.io.agents_archive import member_name, read_agent
-
-        if self.agents_archive.is_file():
-            data = read_agent(self.agents_archive, run)
-            if data is not None:
-                return io.BytesIO(data), f"{self.agents_archive}:{member_name(run)}"
-        path = self.agent(run)
-        found = [path] if path.is_file() else []
+    def legacy_agent(self, run: int) -> Path | None:
+        """Run ``run``'s agent file in an older layout (``agents/run_0007.npz``,
+        ``agent_run7.npz``), if there is one."""
+        found = [self.agent(run)] if self.agent(run).is_file() else []
         found += sorted(self.path.glob(f"agent_run{int(run)}.*"))
-        return (found[0], str(found[0])) if found else None
+        return found[0] if found else None
 
     # -- what is there -----------------------------------------------------------------------
     def tables(self) -> list[str]:

@@ -189,6 +189,24 @@ def load_saved_agent(agent: Any, load_from: str, run: int) -> None:
     agent.load(path)
 
 
+def kept(task: Task) -> dict[str, Any]:
+    """What the run folder will hold, for the manifest: every trial row always; step rows,
+    MCAP poses/events and agents as ``task.record`` and ``task.save_agents`` say."""
+    rec = task.record
+    step_runs = (
+        list(range(task.runs)) if rec.runs == "all" else [r for r in rec.runs if r < task.runs]
+    )
+    mcap_runs = task.runs if rec.mcap_runs == "all" else min(int(rec.mcap_runs), task.runs)
+    return {
+        "trials": "all",
+        "steps": {"runs": len(step_runs) if rec.steps else 0, "trial_every": rec.trial_every},
+        "mcap": {"runs": mcap_runs if rec.mcap else 0, "images": rec.images},
+        "agents": sorted(task.save_agents)
+        if len(task.save_agents) <= 20
+        else f"{len(task.save_agents)} runs",
+    }
+
+
 def agents_to_save(spec: Any, runs: int) -> frozenset[int]:
     """Runs whose agents ``task.save_agents`` keeps: ``all`` (or true), ``last``, ``none`` (or
     false) or a list of run indices."""
@@ -289,7 +307,7 @@ def run(
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
-        else {"runs": task.runs, "trials": task.protocol.n_trials}
+        else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task)}
     )
     manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
     metadata = {"cobel.version": cobelrun.__version__, "cobel.seed": str(task.seed),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -126,6 +127,9 @@ def test_agents_of_a_job_go_into_one_archive(cobel, tmp_path):
     assert proc.returncode == 0, proc.stderr
     folder = RunFolder(out)
     assert runs_in(folder.agents_archive) == [0, 5, 11]
+    kept = json.loads(folder.manifest.read_text())["kept"]
+    assert kept == {"trials": "all", "steps": {"runs": 12, "trial_every": 1},
+                    "mcap": {"runs": 10, "images": False}, "agents": [0, 5, 11]}  # fmt: skip
     assert not folder.agents.exists() and not folder.agent_parts.exists()
     # +agent.load_from picks run r's member and checks it against the agent's schema
     cont = cobel("run", "task=tmaze_extinction", "task.runs=1", f"+agent.load_from={out}",

@@ -100,6 +100,32 @@ class TrialBatch:
         return out
 
     @classmethod
+    def concat(cls, batches: list[TrialBatch]) -> TrialBatch:
+        """Consecutive batches as one (poses kept only if every batch has them)."""
+        if not batches:
+            return cls.from_trials([])
+        offsets = [np.zeros(1, np.int64)]
+        total = 0
+        for b in batches:
+            offsets.append(b.offsets[1:] + total)
+            total += b.n_steps
+
+        def cat(name: str) -> np.ndarray:
+            return np.concatenate([getattr(b, name) for b in batches])
+
+        poses = all(b.step_pose is not None for b in batches)
+        extra_keys = set(batches[0].extra).intersection(*(b.extra for b in batches[1:]))
+        return cls(
+            start_state=cat("start_state"), end_state=cat("end_state"), steps=cat("steps"),
+            reward=cat("reward"), terminated=cat("terminated"), offsets=np.concatenate(offsets),
+            step_state=cat("step_state"), step_action=cat("step_action"),
+            step_next_state=cat("step_next_state"), step_reward=cat("step_reward"),
+            extra={k: np.concatenate([b.extra[k] for b in batches]) for k in extra_keys},
+            start_pose=cat("start_pose") if poses else None,
+            step_pose=cat("step_pose") if poses else None,
+        )  # fmt: skip
+
+    @classmethod
     def from_trials(cls, trials: list[dict[str, Any]]) -> TrialBatch:
         """Build a batch from per-trial dicts with keys ``states`` (n_steps + 1), ``actions``,
         ``rewards`` (n_steps each) and ``terminated`` (bool), and optionally ``poses``

@@ -145,6 +145,14 @@ class TrialCallback:
     def _on_trial_end(self, agent: Agent, trial: int, record: dict[str, Any]) -> None:
         """Called at trial end with ``states, actions, rewards, terminated`` (and ``poses``)."""
 
+    @classmethod
+    def trial_end_only(cls) -> bool:
+        """True if only the trial-end hook is overridden: compiled agents may then run each
+        trial in compiled code and call the hook between trials (same results)."""
+        base = TrialCallback
+        return all(getattr(cls, name) is getattr(base, name) for name in
+                   ("on_trial_start", "on_step", "_on_trial_start", "_on_step"))  # fmt: skip
+
 
 @dataclass(frozen=True)
 class ArraySpec:

@@ -352,6 +352,7 @@ class RunRecorder:
 
             self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns,
                                      metadata=dict(metadata or {}))  # fmt: skip
+        self._active: dict[bool, list[Monitor]] = {}
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
         self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
@@ -438,13 +439,31 @@ class RunRecorder:
         with self.guard.critical():
             self._record(run, phase, first_trial, batch)
 
+    def _batch_monitors(self, steps_recorded: bool) -> list[Monitor]:
+        """Monitors whose batch rows are written: a monitor that fills only per-step tables
+        is skipped when steps are not recorded (``record.steps=false`` or a run outside
+        ``record.runs``); monitors without trial/step tables (event tables, hooks) always run
+        (their ``on_batch`` may keep state)."""
+        key = steps_recorded
+        if key not in self._active:
+            active = []
+            for m in self.monitors:
+                kinds = {self.tables[t.name][0]: t.name for t in m.tables()}
+                rows = [name for per, name in kinds.items() if per in ("trial", "step")]
+                written = [name for name in rows if name in self._sinks
+                           and (steps_recorded or self.tables[name][0] != "step")]  # fmt: skip
+                if written or not rows:
+                    active.append(m)
+            self._active[key] = active
+        return self._active[key]
+
     def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
         n = batch.n_trials
         if n == 0:
             return
         info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
         merged: dict[str, dict[str, Any]] = {}
-        for m in self.monitors:
+        for m in self._batch_monitors(self.record_cfg.records_run(run)):
             for table, cols in m.on_batch(batch, info).items():
                 if table not in self.tables or self.tables[table][0] == "event":
                     raise ConfigError(

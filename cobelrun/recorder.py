@@ -248,17 +248,14 @@ class _TableSink:
             self._pending and time.monotonic() - self._last >= self._seconds
         )
 
-    def take(self) -> pa.Table | None:
-        """The buffered rows as one Arrow table (the buffer is emptied only after the table
-        exists, inside the caller's critical section)."""
+    def take(self) -> list[Mapping[str, Any]] | None:
+        """The buffered column batches (emptied inside the caller's critical section; joined
+        and converted to Arrow on the writer thread)."""
         self._last = time.monotonic()
         if not self._parts:
             return None
-        names = self._parts[0].keys()
-        joined = {k: np.concatenate([np.asarray(p[k]) for p in self._parts]) for k in names}
-        table = self.writer.to_table(joined)
-        self._parts, self._pending = [], 0
-        return table
+        parts, self._parts, self._pending = self._parts, [], 0
+        return parts
 
 
 class _FrameGrabber:
@@ -287,6 +284,12 @@ class _FrameGrabber:
     def take(self, n: int) -> list[np.ndarray]:
         frames, self.frames = self.frames[:n], self.frames[n:]
         return frames
+
+
+def _write_columns(writer: PartedTableWriter, parts: list[Mapping[str, Any]]) -> None:
+    """Join column batches and write them as one part (runs on the writer thread)."""
+    names = parts[0].keys()
+    writer.write_part({k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in names})
 
 
 class RunRecorder:
@@ -426,9 +429,9 @@ class RunRecorder:
 
     def _flush(self, table: str) -> None:
         sink = self._sinks[table]
-        part = sink.take()
-        if part is not None:
-            self._writer.submit(sink.writer.write_part, part)
+        parts = sink.take()
+        if parts is not None:
+            self._writer.submit(_write_columns, sink.writer, parts)
 
     # -- batches -------------------------------------------------------------------------------
     def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:

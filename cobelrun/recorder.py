@@ -12,11 +12,8 @@ drops rows that were already taken from a buffer.
 from __future__ import annotations
 
 import collections
-import contextlib
-import signal
-import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +27,9 @@ from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
+from cobelrun.signals import Interrupted, SignalGuard
+
+__all__ = ["Interrupted", "RecordConfig", "RunRecorder", "SignalGuard"]
 from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
@@ -96,82 +96,6 @@ class RecordConfig:
 
     def mcap_run(self, run: int) -> bool:
         return self.mcap_runs == "all" or run < int(self.mcap_runs)
-
-
-class SignalGuard:
-    """Ctrl-C and SIGTERM as :class:`KeyboardInterrupt`, but never inside a critical section
-    and never while files are being closed.
-
-    A signal inside :meth:`critical` is held and raised when the section ends; during
-    :meth:`closing` (the files are being finished) further signals are ignored with one
-    notice, so a second Ctrl-C cannot cut the shutdown short. Outside the main thread the
-    guard installs nothing (signals go to the main thread anyway).
-    """
-
-    def __init__(self) -> None:
-        self._depth = 0
-        self._pending: int | None = None
-        self._closing = False
-        self._noticed = False
-        self._previous: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self._closing:
-            if not self._noticed:
-                self._noticed = True
-                print("cobel: finishing the run's files, please wait", file=sys.stderr)
-            return
-        if self._depth:
-            self._pending = signum
-            return
-        self._closing = True  # the run is stopping: later signals must not cut the shutdown
-        raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[SignalGuard]:
-        try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handler)
-        except ValueError:  # not the main thread
-            self._previous.clear()
-        try:
-            yield self
-        finally:
-            for sig, prev in self._previous.items():
-                signal.signal(sig, prev)
-            self._previous.clear()
-
-    @contextlib.contextmanager
-    def critical(self) -> Iterator[None]:
-        self._depth += 1
-        try:
-            yield
-        finally:
-            self._depth -= 1
-        if not self._depth and self._pending is not None and not self._closing:
-            signum, self._pending = self._pending, None
-            self._closing = True
-            raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def closing(self) -> Iterator[None]:
-        """Files are being finished: signals are ignored (with one notice) until the end."""
-        was, self._closing = self._closing, True
-        try:
-            yield
-        finally:
-            self._closing = was
-        if self._pending is not None and not was:
-            signum, self._pending = self._pending, None
-            raise Interrupted(signum)
-
-
-class Interrupted(KeyboardInterrupt):
-    """The run was stopped by SIGINT or SIGTERM."""
-
-    def __init__(self, signum: int = signal.SIGINT) -> None:
-        super().__init__(f"received signal {signum}")
-        self.signum = signum
 
 
 class WriterThread:

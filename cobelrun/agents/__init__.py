@@ -6,6 +6,7 @@ from typing import Any
 from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
+from cobelrun.agents.pma import PMA
 from cobelrun.errors import CobelError
 
 #: deep and episodic agents, imported on first use (torch / stable-baselines3 / scipy stay lazy)
@@ -16,7 +17,16 @@ _LAZY = {
     "MFEC": "cobelrun.agents.mfec",
 }
 
-__all__ = ["Agent", "ArraySpec", "DynaQ", "TabularMemory", "Transition", "TrialCallback", *_LAZY]
+__all__ = [
+    "PMA",
+    "Agent",
+    "ArraySpec",
+    "DynaQ",
+    "TabularMemory",
+    "Transition",
+    "TrialCallback",
+    *_LAZY,
+]
 
 
 def __getattr__(name: str) -> Any:

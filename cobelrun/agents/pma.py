@@ -1,0 +1,368 @@
+"""Prioritized memory access (Mattar & Daw 2018): Q-learning with replay ordered by need x gain.
+
+The algorithm, top to bottom (defaults of the authors' MATLAB code, ``setParams.m``):
+
+1. act in ``s`` with softmax(beta) (or epsilon-greedy) over ``Q[s]``; observe ``r, s'``;
+2. Q-learn online: ``Q[s,a] += alpha * (r + gamma * max Q[s'] - Q[s,a])``;
+3. update the model: the last ``(r, s')`` of ``(s, a)``, and the state-state transition matrix
+   ``T[s] += eta * (onehot(s') - T[s])``;
+4. at trial start (before the first action) and on arriving at the goal, replay: up to
+   ``n_backups`` times pick the backup with the highest expected value of backup
+   ``EVB = need(s_k) * gain(s_k, a_k)`` and apply it. Candidates are every experienced 1-step
+   backup plus the last replayed sequence extended by one greedy step (n-step backups).
+   ``gain`` is the improvement of the softmax policy in ``s_k`` that the backup causes, floored
+   at ``min_gain``; ``need`` is the successor representation row of the agent's state,
+   ``M = (I - gamma T)^-1`` (or the stationary distribution of ``T``).
+
+No replay happens before the first reward. The model is pre-explored (every action of every free,
+non-terminal state, reward 0) and the goal's row of ``T`` points to the start states, as in the
+authors' code. See ``docs/replay.md`` for the equations and the departures from the originals.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.codes import POLICIES
+from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.records import TrialBatch
+
+REPLAY_WHEN = ("start_and_goal", "start", "goal", "off")
+NEED = ("sr", "stationary")
+#: columns of :attr:`PMA.last_replays` (one entry per backup)
+REPLAY_FIELDS = (
+    "trial", "when", "index", "agent_state", "state", "action", "next_state", "reward", "gain",
+    "need", "length",
+)  # fmt: skip
+WHEN_START, WHEN_END = 0, 1
+
+
+def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
+    if value not in allowed:
+        raise ConfigError(
+            f"{kind} {value!r} is not known{suggest(str(value), allowed)}; "
+            f"allowed: {allowed_list(allowed)}"
+        )
+    return value
+
+
+def successor_representation(T: np.ndarray, gamma: float) -> np.ndarray:
+    """``M = (I - gamma T)^-1``: expected discounted future occupancy of every state."""
+    return np.linalg.inv(np.eye(T.shape[0]) - gamma * T)
+
+
+def stationary_distribution(T: np.ndarray) -> np.ndarray:
+    """Left eigenvector of ``T`` with eigenvalue 1 (absolute values, unit 2-norm, as ``eig``)."""
+    vals, vecs = np.linalg.eig(T.T)
+    v = np.abs(vecs[:, int(np.argmin(np.abs(vals - 1.0)))].real)
+    return v / np.linalg.norm(v)
+
+
+class PMA(Agent):
+    """Tabular Q-learning with prioritized memory access (Mattar & Daw 2018).
+
+    Parameters
+    ----------
+    env
+        A tabular gridworld (``GridWorldEnv``): the model is pre-explored from its world.
+    beta
+        Softmax inverse temperature, of behaviour and of the policy the gain is measured under
+        (5, ``softmaxInvT``).
+    epsilon
+        Exploration rate when ``policy`` is ``epsilon_greedy`` (0.05).
+    policy
+        Behaviour policy: ``softmax`` (default, ``actPolicy``) or ``epsilon_greedy``.
+    learning_rate
+        Q-learning rate, online and in replay (1.0, ``alpha``).
+    gamma
+        Discount factor; also the successor representation's discount (0.9).
+    n_backups
+        Backups per replay bout (20, ``nPlan``).
+    min_gain
+        Floor of each backup's gain (1e-10, ``baselineGain``).
+    extend
+        Offer n-step sequences: the last replayed sequence extended by one greedy step
+        (true, ``expandFurther``).
+    replay
+        When to replay: ``start_and_goal`` (default, ``planOnlyAtGorS``), ``start``, ``goal``
+        or ``off`` (plain Q-learning).
+    need
+        ``sr`` (successor representation row of the agent's state, ``online``) or ``stationary``
+        (stationary distribution of the learned transitions, ``offline``).
+    transition_rate
+        Learning rate of the state-state transition matrix (0.9, ``TLearnRate``).
+    pre_explore
+        Fill the model with every action of every free, non-terminal state before the first
+        trial (reward 0), as ``preExplore`` (true).
+    goal_to_start
+        Let terminal states lead to the start states in ``T`` so the need wraps around
+        (true, ``Tgoal2start``).
+    replay_before_reward
+        Replay even before any reward was experienced (false: the authors skip planning until
+        the first reward).
+    seed
+        Seed of the agent's draws (actions and tie-breaks).
+    """
+
+    observation_spaces = (gym.spaces.Discrete,)
+    action_spaces = (gym.spaces.Discrete,)
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        beta: float = 5.0,
+        epsilon: float = 0.05,
+        policy: str = "softmax",
+        learning_rate: float = 1.0,
+        gamma: float = 0.9,
+        n_backups: int = 20,
+        min_gain: float = 1e-10,
+        extend: bool = True,
+        replay: str = "start_and_goal",
+        need: str = "sr",
+        transition_rate: float = 0.9,
+        pre_explore: bool = True,
+        goal_to_start: bool = True,
+        replay_before_reward: bool = False,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, seed=seed)
+        for name, value, lo, hi in (
+            ("epsilon", epsilon, 0.0, 1.0),
+            ("learning_rate", learning_rate, 0.0, 1.0),
+            ("gamma", gamma, 0.0, 0.999999),
+            ("transition_rate", transition_rate, 0.0, 1.0),
+        ):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not lo <= value <= hi
+            ):
+                raise ConfigError(f"agent.{name} must be a number in [{lo}, {hi}], got {value!r}")
+        if isinstance(n_backups, bool) or not isinstance(n_backups, int) or n_backups < 0:
+            raise ConfigError(f"agent.n_backups must be an integer >= 0, got {n_backups!r}")
+        if not isinstance(min_gain, int | float) or min_gain < 0:
+            raise ConfigError(f"agent.min_gain must be a number >= 0, got {min_gain!r}")
+        if not isinstance(beta, int | float) or beta < 0:
+            raise ConfigError(f"agent.beta must be a number >= 0, got {beta!r}")
+        base = env.unwrapped
+        if not hasattr(base, "world"):
+            raise ConfigError(
+                f"agent PMA needs a tabular gridworld (GridWorldEnv); got {type(base).__name__}"
+            )
+        self.beta, self.epsilon = float(beta), float(epsilon)
+        self.policy = _choice("agent.policy", policy, list(POLICIES))
+        self.learning_rate, self.gamma = float(learning_rate), float(gamma)
+        self.n_backups, self.min_gain = int(n_backups), float(min_gain)
+        self.extend = bool(extend)
+        self.replay = _choice("agent.replay", replay, REPLAY_WHEN)
+        self.need = _choice("agent.need", need, NEED)
+        self.transition_rate = float(transition_rate)
+        self.pre_explore, self.goal_to_start = bool(pre_explore), bool(goal_to_start)
+        self.replay_before_reward = bool(replay_before_reward)
+
+        world = base.world
+        S, A = int(env.observation_space.n), int(env.action_space.n)
+        self.n_states, self.n_actions = S, A
+        #: learned state (plain arrays; see :meth:`state_dict`)
+        self.Q = np.zeros((S, A))
+        self.T = np.zeros((S, S))
+        self.model_next = np.full((S, A), -1, np.int64)  # -1: never experienced
+        self.model_reward = np.zeros((S, A))
+        self.rewarded = np.zeros((), bool)  # a reward was experienced (replay may start)
+        self.last_terminal = np.array(-1, np.int64)  # terminal state the last trial ended in
+        self._init_model(world)
+        self._all_actions = np.ones(A, np.bool_)
+        #: replays of the last :meth:`train` call, one entry per backup (see ``REPLAY_FIELDS``)
+        self.last_replays: dict[str, np.ndarray] = self._empty_replays()
+
+    # -- model -----------------------------------------------------------------------------
+    def _init_model(self, world: object) -> None:
+        """Pre-exploration and goal-to-start wrap of the authors' code (``replaySim.m``)."""
+        free = ~world.blocked & ~world.terminal
+        if self.pre_explore:
+            T_world = world.T
+            succ = T_world.argmax(axis=2)  # most likely outcome (the only one if deterministic)
+            for s in np.flatnonzero(free):
+                self.model_next[s] = succ[s]
+                self.model_reward[s] = 0.0
+                self.T[s] = T_world[s].mean(axis=0)
+        if self.goal_to_start:
+            starts = np.asarray(world.starts, np.int64)
+            for g in np.flatnonzero(world.terminal & ~world.blocked):
+                self.T[g] = 0.0
+                self.T[g, starts] = 1.0 / len(starts)
+
+    def _learn_transition(self, s: int, s2: int) -> None:
+        row = self.T[s]
+        row *= 1.0 - self.transition_rate
+        row[s2] += self.transition_rate
+
+    def need_vector(self, state: int) -> np.ndarray:
+        """Need of every state for an agent in ``state`` (SR row or stationary distribution)."""
+        if self.need == "sr":
+            return successor_representation(self.T, self.gamma)[state]
+        return stationary_distribution(self.T)
+
+    # -- action selection ------------------------------------------------------------------
+    def act(self, state: int) -> int:
+        """Behaviour policy: softmax(beta) or epsilon-greedy (random tie-break) over ``Q[state]``."""
+        from cobelrun.agents.kernels import select_action
+
+        return int(
+            select_action(
+                self.rng, self.Q[state], self._all_actions, False, POLICIES[self.policy], self.epsilon,
+                self.beta,
+            )
+        )  # fmt: skip
+
+    # -- trials ----------------------------------------------------------------------------
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        from cobelrun.agents.kernels import q_update
+
+        env = self.env
+        terminal = np.ascontiguousarray(env.unwrapped.world.terminal, np.bool_)
+        no_mask = np.ones((1, 1), np.bool_)
+        at_start = self.replay in ("start_and_goal", "start")
+        at_goal = self.replay in ("start_and_goal", "goal")
+        self._log: list[dict[str, np.ndarray]] = []
+        trials = []
+        for trial in range(n_trials):
+            s, _ = env.reset()
+            s = int(s)
+            if learn and self.goal_to_start and self.last_terminal >= 0:
+                self._learn_transition(int(self.last_terminal), s)  # the wrap goal -> start
+            for cb in callbacks:
+                cb.on_trial_start(self, trial, s)
+            if learn and at_start and self._may_replay():
+                self._bout(s, s, trial, WHEN_START, terminal)
+            states, actions, rewards = [s], [], []
+            terminated = False
+            for step in range(1, max_steps + 1):
+                a = self.act(s)
+                s2, r, terminated, _, _ = env.step(a)
+                s2, r = int(s2), float(r)
+                if learn:
+                    q_update(self.Q, no_mask, False, s, a, r, s2, terminated,
+                             self.learning_rate, self.gamma)  # fmt: skip
+                    self.model_next[s, a] = s2
+                    self.model_reward[s, a] = r
+                    self._learn_transition(s, s2)
+                    if r != 0.0:
+                        self.rewarded[...] = True
+                states.append(s2)
+                actions.append(a)
+                rewards.append(r)
+                info = {"state": s, "action": a, "reward": r, "next_state": s2,
+                        "terminated": terminated}  # fmt: skip
+                keep_going = all([cb.on_step(self, trial, step, info) for cb in callbacks])
+                if terminated or not keep_going:
+                    break
+                s = s2
+            if learn and terminated:
+                self.last_terminal[...] = s2
+                if at_goal and self._may_replay():
+                    # the authors plan before moving the agent: need from the last action's state
+                    self._bout(s, s2, trial, WHEN_END, terminal)
+            record = {"states": states, "actions": actions, "rewards": rewards,
+                      "terminated": terminated}  # fmt: skip
+            for cb in callbacks:
+                cb.on_trial_end(self, trial, record)
+            trials.append(record)
+        self.last_replays = self._collect_log()
+        return TrialBatch.from_trials(trials)
+
+    def _may_replay(self) -> bool:
+        return self.n_backups > 0 and (self.replay_before_reward or bool(self.rewarded))
+
+    def _bout(self, need_state: int, agent_state: int, trial: int, when: int,
+              terminal: np.ndarray) -> None:  # fmt: skip
+        """One replay bout; its backups are appended to the log."""
+        from cobelrun.agents.replay_kernels import pma_bout
+
+        n = self.n_backups
+        out = {
+            "state": np.empty(n, np.int64), "action": np.empty(n, np.int64),
+            "next_state": np.empty(n, np.int64), "reward": np.empty(n),
+            "gain": np.empty(n), "need": np.empty(n), "length": np.empty(n, np.int64),
+        }  # fmt: skip
+        candidate = (self.model_next >= 0) & (self.model_next != np.arange(self.n_states)[:, None])
+        done = pma_bout(
+            self.rng, self.Q, self.model_next, self.model_reward, candidate, terminal,
+            np.ascontiguousarray(self.need_vector(need_state)), self.gamma,
+            self.learning_rate, self.beta, self.min_gain, n, self.extend,
+            out["state"], out["action"], out["next_state"], out["reward"], out["gain"],
+            out["need"], out["length"],
+        )  # fmt: skip
+        if done == 0:
+            return
+        entry = {k: v[:done] for k, v in out.items()}
+        entry["trial"] = np.full(done, trial, np.int64)
+        entry["when"] = np.full(done, when, np.int8)
+        entry["index"] = np.arange(done, dtype=np.int64)
+        entry["agent_state"] = np.full(done, agent_state, np.int64)
+        self._log.append(entry)
+
+    def _collect_log(self) -> dict[str, np.ndarray]:
+        if not self._log:
+            return self._empty_replays()
+        return {k: np.concatenate([e[k] for e in self._log]) for k in REPLAY_FIELDS}
+
+    @staticmethod
+    def _empty_replays() -> dict[str, np.ndarray]:
+        dtypes = {"when": np.int8, "reward": np.float64, "gain": np.float64, "need": np.float64}
+        return {k: np.zeros(0, dtypes.get(k, np.int64)) for k in REPLAY_FIELDS}
+
+    # -- inference and persistence ---------------------------------------------------------
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        obs = np.asarray(observations, dtype=np.int64).reshape(-1)
+        if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
+            raise ValueError(f"observations must be state indices in [0, {self.n_states})")
+        return self.Q[obs].copy()
+
+    def hyperparameters(self) -> dict:
+        return {
+            "beta": self.beta, "epsilon": self.epsilon, "policy": self.policy,
+            "learning_rate": self.learning_rate, "gamma": self.gamma,
+            "n_backups": self.n_backups, "min_gain": self.min_gain, "extend": self.extend,
+            "replay": self.replay, "need": self.need, "transition_rate": self.transition_rate,
+            "pre_explore": self.pre_explore, "goal_to_start": self.goal_to_start,
+            "replay_before_reward": self.replay_before_reward,
+        }  # fmt: skip
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The learned state: plain arrays, saved and loaded by name."""
+        return {
+            "Q": self.Q, "T": self.T, "model_next": self.model_next,
+            "model_reward": self.model_reward, "rewarded": self.rewarded,
+            "last_terminal": self.last_terminal,
+        }  # fmt: skip
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(".npz")
+        np.savez(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
+                 **self.state_dict())  # fmt: skip
+        return path
+
+    def load(self, path: str | Path) -> None:
+        with np.load(path, allow_pickle=False) as data:
+            for key, arr in self.state_dict().items():
+                if key not in data:
+                    raise ConfigError(f"saved agent {path} has no array {key!r}")
+                if data[key].shape != arr.shape:
+                    raise ConfigError(
+                        f"saved agent {path}: {key} has shape {data[key].shape}, "
+                        f"this environment needs {arr.shape}"
+                    )
+                arr[...] = data[key]

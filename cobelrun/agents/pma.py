@@ -208,7 +208,9 @@ class PMA(Agent):
     def need_vector(self, state: int) -> np.ndarray:
         """Need of every state for an agent in ``state`` (SR row or stationary distribution)."""
         if self.need == "sr":
-            return successor_representation(self.T, self.gamma)[state]
+            from cobelrun.agents.replay_kernels import sr_row
+
+            return sr_row(self.T, self.gamma, int(state))
         return stationary_distribution(self.T)
 
     # -- action selection ------------------------------------------------------------------

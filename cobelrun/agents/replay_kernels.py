@@ -142,8 +142,10 @@ def pma_bout(
     ext_a = np.empty(n_backups + 1, np.int64)
     ext_r = np.empty(n_backups + 1)
     done = 0
+    # gains of all 1-step candidates, then after each backup only of the pairs it can change
+    # (those leaving from or leading into a state whose Q row changed)
+    changed = np.ones(S, np.bool_)
     for p in range(n_backups):
-        # 1-step candidates
         best = -np.inf
         for s in range(S):
             ns = need[s]
@@ -153,14 +155,15 @@ def pma_bout(
                     gains[i] = -np.inf
                     continue
                 nxt = model_next[s, a]
-                target = model_reward[s, a] + gamma * _state_value(Q, nxt, terminal)
-                g = backup_gain(Q, s, a, target, alpha, beta, qbuf)
-                if g < min_gain:
-                    g = min_gain
-                gains[i] = g
-                evb = ns * g
+                if changed[s] or changed[nxt]:
+                    target = model_reward[s, a] + gamma * _state_value(Q, nxt, terminal)
+                    g = backup_gain(Q, s, a, target, alpha, beta, qbuf)
+                    gains[i] = g if g > min_gain else min_gain
+                evb = ns * gains[i]
                 if evb > best:
                     best = evb
+        for s in range(S):
+            changed[s] = False
         # the current sequence extended by one greedy step
         ext_len = 0
         ext_evb = -np.inf
@@ -228,6 +231,7 @@ def pma_bout(
             ret = seq_r[j] + gamma * ret
             sj, aj = seq_s[j], seq_a[j]
             Q[sj, aj] += alpha * (ret - Q[sj, aj])
+            changed[sj] = True
         out_state[p] = last_s
         out_action[p] = last_a
         out_next[p] = final
@@ -237,3 +241,45 @@ def pma_bout(
         out_length[p] = seq_len
         done += 1
     return done
+
+
+@njit(cache=True)
+def sr_row(T, gamma, i):
+    """Row ``i`` of the successor representation ``(I - gamma T)^-1``.
+
+    Solves ``(I - gamma T)^T m = e_i`` by Gaussian elimination with partial pivoting (one row
+    instead of the whole inverse).
+    """
+    n = T.shape[0]
+    M = np.empty((n, n))
+    for r in range(n):
+        for c in range(n):
+            M[r, c] = -gamma * T[c, r]
+        M[r, r] += 1.0
+    b = np.zeros(n)
+    b[i] = 1.0
+    for k in range(n):
+        piv = k
+        big = abs(M[k, k])
+        for r in range(k + 1, n):
+            if abs(M[r, k]) > big:
+                big = abs(M[r, k])
+                piv = r
+        if piv != k:
+            for c in range(n):
+                M[k, c], M[piv, c] = M[piv, c], M[k, c]
+            b[k], b[piv] = b[piv], b[k]
+        inv = 1.0 / M[k, k]
+        for r in range(k + 1, n):
+            f = M[r, k] * inv
+            if f != 0.0:
+                for c in range(k, n):
+                    M[r, c] -= f * M[k, c]
+                b[r] -= f * b[k]
+    x = np.empty(n)
+    for k in range(n - 1, -1, -1):
+        acc = b[k]
+        for c in range(k + 1, n):
+            acc -= M[k, c] * x[c]
+        x[k] = acc / M[k, k]
+    return x

@@ -30,6 +30,7 @@ import numpy as np
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.codes import POLICIES
+from cobelrun.envs.base import TabularModel
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -153,7 +154,7 @@ class PMA(Agent):
         if not isinstance(beta, int | float) or beta < 0:
             raise ConfigError(f"agent.beta must be a number >= 0, got {beta!r}")
         base = env.unwrapped
-        if not hasattr(base, "world"):
+        if not isinstance(base, TabularModel):
             raise ConfigError(
                 f"agent PMA needs a tabular gridworld (GridWorldEnv); got {type(base).__name__}"
             )

@@ -7,6 +7,7 @@ from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.pma import PMA
+from cobelrun.agents.successor import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
 from cobelrun.errors import CobelError
 
 #: deep and episodic agents, imported on first use (torch / stable-baselines3 / scipy stay lazy)
@@ -19,6 +20,11 @@ _LAZY = {
 
 __all__ = [
     "PMA",
+    "SRMB",
+    "SRTD",
+    "SRDyna",
+    "SuccessorCore",
+    "ValueIteration",
     "Agent",
     "ArraySpec",
     "DynaQ",

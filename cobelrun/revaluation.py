@@ -6,8 +6,9 @@ One small tabular world (:func:`revaluation_world`), drawn as a graph::
           --a2--> B --up--> end_B1
                     --down--> pre_B2 --up--> end_B2
 
-Phase 1 (training) starts every trial at ``start``; the agent learns to choose ``a0`` (towards
-``end_A``). Phase 2 (revaluation) never starts at ``start``, so a changed preference there has to
+Phase 1 (training) starts each trial in a uniformly drawn non-terminal state (``start``, ``A``,
+``B`` or ``pre_B2``), so that every branch is experienced; the agent learns to choose ``a0`` at
+``start`` (towards ``end_A``). Phase 2 (revaluation) never starts at ``start``, so a changed preference there has to
 come from the agent's representation or from replay:
 
 * ``reward`` (latent learning): trials start at ``A`` or ``B``; rewards become end_A 1, end_B1 10;
@@ -62,7 +63,8 @@ def transitions(swap: bool = False) -> np.ndarray:
 
 
 def revaluation_world() -> World:
-    """The phase-1 world: start -> {A, B} -> ends, rewards end_A 10, end_B1 1, end_B2 0."""
+    """The phase-1 world: start -> {A, B} -> ends, rewards end_A 10, end_B1 1, end_B2 0; trials
+    start in any non-terminal state."""
     p = PLACES
     n = len(p)
     rewards = np.zeros(n)
@@ -71,7 +73,7 @@ def revaluation_world() -> World:
     terminal[[p["end_A"], p["end_B1"], p["end_B2"]]] = True
     coords = np.array([[0, 1], [1, 2], [1, 0], [2, 2], [2, 1], [2, -1], [3, -1]], float)
     return World(width=n, height=1, T=transitions(), rewards=rewards, terminal=terminal,
-                 starts=[p["start"]], coords=coords, blocked=np.zeros(n, bool),
+                 starts=[p["start"], p["A"], p["B"], p["pre_B2"]], coords=coords, blocked=np.zeros(n, bool),
                  places=dict(p))  # fmt: skip
 
 

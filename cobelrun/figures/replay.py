@@ -58,3 +58,21 @@ def plot_replay_on_maze(world: Any, bout: pd.DataFrame, ax: Any, color: str = "t
     ax.scatter([cols[agent]], [rows[agent]], s=40, facecolor="none", edgecolor="b", zorder=3)
     ax.set_xticks([])
     ax.set_yticks([])
+
+
+def plot_revaluation(scores: pd.DataFrame, design: str, ax: Any) -> pd.DataFrame:
+    """Revaluation score per agent (and replay budget) for one design, as bars in [-1, 1]."""
+    rows = scores[scores["design"] == design].copy()
+    rows["label"] = [
+        a if b < 0 else f"{a} ({b})"
+        for a, b in zip(rows["agent"], rows["replay_budget"], strict=True)
+    ]
+    agents = list(dict.fromkeys(rows["agent"]))
+    palette = {a: f"C{i}" for i, a in enumerate(agents)}
+    x = np.arange(len(rows))
+    ax.bar(x, rows["score"], color=[palette[a] for a in rows["agent"]])
+    ax.set_xticks(x, rows["label"], rotation=70, ha="right")
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_ylim(-0.1, 1.05)
+    ax.set_title(f"{design} revaluation")
+    return rows

@@ -116,17 +116,19 @@ def bench_cobel(agent: object, bouts: int, repeats: int) -> dict:
     terminal = np.ascontiguousarray(world.terminal, np.bool_)
     start = int(world.starts[0])
     Q0 = agent.Q.copy()
-    agent._log = []
+    from cobelrun.agents.replay_log import ReplayLog
+
+    agent._log = ReplayLog()
     agent._bout(start, start, 0, 0, terminal)  # compile / load the cache
     best = np.inf
     for _ in range(repeats):
-        agent._log = []
+        agent._log = ReplayLog()
         t0 = time.perf_counter()
         for _ in range(bouts):
             agent.Q[...] = Q0
             agent._bout(start, start, 0, 0, terminal)
         best = min(best, time.perf_counter() - t0)
-    done = sum(len(e["state"]) for e in agent._log)
+    done = int(agent._log.collect()["state"].size)
     agent.Q[...] = Q0
     return {"seconds": best, "backups": done}
 

@@ -190,3 +190,46 @@ def test_cli_writes_the_replays_table(cobel, tmp_path):
                  "task.protocol.phases.0.trials=2", f"hydra.run.dir={out_q}")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert pd.read_parquet(out_q / "replays.parquet").empty
+
+
+def test_sfma_replays_form_sequences_whose_direction_depends_on_the_mode():
+    from cobelrun.agents import SFMA
+
+    share = {}
+    for mode in ("default", "reverse"):
+        _, replays = run_agents(SFMA, runs=5, trials=15, mode=mode)
+        assert replays["when"].eq("end").all() and replays["need"].isna().all()
+        events = replay_events(replays)
+        counts = direction_counts(events, min_length=3).loc["end"]
+        assert counts.sum() >= 50  # replays form sequences of >= 3 experiences
+        share[mode] = counts["reverse"] / counts.sum()
+    assert share["reverse"] >= 0.9, share
+    assert share["reverse"] > share["default"] + 0.2, share
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        (dict(mode="backward"), "agent.mode 'backward' is not known"),
+        (dict(similarity="dr2"), "did you mean 'dr'"),
+        (dict(decay_inhibition=1.5), r"agent.decay_inhibition must be a number in \[0, 1.0\]"),
+    ],
+)
+def test_sfma_bad_parameters(kw, match):
+    from cobelrun.agents import SFMA
+
+    with pytest.raises(ConfigError, match=match):
+        SFMA(dyna_maze_env(), **kw)
+
+
+def test_sfma_similarities():
+    from cobelrun.agents.sfma import default_representation, euclidean_similarity
+
+    world = dyna_maze_env().unwrapped.world
+    dr = default_representation(world.T, 0.9)
+    start, goal = world.places["start"], world.places["goal"]
+    # the DR respects walls: the cell right of the start (behind no wall) is closer than the
+    # cell two columns right (behind the wall at column 3)
+    assert dr[start, start + 1] > dr[start, start + 3]
+    eu = euclidean_similarity(world.coords)
+    assert eu[start, start] == 1.0 and eu[start, goal] == pytest.approx(np.exp(-np.hypot(8, 2)))

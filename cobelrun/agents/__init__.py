@@ -7,6 +7,7 @@ from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.pma import PMA
+from cobelrun.agents.sfma import SFMA
 from cobelrun.agents.successor import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
 from cobelrun.errors import CobelError
 
@@ -20,6 +21,7 @@ _LAZY = {
 
 __all__ = [
     "PMA",
+    "SFMA",
     "SRMB",
     "SRTD",
     "SRDyna",

@@ -30,18 +30,13 @@ import numpy as np
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.codes import POLICIES
+from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
 from cobelrun.envs.base import TabularModel
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
 REPLAY_WHEN = ("start_and_goal", "start", "goal", "off")
 NEED = ("sr", "stationary")
-#: columns of :attr:`PMA.last_replays` (one entry per backup)
-REPLAY_FIELDS = (
-    "trial", "when", "index", "agent_state", "state", "action", "next_state", "reward", "gain",
-    "need", "length",
-)  # fmt: skip
-WHEN_START, WHEN_END = 0, 1
 
 
 def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
@@ -181,8 +176,8 @@ class PMA(Agent):
         self.last_terminal = np.array(-1, np.int64)  # terminal state the last trial ended in
         self._init_model(world)
         self._all_actions = np.ones(A, np.bool_)
-        #: replays of the last :meth:`train` call, one entry per backup (see ``REPLAY_FIELDS``)
-        self.last_replays: dict[str, np.ndarray] = self._empty_replays()
+        #: replays of the last :meth:`train` call, one entry per backup (``replay_log.REPLAY_FIELDS``)
+        self.last_replays: dict[str, np.ndarray] = empty_replays()
 
     # -- model -----------------------------------------------------------------------------
     def _init_model(self, world: object) -> None:
@@ -237,7 +232,7 @@ class PMA(Agent):
         no_mask = np.ones((1, 1), np.bool_)
         at_start = self.replay in ("start_and_goal", "start")
         at_goal = self.replay in ("start_and_goal", "goal")
-        self._log: list[dict[str, np.ndarray]] = []
+        self._log = ReplayLog()
         trials = []
         for trial in range(n_trials):
             s, _ = env.reset()
@@ -281,7 +276,7 @@ class PMA(Agent):
             for cb in callbacks:
                 cb.on_trial_end(self, trial, record)
             trials.append(record)
-        self.last_replays = self._collect_log()
+        self.last_replays = self._log.collect()
         return TrialBatch.from_trials(trials)
 
     def _may_replay(self) -> bool:
@@ -306,24 +301,7 @@ class PMA(Agent):
             out["state"], out["action"], out["next_state"], out["reward"], out["gain"],
             out["need"], out["length"],
         )  # fmt: skip
-        if done == 0:
-            return
-        entry = {k: v[:done] for k, v in out.items()}
-        entry["trial"] = np.full(done, trial, np.int64)
-        entry["when"] = np.full(done, when, np.int8)
-        entry["index"] = np.arange(done, dtype=np.int64)
-        entry["agent_state"] = np.full(done, agent_state, np.int64)
-        self._log.append(entry)
-
-    def _collect_log(self) -> dict[str, np.ndarray]:
-        if not self._log:
-            return self._empty_replays()
-        return {k: np.concatenate([e[k] for e in self._log]) for k in REPLAY_FIELDS}
-
-    @staticmethod
-    def _empty_replays() -> dict[str, np.ndarray]:
-        dtypes = {"when": np.int8, "reward": np.float64, "gain": np.float64, "need": np.float64}
-        return {k: np.zeros(0, dtypes.get(k, np.int64)) for k in REPLAY_FIELDS}
+        self._log.add(trial, when, agent_state, **{k: v[:done] for k, v in out.items()})
 
     # -- inference and persistence ---------------------------------------------------------
     def predict(self, observations: np.ndarray) -> np.ndarray:

@@ -283,3 +283,86 @@ def sr_row(T, gamma, i):
             acc -= M[k, c] * x[c]
         x[k] = acc / M[k, k]
     return x
+
+
+@njit(cache=True, nogil=True)
+def sfma_bout(
+    rng, Q, model_next, model_reward, terminal, strength, similarity, start_state,
+    reverse, beta_replay, decay_inhibition, threshold, deterministic, n_backups, alpha, gamma,
+    out_state, out_action, out_next, out_reward, out_priority,
+):  # fmt: skip
+    """One replay bout of SFMA (Diekmann & Cheng 2023); returns the number of reactivations.
+
+    Priority of experience ``e = (s, a)`` given the last reactivated ``(s_c, s'_c)``:
+    ``R(e) = C(e) * D(s_c, x(e)) * (1 - I(s))`` with ``x(e) = s`` (default mode) or
+    ``x(e) = s'(e)`` (reverse mode: experiences that end where the current one starts);
+    ``C`` the experience strength (frequency), ``D`` the similarity of states, ``I`` the
+    inhibition of return (reset per bout; after each reactivation ``I *= decay``,
+    ``I(s) = min(I(s) + 1, 1)``). ``R`` is normalised by its maximum, thresholded and turned
+    into reactivation probabilities ``softmax(beta_replay * R)`` over the experiences with
+    ``R > threshold`` (or the argmax if ``deterministic``). Every reactivated experience is
+    a Q-learning backup with rate ``alpha``.
+    """
+    S, A = Q.shape
+    inhibition = np.zeros(S)
+    prio = np.empty(S * A)
+    cur_s = start_state
+    done = 0
+    for p in range(n_backups):
+        best = 0.0
+        for s in range(S):
+            for a in range(A):
+                i = s * A + a
+                prio[i] = 0.0
+                nxt = model_next[s, a]
+                if nxt < 0 or strength[s, a] <= 0.0:
+                    continue
+                x = nxt if reverse else s
+                r = strength[s, a] * similarity[cur_s, x] * (1.0 - inhibition[s])
+                prio[i] = r
+                if r > best:
+                    best = r
+        if best <= 0.0:
+            break
+        total = 0.0
+        chosen = -1
+        for i in range(S * A):
+            r = prio[i] / best
+            if r < threshold:
+                prio[i] = 0.0
+            else:
+                prio[i] = np.exp(beta_replay * (r - 1.0))
+                total += prio[i]
+                if deterministic and chosen < 0 and r == 1.0:
+                    chosen = i
+        if not deterministic:
+            u = rng.random() * total
+            c = 0.0
+            for i in range(S * A):
+                if prio[i] > 0.0:
+                    c += prio[i]
+                    chosen = i
+                    if u < c:
+                        break
+        s, a = chosen // A, chosen % A
+        nxt = model_next[s, a]
+        # backup and inhibition of return
+        target = model_reward[s, a]
+        if not terminal[nxt]:
+            v = Q[nxt, 0]
+            for b in range(1, A):
+                if Q[nxt, b] > v:
+                    v = Q[nxt, b]
+            target += gamma * v
+        Q[s, a] += alpha * (target - Q[s, a])
+        for k in range(S):
+            inhibition[k] *= decay_inhibition
+        inhibition[s] = min(inhibition[s] + 1.0, 1.0)
+        out_state[p] = s
+        out_action[p] = a
+        out_next[p] = nxt
+        out_reward[p] = model_reward[s, a]
+        out_priority[p] = prio[chosen] / total
+        cur_s = s
+        done += 1
+    return done

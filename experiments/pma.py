@@ -21,7 +21,7 @@ def draw(data: FigureData):
     import matplotlib.pyplot as plt
 
     from cobelrun.config import instantiate
-    from cobelrun.results import load_trials
+    from cobelrun.results import load_table
 
     fig, axes = plt.subplots(1, 4, figsize=(10, 2.4), constrained_layout=True)
     columns = {}
@@ -32,8 +32,8 @@ def draw(data: FigureData):
     axes[0].legend()
     axes[0].set_title("steps per trial")
     run_dirs = data.run_dirs("pma")
-    replays = pd.concat([pd.read_parquet(d / "replays.parquet") for d in run_dirs])
-    trials = pd.concat([load_trials(d) for d in run_dirs])
+    replays = pd.concat([load_table(d, "replays") for d in run_dirs])
+    trials = pd.concat([load_table(d, "trials") for d in run_dirs])
     events = replay_events(replays)
     rate = plot_direction(events, len(trials), axes[1])
     axes[1].set_title("PMA replay direction")

@@ -125,3 +125,26 @@ def test_cli_revaluation_writes_scores(cobel, tmp_path):
     assert set(scores["agent"]) == {"q_learning", "dyna_q", "sr_td", "sr_mb", "sr_dyna",
                                     "value_iteration"}  # fmt: skip
     assert scores["score"].between(-1, 1).all() and (scores["runs"] == 2).all()
+
+
+@pytest.mark.slow
+def test_revaluation_pattern_with_20_runs_and_replay_budgets():
+    """The acceptance setting (20 runs) and how the pattern changes with the replay budget."""
+    cfg = _compose("task=reward_revaluation")
+    scores = {}
+    for design in ("reward", "transition", "policy"):
+        job = RevaluationJob(design=design, agents=cfg.task.job.agents, runs=20,
+                             replay_budgets=[1, 10, 50])  # fmt: skip
+        table = revaluation_scores(job.table(seed=0))
+        for row in table.itertuples():
+            scores[(design, row.agent, row.replay_budget)] = row.score
+    for design in ("reward", "transition", "policy"):
+        assert scores[(design, "q_learning", -1)] == 0.0
+        assert scores[(design, "value_iteration", -1)] >= 0.9
+        for agent in ("dyna_q", "sr_dyna"):
+            assert scores[(design, agent, 50)] >= 0.9, (design, agent)
+    # little replay: SR-Dyna still revalues rewards; policy revaluation needs more replay
+    assert scores[("reward", "sr_dyna", 1)] >= 0.9
+    assert scores[("policy", "sr_dyna", 1)] <= 0.3 and scores[("policy", "dyna_q", 1)] <= 0.3
+    assert scores[("reward", "sr_td", -1)] >= 0.9 and scores[("transition", "sr_td", -1)] <= 0.1
+    assert scores[("transition", "sr_mb", -1)] >= 0.9 and scores[("policy", "sr_mb", -1)] <= 0.1

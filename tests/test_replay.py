@@ -233,3 +233,18 @@ def test_sfma_similarities():
     assert dr[start, start + 1] > dr[start, start + 3]
     eu = euclidean_similarity(world.coords)
     assert eu[start, start] == 1.0 and eu[start, goal] == pytest.approx(np.exp(-np.hypot(8, 2)))
+
+
+def test_need_is_the_sr_row_or_the_stationary_distribution():
+    from cobelrun.agents.pma import successor_representation
+    from cobelrun.agents.replay_kernels import sr_row
+
+    agent = PMA(dyna_maze_env(), seed=0, **SETTING)
+    start = int(agent.env.unwrapped.world.starts[0])
+    full = successor_representation(agent.T, 0.9)
+    np.testing.assert_allclose(sr_row(agent.T, 0.9, start), full[start], atol=1e-12)
+    np.testing.assert_allclose(agent.need_vector(start), full[start], atol=1e-12)
+    stationary = PMA(dyna_maze_env(), seed=0, need="stationary", **SETTING)
+    d = stationary.need_vector(start)
+    np.testing.assert_allclose(d @ stationary.T, d, atol=1e-9)  # a left eigenvector, eigenvalue 1
+    assert np.linalg.norm(d) == pytest.approx(1.0) and (d >= 0).all()

@@ -32,20 +32,11 @@ from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.codes import POLICIES
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
 from cobelrun.envs.base import TabularModel
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError, check_choice
 from cobelrun.records import TrialBatch
 
 REPLAY_WHEN = ("start_and_goal", "start", "goal", "off")
 NEED = ("sr", "stationary")
-
-
-def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
-    if value not in allowed:
-        raise ConfigError(
-            f"{kind} {value!r} is not known{suggest(str(value), allowed)}; "
-            f"allowed: {allowed_list(allowed)}"
-        )
-    return value
 
 
 def successor_representation(T: np.ndarray, gamma: float) -> np.ndarray:
@@ -154,12 +145,12 @@ class PMA(Agent):
                 f"agent PMA needs a tabular gridworld (GridWorldEnv); got {type(base).__name__}"
             )
         self.beta, self.epsilon = float(beta), float(epsilon)
-        self.policy = _choice("agent.policy", policy, list(POLICIES))
+        self.policy = check_choice("agent.policy", policy, list(POLICIES))
         self.learning_rate, self.gamma = float(learning_rate), float(gamma)
         self.n_backups, self.min_gain = int(n_backups), float(min_gain)
         self.extend = bool(extend)
-        self.replay = _choice("agent.replay", replay, REPLAY_WHEN)
-        self.need = _choice("agent.need", need, NEED)
+        self.replay = check_choice("agent.replay", replay, REPLAY_WHEN)
+        self.need = check_choice("agent.need", need, NEED)
         self.transition_rate = float(transition_rate)
         self.pre_explore, self.goal_to_start = bool(pre_explore), bool(goal_to_start)
         self.replay_before_reward = bool(replay_before_reward)

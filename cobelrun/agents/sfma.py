@@ -32,21 +32,12 @@ from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.codes import POLICIES
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
 from cobelrun.envs.base import TabularModel
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError, check_choice
 from cobelrun.records import TrialBatch
 
 MODES = ("default", "reverse")
 SIMILARITY = ("dr", "euclidean")
 REPLAY_WHEN = ("end", "start_and_end", "off")
-
-
-def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
-    if value not in allowed:
-        raise ConfigError(
-            f"{kind} {value!r} is not known{suggest(str(value), allowed)}; "
-            f"allowed: {allowed_list(allowed)}"
-        )
-    return value
 
 
 def default_representation(T: np.ndarray, gamma: float) -> np.ndarray:
@@ -143,10 +134,10 @@ class SFMA(Agent):
                 raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
         if isinstance(n_backups, bool) or not isinstance(n_backups, int) or n_backups < 0:
             raise ConfigError(f"agent.n_backups must be an integer >= 0, got {n_backups!r}")
-        self.policy = _choice("agent.policy", policy, list(POLICIES))
-        self.mode = _choice("agent.mode", mode, MODES)
-        self.similarity_kind = _choice("agent.similarity", similarity, SIMILARITY)
-        self.replay = _choice("agent.replay", replay, REPLAY_WHEN)
+        self.policy = check_choice("agent.policy", policy, list(POLICIES))
+        self.mode = check_choice("agent.mode", mode, MODES)
+        self.similarity_kind = check_choice("agent.similarity", similarity, SIMILARITY)
+        self.replay = check_choice("agent.replay", replay, REPLAY_WHEN)
         self.epsilon, self.beta = float(epsilon), float(beta)
         self.learning_rate, self.gamma, self.gamma_dr = (
             float(learning_rate),

@@ -37,7 +37,7 @@ import numpy as np
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.agents.codes import POLICIES
 from cobelrun.envs.base import TabularModel
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError, check_choice
 from cobelrun.records import TrialBatch
 
 
@@ -98,15 +98,6 @@ class SuccessorCore:
         self.M[...] = T @ N
 
 
-def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
-    if value not in allowed:
-        raise ConfigError(
-            f"{kind} {value!r} is not known{suggest(str(value), allowed)}; "
-            f"allowed: {allowed_list(allowed)}"
-        )
-    return value
-
-
 def _check_rate(name: str, value: object, hi: float = 1.0) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= hi:
         raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
@@ -154,7 +145,7 @@ class TabularModelAgent(Agent):
                 f"agent {type(self).__name__} needs a tabular gridworld (GridWorldEnv); "
                 f"got {type(env.unwrapped).__name__}"
             )
-        self.policy = _choice("agent.policy", policy, list(POLICIES))
+        self.policy = check_choice("agent.policy", policy, list(POLICIES))
         self.epsilon = _check_rate("epsilon", epsilon)
         self.beta = float(beta)
         self.gamma = _check_rate("gamma", gamma, 0.999999)

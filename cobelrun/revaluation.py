@@ -123,7 +123,7 @@ class RevaluationJob:
         design: str,
         agents: Mapping[str, Any],
         runs: int = 20,
-        training_trials: int = 100,
+        training_trials: int = 200,
         revaluation_trials: int = 20,
         max_steps: int = 10,
         replay_budgets: list[int] | tuple[int, ...] = (10,),

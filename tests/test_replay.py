@@ -144,10 +144,10 @@ def test_save_load_round_trip(tmp_path):
     path = agent.save(tmp_path / "pma")
     other = PMA(env, seed=2, **SETTING)
     other.load(path)
-    for key, arr in agent.state_dict().items():
-        np.testing.assert_array_equal(other.state_dict()[key], arr)
+    for key, arr in agent.get_state().items():
+        np.testing.assert_array_equal(other.get_state()[key], arr)
     small = PMA(GridWorldEnv(open_field(3, 3)), seed=0)
-    with pytest.raises(ConfigError, match="has shape"):
+    with pytest.raises(ConfigError, match="expected shape"):
         small.load(path)
 
 
@@ -169,7 +169,7 @@ def test_bad_parameters_one_line_config_error(kw, match):
 def test_pma_needs_a_tabular_world():
     from cobelrun.envs.choice import TwoAFCEnv
 
-    with pytest.raises(ConfigError, match=r"does not support observation space|needs a tabular"):
+    with pytest.raises(ConfigError, match=r"does not support observation space|needs an environment with .tabular_model."):
         PMA(TwoAFCEnv(), seed=0)
 
 

@@ -56,8 +56,8 @@ def test_seeded_runs_repeat_and_save_load_round_trip(cls, tmp_path):
     path = a.save(tmp_path / "agent")
     c, _ = trained(4)
     c.load(path)
-    for key, arr in a.state_dict().items():
-        np.testing.assert_array_equal(c.state_dict()[key], arr)
+    for key, arr in a.get_state().items():
+        np.testing.assert_array_equal(c.get_state()[key], arr)
     np.testing.assert_allclose(c.predict(np.arange(16)), a.predict(np.arange(16)))
 
 

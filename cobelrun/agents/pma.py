@@ -21,17 +21,15 @@ authors' code. See ``docs/replay.md`` for the equations and the departures from 
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
-from cobelrun.agents.codes import POLICIES
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
+from cobelrun.agents.policy import check_policy, select
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
-from cobelrun.envs.base import TabularModel
 from cobelrun.errors import ConfigError, check_choice
 from cobelrun.records import TrialBatch
 
@@ -99,6 +97,7 @@ class PMA(Agent):
 
     observation_spaces = (gym.spaces.Discrete,)
     action_spaces = (gym.spaces.Discrete,)
+    requires = ("tabular_model",)
 
     def __init__(
         self,
@@ -140,12 +139,8 @@ class PMA(Agent):
         if not isinstance(beta, int | float) or beta < 0:
             raise ConfigError(f"agent.beta must be a number >= 0, got {beta!r}")
         base = env.unwrapped
-        if not isinstance(base, TabularModel):
-            raise ConfigError(
-                f"agent PMA needs a tabular gridworld (GridWorldEnv); got {type(base).__name__}"
-            )
         self.beta, self.epsilon = float(beta), float(epsilon)
-        self.policy = check_choice("agent.policy", policy, list(POLICIES))
+        self.policy = check_policy(policy)
         self.learning_rate, self.gamma = float(learning_rate), float(gamma)
         self.n_backups, self.min_gain = int(n_backups), float(min_gain)
         self.extend = bool(extend)
@@ -166,7 +161,8 @@ class PMA(Agent):
         self.rewarded = np.zeros((), bool)  # a reward was experienced (replay may start)
         self.last_terminal = np.array(-1, np.int64)  # terminal state the last trial ended in
         self._init_model(world)
-        self._all_actions = np.ones(A, np.bool_)
+        self._no_mask = np.ones((1, 1), np.bool_)
+        self._trial, self._last = -1, None
         #: replays of the last :meth:`train` call, one entry per backup (``replay_log.REPLAY_FIELDS``)
         self.last_replays: dict[str, np.ndarray] = empty_replays()
 
@@ -201,80 +197,60 @@ class PMA(Agent):
         return stationary_distribution(self.T)
 
     # -- action selection ------------------------------------------------------------------
-    def act(self, state: int) -> int:
-        """Behaviour policy: softmax(beta) or epsilon-greedy (random tie-break) over ``Q[state]``."""
-        from cobelrun.agents.kernels import select_action
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Behaviour policy: softmax(beta) or epsilon-greedy (random tie-break) over ``Q[s]``."""
+        return select(self.rng, self.Q[int(obs)], self.policy, self.epsilon, self.beta)
 
-        return int(
-            select_action(
-                self.rng, self.Q[state], self._all_actions, False, POLICIES[self.policy], self.epsilon,
-                self.beta,
-            )
-        )  # fmt: skip
-
-    # -- trials ----------------------------------------------------------------------------
+    # -- trials: the base class's step loop with these hooks --------------------------------
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
+        self._log = ReplayLog()
+        self._trial = -1
+        batch = super()._run(n_trials, max_steps, learn, callbacks)
+        self.last_replays = self._log.collect()
+        return batch
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        """The goal -> start wrap of ``T``, then the trial-start replay."""
+        self._trial += 1
+        self._last = None
+        s = int(obs)
+        if learn and self.goal_to_start and self.last_terminal >= 0:
+            self._learn_transition(int(self.last_terminal), s)
+        if learn and self.replay in ("start_and_goal", "start") and self._may_replay():
+            self._bout(s, s, self._trial, WHEN_START)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        """Online Q-learning and the model (last outcome of ``(s, a)``, transitions ``T``)."""
+        s, a, r, s2 = transition.state, transition.action, transition.reward, transition.next_state
+        self._last = (s, s2, transition.terminated)
+        if not learn:
+            return
         from cobelrun.agents.kernels import q_update
 
-        env = self.env
-        terminal = np.ascontiguousarray(env.unwrapped.world.terminal, np.bool_)
-        no_mask = np.ones((1, 1), np.bool_)
-        at_start = self.replay in ("start_and_goal", "start")
-        at_goal = self.replay in ("start_and_goal", "goal")
-        self._log = ReplayLog()
-        trials = []
-        for trial in range(n_trials):
-            s, _ = env.reset()
-            s = int(s)
-            if learn and self.goal_to_start and self.last_terminal >= 0:
-                self._learn_transition(int(self.last_terminal), s)  # the wrap goal -> start
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            if learn and at_start and self._may_replay():
-                self._bout(s, s, trial, WHEN_START, terminal)
-            states, actions, rewards = [s], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = self.act(s)
-                s2, r, terminated, _, _ = env.step(a)
-                s2, r = int(s2), float(r)
-                if learn:
-                    q_update(self.Q, no_mask, False, s, a, r, s2, terminated,
-                             self.learning_rate, self.gamma)  # fmt: skip
-                    self.model_next[s, a] = s2
-                    self.model_reward[s, a] = r
-                    self._learn_transition(s, s2)
-                    if r != 0.0:
-                        self.rewarded[...] = True
-                states.append(s2)
-                actions.append(a)
-                rewards.append(r)
-                info = {"state": s, "action": a, "reward": r, "next_state": s2,
-                        "terminated": terminated}  # fmt: skip
-                keep_going = all([cb.on_step(self, trial, step, info) for cb in callbacks])
-                if terminated or not keep_going:
-                    break
-                s = s2
-            if learn and terminated:
-                self.last_terminal[...] = s2
-                if at_goal and self._may_replay():
-                    # the authors plan before moving the agent: need from the last action's state
-                    self._bout(s, s2, trial, WHEN_END, terminal)
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": terminated}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        self.last_replays = self._log.collect()
-        return TrialBatch.from_trials(trials)
+        q_update(self.Q, self._no_mask, False, s, a, r, s2, transition.terminated,
+                 self.learning_rate, self.gamma)  # fmt: skip
+        self.model_next[s, a] = s2
+        self.model_reward[s, a] = r
+        self._learn_transition(s, s2)
+        if r != 0.0:
+            self.rewarded[...] = True
+
+    def end_trial(self, learn: bool) -> None:
+        """On arriving at the goal: the goal replay (need from the last action's state, as the
+        authors plan before moving the agent)."""
+        if not (learn and self._last is not None and self._last[2]):
+            return
+        s, s2, _ = self._last
+        self.last_terminal[...] = s2
+        if self.replay in ("start_and_goal", "goal") and self._may_replay():
+            self._bout(s, s2, self._trial, WHEN_END)
 
     def _may_replay(self) -> bool:
         return self.n_backups > 0 and (self.replay_before_reward or bool(self.rewarded))
 
-    def _bout(self, need_state: int, agent_state: int, trial: int, when: int,
-              terminal: np.ndarray) -> None:  # fmt: skip
+    def _bout(self, need_state: int, agent_state: int, trial: int, when: int) -> None:
         """One replay bout; its backups are appended to the log."""
         from cobelrun.agents.replay_kernels import pma_bout
 
@@ -285,6 +261,7 @@ class PMA(Agent):
             "gain": np.empty(n), "need": np.empty(n), "length": np.empty(n, np.int64),
         }  # fmt: skip
         candidate = (self.model_next >= 0) & (self.model_next != np.arange(self.n_states)[:, None])
+        terminal = np.ascontiguousarray(self.env.unwrapped.world.terminal, np.bool_)
         done = pma_bout(
             self.rng, self.Q, self.model_next, self.model_reward, candidate, terminal,
             np.ascontiguousarray(self.need_vector(need_state)), self.gamma,
@@ -311,30 +288,23 @@ class PMA(Agent):
             "replay_before_reward": self.replay_before_reward,
         }  # fmt: skip
 
-    def state_dict(self) -> dict[str, np.ndarray]:
-        """The learned state: plain arrays, saved and loaded by name."""
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {
+            "Q": ArraySpec((S, A)), "T": ArraySpec((S, S), low=0.0, high=1.0 + 1e-9),
+            "model_next": ArraySpec((S, A), "i", low=-1, high=S),
+            "model_reward": ArraySpec((S, A)), "rewarded": ArraySpec((), "b"),
+            "last_terminal": ArraySpec((), "i", low=-1, high=S),
+        }  # fmt: skip
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The learned state: plain arrays (see :meth:`state_schema`)."""
         return {
             "Q": self.Q, "T": self.T, "model_next": self.model_next,
             "model_reward": self.model_reward, "rewarded": self.rewarded,
             "last_terminal": self.last_terminal,
         }  # fmt: skip
 
-    def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        np.savez(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                 **self.state_dict())  # fmt: skip
-        return path
-
-    def load(self, path: str | Path) -> None:
-        with np.load(path, allow_pickle=False) as data:
-            for key, arr in self.state_dict().items():
-                if key not in data:
-                    raise ConfigError(f"saved agent {path} has no array {key!r}")
-                if data[key].shape != arr.shape:
-                    raise ConfigError(
-                        f"saved agent {path}: {key} has shape {data[key].shape}, "
-                        f"this environment needs {arr.shape}"
-                    )
-                arr[...] = data[key]
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for key, arr in self.get_state().items():
+            arr[...] = arrays[key]

@@ -21,17 +21,15 @@ same matrix.
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
-from cobelrun.agents.codes import POLICIES
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
+from cobelrun.agents.policy import check_policy, select
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
-from cobelrun.envs.base import TabularModel
 from cobelrun.errors import ConfigError, check_choice
 from cobelrun.records import TrialBatch
 
@@ -92,6 +90,7 @@ class SFMA(Agent):
 
     observation_spaces = (gym.spaces.Discrete,)
     action_spaces = (gym.spaces.Discrete,)
+    requires = ("tabular_model",)
 
     def __init__(
         self,
@@ -116,10 +115,6 @@ class SFMA(Agent):
     ) -> None:
         super().__init__(env, seed=seed)
         base = env.unwrapped
-        if not isinstance(base, TabularModel):
-            raise ConfigError(
-                f"agent SFMA needs a tabular gridworld (GridWorldEnv); got {type(base).__name__}"
-            )
         for name, value, hi in (
             ("epsilon", epsilon, 1.0), ("learning_rate", learning_rate, 1.0),
             ("gamma", gamma, 0.999999), ("gamma_dr", gamma_dr, 0.999999),
@@ -134,7 +129,7 @@ class SFMA(Agent):
                 raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
         if isinstance(n_backups, bool) or not isinstance(n_backups, int) or n_backups < 0:
             raise ConfigError(f"agent.n_backups must be an integer >= 0, got {n_backups!r}")
-        self.policy = check_choice("agent.policy", policy, list(POLICIES))
+        self.policy = check_policy(policy)
         self.mode = check_choice("agent.mode", mode, MODES)
         self.similarity_kind = check_choice("agent.similarity", similarity, SIMILARITY)
         self.replay = check_choice("agent.replay", replay, REPLAY_WHEN)
@@ -160,68 +155,54 @@ class SFMA(Agent):
         self.model_next = np.full((S, A), -1, np.int64)
         self.model_reward = np.zeros((S, A))
         self.strength = np.zeros((S, A))
-        self._all = np.ones(A, np.bool_)
+        self._no_mask = np.ones((1, 1), np.bool_)
+        self._trial, self._state = -1, -1
         self.last_replays: dict[str, np.ndarray] = empty_replays()
 
-    def act(self, s: int) -> int:
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
         """Behaviour policy: epsilon-greedy (random tie-break) or softmax over ``Q[s]``."""
-        from cobelrun.agents.kernels import select_action
+        return select(self.rng, self.Q[int(obs)], self.policy, self.epsilon, self.beta)
 
-        return int(select_action(self.rng, self.Q[s], self._all, False, POLICIES[self.policy],
-                                 self.epsilon, self.beta))  # fmt: skip
-
+    # -- trials: the base class's step loop with these hooks --------------------------------
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
+        self._log = ReplayLog()
+        self._trial = -1
+        batch = super()._run(n_trials, max_steps, learn, callbacks)
+        self.last_replays = self._log.collect()
+        return batch
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._trial += 1
+        self._state = int(obs)
+        if learn and self.replay == "start_and_end":
+            self._bout(self._state, self._trial, WHEN_START)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        """Online Q-learning; store the experience and strengthen it."""
+        s, a, r, s2 = transition.state, transition.action, transition.reward, transition.next_state
+        self._state = s2
+        if not learn:
+            return
         from cobelrun.agents.kernels import q_update
 
-        env = self.env
-        terminal = np.ascontiguousarray(env.unwrapped.world.terminal, np.bool_)
-        no_mask = np.ones((1, 1), np.bool_)
-        self._log = ReplayLog()
-        trials = []
-        for trial in range(n_trials):
-            s, _ = env.reset()
-            s = int(s)
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            if learn and self.replay == "start_and_end":
-                self._bout(s, trial, WHEN_START, terminal)
-            states, actions, rewards = [s], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = self.act(s)
-                s2, r, terminated, _, _ = env.step(a)
-                s2, r = int(s2), float(r)
-                if learn:
-                    q_update(self.Q, no_mask, False, s, a, r, s2, terminated,
-                             self.learning_rate, self.gamma)  # fmt: skip
-                    self.model_next[s, a] = s2
-                    self.model_reward[s, a] = r
-                    self.strength *= self.decay_strength
-                    self.strength[s, a] += 1.0
-                states.append(s2)
-                actions.append(a)
-                rewards.append(r)
-                info = {"state": s, "action": a, "reward": r, "next_state": s2,
-                        "terminated": terminated}  # fmt: skip
-                keep_going = all([cb.on_step(self, trial, step, info) for cb in callbacks])
-                s = s2
-                if terminated or not keep_going:
-                    break
-            if learn and self.replay != "off":
-                self._bout(s, trial, WHEN_END, terminal)
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": terminated}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        self.last_replays = self._log.collect()
-        return TrialBatch.from_trials(trials)
+        q_update(self.Q, self._no_mask, False, s, a, r, s2, transition.terminated,
+                 self.learning_rate, self.gamma)  # fmt: skip
+        self.model_next[s, a] = s2
+        self.model_reward[s, a] = r
+        self.strength *= self.decay_strength
+        self.strength[s, a] += 1.0
 
-    def _bout(self, state: int, trial: int, when: int, terminal: np.ndarray) -> None:
+    def end_trial(self, learn: bool) -> None:
+        """Replay at the end of every trial, from where the agent is."""
+        if learn and self.replay != "off":
+            self._bout(self._state, self._trial, WHEN_END)
+
+    def _bout(self, state: int, trial: int, when: int) -> None:
         from cobelrun.agents.replay_kernels import sfma_bout
 
+        terminal = np.ascontiguousarray(self.env.unwrapped.world.terminal, np.bool_)
         n = self.n_backups
         out = {"state": np.empty(n, np.int64), "action": np.empty(n, np.int64),
                "next_state": np.empty(n, np.int64), "reward": np.empty(n),
@@ -255,27 +236,16 @@ class SFMA(Agent):
             "deterministic": self.deterministic, "replay": self.replay,
         }  # fmt: skip
 
-    def state_dict(self) -> dict[str, np.ndarray]:
-        """The learned state: plain arrays, saved and loaded by name."""
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"Q": ArraySpec((S, A)), "model_next": ArraySpec((S, A), "i", low=-1, high=S),
+                "model_reward": ArraySpec((S, A)), "strength": ArraySpec((S, A), low=0.0)}  # fmt: skip
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The learned state: plain arrays (see :meth:`state_schema`)."""
         return {"Q": self.Q, "model_next": self.model_next, "model_reward": self.model_reward,
                 "strength": self.strength}  # fmt: skip
 
-    def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        np.savez(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                 **self.state_dict())  # fmt: skip
-        return path
-
-    def load(self, path: str | Path) -> None:
-        with np.load(path, allow_pickle=False) as data:
-            for key, arr in self.state_dict().items():
-                if key not in data:
-                    raise ConfigError(f"saved agent {path} has no array {key!r}")
-                if data[key].shape != arr.shape:
-                    raise ConfigError(
-                        f"saved agent {path}: {key} has shape {data[key].shape}, "
-                        f"this environment needs {arr.shape}"
-                    )
-                arr[...] = data[key]
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for key, arr in self.get_state().items():
+            arr[...] = arrays[key]

@@ -27,18 +27,15 @@ iteration before every action: fully model-based, it is the ceiling of the reval
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
-from cobelrun.agents.codes import POLICIES
-from cobelrun.envs.base import TabularModel
-from cobelrun.errors import ConfigError, check_choice
-from cobelrun.records import TrialBatch
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.policy import check_policy, select
+from cobelrun.errors import ConfigError
 
 
 class SuccessorCore:
@@ -108,7 +105,8 @@ class TabularModelAgent(Agent):
     """Trial loop shared by the SR agents and value iteration: act, step, learn, callbacks.
 
     Subclasses implement :meth:`q_values` (action values of a state) and :meth:`learn` (one
-    experienced transition), and list their learned arrays in :meth:`state_dict`.
+    experienced transition), and list their learned arrays in :meth:`get_state` and
+    :meth:`state_schema`; the base class runs the step loop and saves and loads the arrays.
 
     Parameters
     ----------
@@ -128,6 +126,7 @@ class TabularModelAgent(Agent):
 
     observation_spaces = (gym.spaces.Discrete,)
     action_spaces = (gym.spaces.Discrete,)
+    requires = ("tabular_model",)
 
     def __init__(
         self,
@@ -140,18 +139,12 @@ class TabularModelAgent(Agent):
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
-        if not isinstance(env.unwrapped, TabularModel):
-            raise ConfigError(
-                f"agent {type(self).__name__} needs a tabular gridworld (GridWorldEnv); "
-                f"got {type(env.unwrapped).__name__}"
-            )
-        self.policy = check_choice("agent.policy", policy, list(POLICIES))
+        self.policy = check_policy(policy)
         self.epsilon = _check_rate("epsilon", epsilon)
         self.beta = float(beta)
         self.gamma = _check_rate("gamma", gamma, 0.999999)
         self.n_states = int(env.observation_space.n)
         self.n_actions = int(env.action_space.n)
-        self._all = np.ones(self.n_actions, np.bool_)
 
     # -- subclass hooks --------------------------------------------------------------------
     def q_values(self, s: int) -> np.ndarray:
@@ -162,83 +155,33 @@ class TabularModelAgent(Agent):
         """Learn from one experienced transition."""
         raise NotImplementedError
 
-    def state_dict(self) -> dict[str, np.ndarray]:
-        """The learned arrays, saved and loaded by name."""
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The learned arrays, saved and loaded by name (see :meth:`state_schema`)."""
         raise NotImplementedError
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for key, arr in self.get_state().items():
+            arr[...] = arrays[key]
 
     def hyperparameters(self) -> dict:
         return {"policy": self.policy, "epsilon": self.epsilon, "beta": self.beta,
                 "gamma": self.gamma}  # fmt: skip
 
-    # -- acting ------------------------------------------------------------------------------
-    def act(self, s: int) -> int:
-        """Behaviour policy over :meth:`q_values` (the shared compiled selection rule)."""
-        from cobelrun.agents.kernels import select_action
+    # -- acting and learning: the base class's step loop calls these -------------------------
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Behaviour policy over :meth:`q_values` (``cobelrun.agents.policy``)."""
+        return select(self.rng, self.q_values(int(obs)), self.policy, self.epsilon, self.beta)
 
-        q = np.ascontiguousarray(self.q_values(s), np.float64)
-        return int(select_action(self.rng, q, self._all, False, POLICIES[self.policy],
-                                 self.epsilon, self.beta))  # fmt: skip
+    def observe(self, transition: Transition, learn: bool) -> None:
+        if learn:
+            self.learn(transition.state, transition.action, transition.reward,
+                       transition.next_state, transition.terminated)  # fmt: skip
 
-    def _run(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        env = self.env
-        trials = []
-        for trial in range(n_trials):
-            s, _ = env.reset()
-            s = int(s)
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            states, actions, rewards = [s], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = self.act(s)
-                s2, r, terminated, _, _ = env.step(a)
-                s2, r = int(s2), float(r)
-                if learn:
-                    self.learn(s, a, r, s2, bool(terminated))
-                states.append(s2)
-                actions.append(a)
-                rewards.append(r)
-                info = {"state": s, "action": a, "reward": r, "next_state": s2,
-                        "terminated": terminated}  # fmt: skip
-                keep_going = all([cb.on_step(self, trial, step, info) for cb in callbacks])
-                s = s2
-                if terminated or not keep_going:
-                    break
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": terminated}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        return TrialBatch.from_trials(trials)
-
-    # -- inference and persistence ---------------------------------------------------------
     def predict(self, observations: np.ndarray) -> np.ndarray:
         obs = np.asarray(observations, dtype=np.int64).reshape(-1)
         if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
             raise ValueError(f"observations must be state indices in [0, {self.n_states})")
         return np.array([self.q_values(int(s)) for s in obs]).reshape(-1, self.n_actions)
-
-    def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        np.savez(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                 **self.state_dict())  # fmt: skip
-        return path
-
-    def load(self, path: str | Path) -> None:
-        with np.load(path, allow_pickle=False) as data:
-            for key, arr in self.state_dict().items():
-                if key not in data:
-                    raise ConfigError(f"saved agent {path} has no array {key!r}")
-                if data[key].shape != arr.shape:
-                    raise ConfigError(
-                        f"saved agent {path}: {key} has shape {data[key].shape}, "
-                        f"this environment needs {arr.shape}"
-                    )
-                arr[...] = data[key]
 
 
 class SRTD(TabularModelAgent):
@@ -270,8 +213,12 @@ class SRTD(TabularModelAgent):
         self.core.learn_reward(s2, r)
         self.core.td(s, a, s2, terminal, self.core.greedy(self.rng, s2))
 
-    def state_dict(self) -> dict[str, np.ndarray]:
+    def get_state(self) -> dict[str, np.ndarray]:
         return {"M": self.core.M, "w": self.core.w}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"M": ArraySpec((S, A, S)), "w": ArraySpec((S,))}
 
     def hyperparameters(self) -> dict:
         return {**super().hyperparameters(), "learning_rate": self.core.learning_rate,
@@ -307,8 +254,12 @@ class SRDyna(SRTD):
             done = bool(self.env.unwrapped.world.terminal[ps2])
             self.core.td(ps, pa, ps2, done, self.core.greedy(self.rng, ps2))
 
-    def state_dict(self) -> dict[str, np.ndarray]:
-        return {**super().state_dict(), "model_next": self.model_next}
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {**super().get_state(), "model_next": self.model_next}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {**super().state_schema(), "model_next": ArraySpec((S, A), "i", low=-1, high=S)}
 
     def hyperparameters(self) -> dict:
         return {**super().hyperparameters(), "replay_batch": self.replay_batch}
@@ -368,9 +319,16 @@ class SRMB(TabularModelAgent):
         self.cached_policy[s] = self.core.greedy(self.rng, s)  # the policy where it acted
         self._refresh()
 
-    def state_dict(self) -> dict[str, np.ndarray]:
+    def get_state(self) -> dict[str, np.ndarray]:
         return {"M": self.core.M, "w": self.core.w, "T": self.model.T,
                 "cached_policy": self.cached_policy, "terminal": self.terminal}  # fmt: skip
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"M": ArraySpec((S, A, S)), "w": ArraySpec((S,)),
+                "T": ArraySpec((S, A, S), low=0.0, high=1.0 + 1e-9),
+                "cached_policy": ArraySpec((S,), "i", low=0, high=A),
+                "terminal": ArraySpec((S,), "b")}  # fmt: skip
 
     def hyperparameters(self) -> dict:
         return {**super().hyperparameters(), "transition_rate": self.model.rate,
@@ -432,8 +390,14 @@ class ValueIteration(TabularModelAgent):
             self.terminal[s2] = True
         self.plan()
 
-    def state_dict(self) -> dict[str, np.ndarray]:
+    def get_state(self) -> dict[str, np.ndarray]:
         return {"Q": self.Q, "w": self.w, "T": self.model.T, "terminal": self.terminal}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"Q": ArraySpec((S, A)), "w": ArraySpec((S,)),
+                "T": ArraySpec((S, A, S), low=0.0, high=1.0 + 1e-9),
+                "terminal": ArraySpec((S,), "b")}  # fmt: skip
 
     def hyperparameters(self) -> dict:
         return {**super().hyperparameters(), "transition_rate": self.model.rate,

@@ -169,7 +169,10 @@ def test_bad_parameters_one_line_config_error(kw, match):
 def test_pma_needs_a_tabular_world():
     from cobelrun.envs.choice import TwoAFCEnv
 
-    with pytest.raises(ConfigError, match=r"does not support observation space|needs an environment with .tabular_model."):
+    with pytest.raises(
+        ConfigError,
+        match=r"does not support observation space|needs an environment with .tabular_model.",
+    ):
         PMA(TwoAFCEnv(), seed=0)
 
 

@@ -113,20 +113,19 @@ def setting() -> tuple[object, object]:
 
 def bench_cobel(agent: object, bouts: int, repeats: int) -> dict:
     world = agent.env.unwrapped.world
-    terminal = np.ascontiguousarray(world.terminal, np.bool_)
     start = int(world.starts[0])
     Q0 = agent.Q.copy()
     from cobelrun.agents.replay_log import ReplayLog
 
     agent._log = ReplayLog()
-    agent._bout(start, start, 0, 0, terminal)  # compile / load the cache
+    agent._bout(start, start, 0, 0)  # compile / load the cache
     best = np.inf
     for _ in range(repeats):
         agent._log = ReplayLog()
         t0 = time.perf_counter()
         for _ in range(bouts):
             agent.Q[...] = Q0
-            agent._bout(start, start, 0, 0, terminal)
+            agent._bout(start, start, 0, 0)
         best = min(best, time.perf_counter() - t0)
     done = int(agent._log.collect()["state"].size)
     agent.Q[...] = Q0

@@ -1,0 +1,1 @@
+"""Post-run analysis: plain functions over arrays and DataFrames that return DataFrames."""

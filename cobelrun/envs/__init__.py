@@ -1,7 +1,8 @@
 """Gymnasium environments and tabular worlds.
 
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
-``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0`` (string entry points, registered once).
+``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0``,
+``cobel/Continuous2D-v0`` (string entry points, registered once).
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from __future__ import annotations
 import gymnasium as gym
 
 from cobelrun.envs.choice import TwoAFCEnv
+from cobelrun.envs.continuous import Continuous2DEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
@@ -26,6 +28,7 @@ ENV_IDS: dict[str, str] = {
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
     "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
+    "cobel/Continuous2D-v0": "cobelrun.envs.continuous:Continuous2DEnv",
 }
 
 
@@ -40,6 +43,7 @@ register_envs()
 
 __all__ = [
     "ENV_IDS",
+    "Continuous2DEnv",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
     "TopologyEnv",

@@ -181,7 +181,7 @@ def test_goal_ends_trial_and_phases_move_or_remove_it():
     assert r == 1.0 and env.agent_pose()[1] < -0.37
     env.reset_world()
     assert env.arena.goals["platform"].terminal and not env.arena.goals["other"].terminal
-    with pytest.raises(ConfigError, match="unknown goal 'platfrom'.*did you mean 'platform'"):
+    with pytest.raises(ConfigError, match=r"unknown goal 'platfrom'.*did you mean 'platform'"):
         env.apply_changes(rewards={"platfrom": 1.0})
 
 
@@ -243,9 +243,12 @@ def rib():
     from ratinabox.Environment import Environment
 
     ratinabox.verbose = False
-    np.random.seed(0)  # RatInABox draws its cell parameters from numpy's global generator
-    env = Environment()  # unit square, solid walls
-    return Agent(env)
+    # RatInABox draws its cell parameters from numpy's global generator: seed it for this
+    # module only, and put the previous state back afterwards
+    saved = np.random.get_state()  # noqa: NPY002
+    np.random.seed(0)  # noqa: NPY002
+    yield Agent(Environment())  # unit square, solid walls
+    np.random.set_state(saved)  # noqa: NPY002
 
 
 @pytest.fixture(scope="module")

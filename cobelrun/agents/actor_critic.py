@@ -27,11 +27,54 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
+import numba
 import numpy as np
 
 from cobelrun.agents.base import Agent, SeedLike, TrialCallback
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
+
+
+@numba.njit(cache=True)
+def _sample(z: np.ndarray, f: np.ndarray, beta: float, u: float) -> int:
+    """Draw an action from softmax(beta * z @ f) with the uniform number ``u``."""
+    n = z.shape[0]
+    pref = np.empty(n)
+    for j in range(n):
+        s = 0.0
+        for i in range(f.shape[0]):
+            s += z[j, i] * f[i]
+        pref[j] = beta * s
+    top = pref.max()
+    total = 0.0
+    for j in range(n):
+        pref[j] = np.exp(pref[j] - top)
+        total += pref[j]
+    target = u * total
+    acc = 0.0
+    for j in range(n):
+        acc += pref[j]
+        if target < acc:
+            return j
+    return n - 1
+
+
+@numba.njit(cache=True)
+def _td_update(w: np.ndarray, z: np.ndarray, f: np.ndarray, f2: np.ndarray, a: int, r: float,
+               gamma: float, terminal: bool, critic_lr: float, actor_lr: float) -> float:  # fmt: skip
+    """One actor-critic TD step in place; returns the TD error."""
+    v = 0.0
+    v2 = 0.0
+    for i in range(f.shape[0]):
+        v += w[i] * f[i]
+        v2 += w[i] * f2[i]
+    delta = r + (0.0 if terminal else gamma * v2) - v
+    cd = critic_lr * delta
+    ad = actor_lr * delta
+    for i in range(f.shape[0]):
+        w[i] += cd * f[i]
+        z[a, i] += ad * f[i]
+    return delta
 
 
 class ActorCritic(Agent):
@@ -118,20 +161,15 @@ class ActorCritic(Agent):
 
     def act(self, obs: np.ndarray, info: dict[str, Any], learn: bool) -> int:
         """Draw an action from the softmax policy (in tests too: the policy is stochastic)."""
-        p = self.policy(obs)
-        a = int(np.searchsorted(np.cumsum(p), self.rng.random() * p.sum(), side="right"))
-        return min(a, self.n_actions - 1)
+        return int(_sample(self.z, obs, self.beta, self.rng.random()))
 
     def observe(self, transition: dict[str, Any], learn: bool) -> None:
         """The TD update of critic and actor after one step (when learning)."""
         if not learn:
             return
-        f = np.asarray(transition["obs"], np.float64)
-        f2 = np.asarray(transition["next_obs"], np.float64)
-        v2 = 0.0 if transition["terminated"] else float(self.w @ f2)
-        delta = float(transition["reward"]) + self.gamma * v2 - float(self.w @ f)
-        self.w += (self.critic_lr * delta) * f
-        self.z[int(transition["action"])] += (self.actor_lr * delta) * f
+        _td_update(self.w, self.z, transition["obs"], transition["next_obs"],
+                   int(transition["action"]), float(transition["reward"]), self.gamma,
+                   bool(transition["terminated"]), self.critic_lr, self.actor_lr)  # fmt: skip
 
     def end_trial(self, learn: bool) -> None:
         """Nothing to do at trial end."""

@@ -240,6 +240,7 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
             self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
             self.action_names = ("speed", "turn")
 
+        self._n_actions = int(getattr(self.action_space, "n", 0))
         self.walls = self.arena.wall_segments()
         self.observation_parts: list[SpatialCode] = build_observation(observation, self.arena)
         dim = sum(p.n for p in self.observation_parts)
@@ -405,12 +406,12 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         """Move by one action; returns ``(obs, reward, terminated, truncated, info)``."""
         h = self._heading
         if self.movement == "directions":
-            a = check_action(action, self.action_space.n, self.action_names)  # type: ignore[attr-defined]
+            a = self._action_index(action)
             h = float(self.directions[a])
             d = self.speed * self.dt
             dx, dy = d * np.cos(h), d * np.sin(h)
         elif self.movement == "differential":
-            a = check_action(action, self.action_space.n, self.action_names)  # type: ignore[attr-defined]
+            a = self._action_index(action)
             vl, vr = self.wheels[a]
             dx, dy, h = arc_step(h, 0.5 * (vl + vr), (vr - vl) / self.axle_length, self.dt)
         else:
@@ -433,6 +434,12 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         truncated = self.max_steps is not None and self._steps >= self.max_steps
         obs = self._observe(x, y, self._heading).copy()
         return obs, float(reward), terminated, bool(truncated), self._info(g, hit)
+
+    def _action_index(self, action: Any) -> int:
+        n = self._n_actions
+        if type(action) is int and 0 <= action < n:  # the common case, checked cheaply
+            return action
+        return check_action(action, n, self.action_names)
 
     def _observe(self, x: float, y: float, heading: float) -> np.ndarray:
         i = 0

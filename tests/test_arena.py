@@ -362,3 +362,20 @@ def test_water_maze_measures_on_synthetic_paths():
     assert list(df.columns) == list(wm.MEASURE_COLUMNS) and len(df) == 2
     with pytest.raises(ValueError, match="positions must be"):
         wm.path_length(np.zeros((3, 4)))
+
+
+def test_first_person_view_of_the_arena():
+    pytest.importorskip("pybullet")
+    env = Continuous2DEnv(arena=POOL, render_mode="rgb_array", camera={"height": 24, "width": 48},
+                          obstacles=[{"shape": "rectangle", "x0": 0.3, "y0": -0.1, "x1": 0.5, "y1": 0.1}],
+                          starts={"c": [0.0, 0.0]}, start_heading=0.0)  # fmt: skip
+    env.reset(seed=0)
+    east = env.render()
+    assert east.shape == (24, 48, 3) and east.dtype == np.uint8
+    # looking east at the obstacle's west face (colour of walls facing west) vs west at the pool
+    west = env.view_at_pose(0.0, 0.0, np.pi)
+    assert np.abs(east.astype(int) - west).mean() > 10
+    np.testing.assert_array_equal(env.view_at_pose(0.0, 0.0, 0.0), east)  # deterministic
+    centre = east[12, 24].astype(int)
+    assert centre[1] > centre[0] and centre[1] > centre[2]  # green: a wall facing west
+    env.close()

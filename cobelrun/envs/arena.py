@@ -292,10 +292,16 @@ class Arena:
 
     # ---------------------------------------------------------------- arrays for kernels
     def wall_segments(self) -> np.ndarray:
-        """(m, 4) float64 segments ``x0, y0, x1, y1``: outline edges, then obstacle edges."""
+        """(m, 4) float64 segments ``x0, y0, x1, y1``: outline edges, then obstacle edges,
+        oriented so that the free space lies left of each (outline counter-clockwise,
+        obstacles clockwise)."""
         segs = []
-        for shape in (self.outline, *self.obstacles):
+        for k, shape in enumerate((self.outline, *self.obstacles)):
             p = shape.polygon(self.resolution)
+            x, y = p[:, 0], p[:, 1]
+            ccw = np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
+            if ccw != (k == 0):
+                p = p[::-1]
             segs.append(np.concatenate([p, np.roll(p, -1, axis=0)], axis=1))
         return np.ascontiguousarray(np.concatenate(segs), np.float64)
 

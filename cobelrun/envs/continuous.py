@@ -148,12 +148,18 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         Truncation limit.
     resolution : int
         Sides of the polygon standing in for a circle in collisions (default 128).
+    render_mode : {"rgb_array", None}
+        ``"rgb_array"``: :meth:`render` returns the agent's first-person view of the 3D
+        pybullet scene of the arena.
+    camera, scene : mapping, optional
+        :class:`~cobelrun.render.scene.CameraSpec` (height, width, fov, eye_height, ...) and
+        :class:`~cobelrun.render.scene.SceneStyle` (wall colours, cues, lighting) of that view.
 
     ``info`` holds ``state`` (the index of the goal region the agent is in, -1 outside all),
     ``x``, ``y``, ``heading`` and ``collision``.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(
         self,
@@ -178,6 +184,8 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         max_steps: int | None = None,
         resolution: int = 128,
         render_mode: str | None = None,
+        camera: Mapping[str, Any] | None = None,
+        scene: Mapping[str, Any] | None = None,
     ) -> None:
         self.arena = Arena(arena, obstacles, goals, starts, resolution)
         self._base_goals = {k: (g.shape, g.reward, g.terminal) for k, g in self.arena.goals.items()}
@@ -214,9 +222,19 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         ):
             raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps!r}")
         self.max_steps = max_steps
-        if render_mode is not None:
-            raise ConfigError(f"render_mode {render_mode!r} is not supported; allowed: None")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ConfigError(
+                f"render_mode {render_mode!r} is not supported; allowed: 'rgb_array', None"
+            )
         self.render_mode = render_mode
+        from cobelrun.render.scene import CameraSpec, SceneStyle  # plain data, no pybullet
+
+        try:
+            self.camera = CameraSpec(**dict(camera or {}))
+        except TypeError as exc:
+            raise ConfigError(f"camera: {exc}".replace("__init__() ", "")) from None
+        self.scene_style = SceneStyle.from_config(scene)
+        self._scene: Any = None
 
         if movement == "directions":
             if (
@@ -364,6 +382,28 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
     def render_at_pose(self, x: float, y: float, heading: float) -> np.ndarray:
         """The observation the agent would get at pose ``(x, y, heading)``."""
         return self._observe(float(x), float(y), float(heading)).copy()
+
+    def view_at_pose(self, x: float, y: float, heading: float) -> np.ndarray:
+        """The first-person RGB view ``(h, w, 3)`` uint8 at a pose: the 3D pybullet scene of
+        the arena (walls coloured by the direction they face, distal cues, no visible goals),
+        rendered with the camera given as ``camera`` (imports pybullet on first use)."""
+        if self._scene is None:
+            from cobelrun.render.scene import Scene, SceneSpec
+
+            self._scene = Scene(SceneSpec.from_geometry(self.geometry(), self.scene_style))
+        return self._scene.render(float(x), float(y), float(heading), self.camera)
+
+    def render(self) -> np.ndarray | None:
+        """The agent's first-person view (``render_mode="rgb_array"``, :meth:`view_at_pose`)."""
+        if self.render_mode != "rgb_array":
+            return None
+        return self.view_at_pose(self._x, self._y, self._heading)
+
+    def close(self) -> None:
+        if self._scene is not None:
+            self._scene.close()
+            self._scene = None
+        super().close()
 
     @property
     def steps(self) -> int:

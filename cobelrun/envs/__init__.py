@@ -7,10 +7,11 @@ Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 
 from cobelrun.envs.choice import TwoAFCEnv
-from cobelrun.envs.continuous import Continuous2DEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
@@ -40,6 +41,17 @@ def register_envs() -> None:
 
 
 register_envs()
+
+
+def __getattr__(name: str) -> Any:
+    # the continuous arena imports numba and shapely: loaded on first use, so that building a
+    # tabular agent (a sweep's launcher, config validation) stays free of the numba import
+    if name == "Continuous2DEnv":
+        from cobelrun.envs.continuous import Continuous2DEnv
+
+        return Continuous2DEnv
+    raise AttributeError(f"module 'cobelrun.envs' has no attribute {name!r}")
+
 
 __all__ = [
     "ENV_IDS",

@@ -112,10 +112,20 @@ def test_actor_critic_rejects_bad_parameters(pool_env):
         ActorCritic(pool_env, beta=-1)
 
 
-def test_cli_runs_the_task_with_a_small_budget(cobel):
-    out = cobel("run", "task=morris_water_maze", "task.runs=1",
-                "task.protocol.phases.0.trials=2", "task.protocol.phases.2.trials=1")  # fmt: skip
-    assert out.returncode == 0, out.stderr
+def test_figure_morris_quick_and_bad_input_through_the_cli(cobel, tmp_path):
+    """``cobel figure morris --quick`` runs the task through the CLI (2 runs, 2 days, probe,
+    1 reversal day) and draws every panel; a platform outside the pool is one line."""
+    proc = cobel("figure", "morris", "--quick")
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "results" / "figures"
+    assert (out / "morris_quick.png").stat().st_size > 10_000
+    table = pd.read_csv(out / "morris_quick.csv")
+    daily = table[table["table"] == "daily"]
+    assert list(daily["phase"]) == ["acquisition", "acquisition", "reversal"]
+    assert (daily["runs"] == 2).all() and daily["escape_latency_s_mean"].between(0, 120).all()
+    probe = table[table["table"] == "probe"]
+    assert list(probe["quadrant"]) == list(QUADRANTS)
+    assert probe["fraction_mean"].sum() == pytest.approx(1.0, abs=1e-6)
     bad = cobel("run", "task=morris_water_maze", "env.goals.platform.x=1.2")
     assert bad.returncode != 0
     assert "goal 'platform' lies (partly) outside the arena" in bad.stderr

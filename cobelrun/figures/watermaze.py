@@ -68,6 +68,12 @@ def plot_learning_curve(summary: pd.DataFrame, ax: Any, column: str, label: str)
         m, s = part[f"{column}_mean"].to_numpy(), part[f"{column}_sd"].to_numpy()
         ax.plot(x, m, "o-", ms=3, color=colors.get(phase, "k"), label=phase)
         ax.fill_between(x, m - s, m + s, color=colors.get(phase, "k"), alpha=0.2, lw=0)
+    from matplotlib.ticker import MaxNLocator
+
+    starts = summary.loc[summary["phase"] != summary["phase"].iloc[0], "session"]
+    if len(starts):  # where the platform moved
+        ax.axvline(starts.iloc[0] - 0.5, color="0.5", ls=":", lw=0.8)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("day")
     ax.set_ylabel(label)
     ax.set_ylim(bottom=0)

@@ -8,13 +8,12 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.analysis.watermaze import MEASURE_COLUMNS, split_trials, trial_measures
-from cobelrun.envs.base import require
 from cobelrun.errors import ConfigError, allowed_list, suggest
-from cobelrun.monitors import Monitor
+from cobelrun.monitors import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
 
 
-class WaterMazeMonitor(Monitor):
+class WaterMazeMonitor(TrialColumnsMonitor):
     """Escape latency in seconds, path length, distance to the platform, quadrant occupancy,
     platform and annulus crossings of every trial (:mod:`cobelrun.analysis.watermaze`).
 
@@ -33,6 +32,8 @@ class WaterMazeMonitor(Monitor):
         Seconds per step (default the environment's ``dt``).
     """
 
+    requires = ("pose", "geometry")
+
     def __init__(
         self,
         platform: str | None = None,
@@ -50,7 +51,7 @@ class WaterMazeMonitor(Monitor):
         self._target: str | None = None
 
     def setup(self, env: Any) -> None:
-        require(env, ("pose", "geometry"), "the water-maze monitor")
+        super().setup(env)
         base = env.unwrapped
         regions = base.geometry().regions
         circles = [k for k, r in regions.items() if r.get("shape") == "circle" and "reward" in r]
@@ -64,7 +65,7 @@ class WaterMazeMonitor(Monitor):
         if self.dt is None:
             self.dt = float(getattr(base, "dt", 1.0))
 
-    def start_run(self, run: int) -> None:
+    def start_run(self, run: int, agent: Any = None) -> None:
         self._target = self.platform
 
     def fields(self) -> list[pa.Field]:

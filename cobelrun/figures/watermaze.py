@@ -77,7 +77,7 @@ def plot_learning_curve(summary: pd.DataFrame, ax: Any, column: str, label: str)
     ax.set_xlabel("day")
     ax.set_ylabel(label)
     ax.set_ylim(bottom=0)
-    ax.legend(loc="upper right")
+    ax.legend(loc="upper center")
 
 
 def draw_pool(geometry: Geometry, ax: Any, platforms: tuple[str, ...] = ()) -> None:
@@ -148,6 +148,9 @@ def plot_occupancy(steps: pd.DataFrame, geometry: Geometry, ax: Any, bins: int =
     x0, y0, x1, y1 = geometry.bounds
     h, _, _ = np.histogram2d(steps["x"], steps["y"], bins=bins, range=[[x0, x1], [y0, y1]])
     h = h / max(h.sum(), 1)
-    ax.imshow(h.T, origin="lower", extent=(x0, x1, y0, y1), cmap="magma", interpolation="nearest")
+    from matplotlib.colors import PowerNorm
+
+    ax.imshow(h.T, origin="lower", extent=(x0, x1, y0, y1), cmap="magma", interpolation="nearest",
+              norm=PowerNorm(0.5))  # square-root scale: the rarely visited bins stay visible  # fmt: skip
     draw_pool(geometry, ax, ("platform",))
     return h

@@ -379,3 +379,15 @@ def test_first_person_view_of_the_arena():
     centre = east[12, 24].astype(int)
     assert centre[1] > centre[0] and centre[1] > centre[2]  # green: a wall facing west
     env.close()
+
+
+@pytest.mark.parametrize("movement", ["directions", "continuous"])
+def test_sb3_check_env(movement):
+    """SB3's own checker accepts the discrete (DQN) and the continuous (SAC, PPO) action spaces."""
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    env = Continuous2DEnv(movement=movement, observation=[{"kind": "place_cells", "n": 30}],
+                          goals={"goal": {"shape": "circle", "x": 0.85, "y": 0.85, "radius": 0.1}},
+                          starts={"s": [0.15, 0.15]}, max_steps=50)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # SB3 warns about spaces it would mishandle
+        sb3_checker.check_env(env, warn=True)

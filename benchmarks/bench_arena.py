@@ -10,7 +10,9 @@ Run on demand (not a test)::
    and cell count: ``Agent.update(dt=0.1)`` + ``PlaceCells.update()`` (Euclidean fields, as
    ours; RatInABox's default history saving left on, as its users run it). Actions on cobel's
    side are drawn from a generator beforehand, so the loop measures the env alone.
-2. The wall time (and the CPU time of the process) of the default task
+2. For scale, the actor-critic's whole step loop on the same pool (policy, env step, TD update,
+   trial records).
+3. The wall time (and the CPU time of the process) of the default task
    ``cobel run task=morris_water_maze`` (8 runs x 49 trials), run in-process through the
    runner with the files written as usual.
 
@@ -53,6 +55,24 @@ def cobel_steps_per_s(steps: int) -> float:
     for a in actions:
         step(a)
     return steps / (time.perf_counter() - t)
+
+
+def agent_loop_steps_per_s(steps: int) -> float:
+    """The actor-critic's whole step loop (policy draw, env step, TD update, recording) in
+    trials of ``steps`` steps in a pool without a platform."""
+    from cobelrun.agents.actor_critic import ActorCritic
+    from cobelrun.envs import Continuous2DEnv
+
+    env = Continuous2DEnv(
+        arena={"shape": "polygon", "points": pool_polygon()}, starts={"c": [0.0, 0.0]},
+        n_directions=8, speed=0.3, dt=0.1,
+        observation=[{"kind": "place_cells", "n": N_CELLS, "sigma": SIGMA}],
+    )  # fmt: skip
+    env.np_random = np.random.default_rng(0)
+    agent = ActorCritic(env, seed=0)
+    t = time.perf_counter()
+    batch = agent.train(1, steps)
+    return batch.n_steps / (time.perf_counter() - t)
 
 
 def ratinabox_steps_per_s(steps: int) -> float:
@@ -107,15 +127,18 @@ def main() -> None:
     args = parser.parse_args()
 
     cobel_steps_per_s(1000)  # compile the kernels (cached on disk after the first run)
-    best = {"cobel": 0.0, "ratinabox": 0.0}
+    best = {"cobel": 0.0, "ratinabox": 0.0, "actor_critic_loop": 0.0}
     for _ in range(args.repeat):
         best["cobel"] = max(best["cobel"], cobel_steps_per_s(args.steps))
         best["ratinabox"] = max(best["ratinabox"], ratinabox_steps_per_s(args.ratinabox_steps))
+        loop = agent_loop_steps_per_s(args.steps // 2)
+        best["actor_critic_loop"] = max(best["actor_critic_loop"], loop)
     ratio = best["cobel"] / best["ratinabox"]
     print(f"{'env step + 493 place cells':32s} {'steps/s':>12s}")
     print(f"{'cobel Continuous2DEnv.step':32s} {best['cobel']:12,.0f}")
     print(f"{'RatInABox Agent + PlaceCells':32s} {best['ratinabox']:12,.0f}")
     print(f"{'ratio':32s} {ratio:12.1f}x")
+    print(f"{'actor-critic + env, whole loop':32s} {best['actor_critic_loop']:12,.0f}")
     result = {"step_rate": {**best, "ratio": ratio, "steps": args.steps,
                             "ratinabox_steps": args.ratinabox_steps, "repeat": args.repeat}}  # fmt: skip
     if not args.no_task:

@@ -95,14 +95,8 @@ def test_actor_critic_seeded_and_saved(pool_env, tmp_path):
     np.testing.assert_array_equal(c.z, a.z)
     np.testing.assert_array_equal(c.predict(np.eye(env.observation_space.shape[0])[:3]),
                                   a.predict(np.eye(env.observation_space.shape[0])[:3]))  # fmt: skip
-    bad = dict(a.get_state())
-    bad["w"] = bad["w"][:-1]
-    with pytest.raises(ConfigError, match="array 'w' has shape"):
-        c.set_state(bad)
-    bad = {k: v.copy() for k, v in a.get_state().items()}
-    bad["z"][0, 0] = np.nan
-    with pytest.raises(ConfigError, match="non-finite"):
-        c.set_state(bad)
+    # bad files (shapes, NaN, other agents, ...) are the agent conformance suite's
+    # (tests/test_agent_conformance.py runs every conf/agent YAML, this one included)
 
 
 def test_actor_critic_rejects_bad_parameters(pool_env):

@@ -14,49 +14,23 @@ the temporal-difference error (FACTS.md, "Water maze")::
 Nothing here is specific to place cells: the agent works on any ``Box`` observation (the
 features ``f``) and ``Discrete`` actions.
 
-The agent is written in the shape of the agent base's step loop (``begin_trial``, ``act``,
-``observe``, ``end_trial``; ``state_schema``/``get_state``/``set_state`` for save and load);
-:meth:`ActorCritic._run` drives that loop.
+The agent base runs the step loop (:meth:`act` draws from the softmax of
+:mod:`cobelrun.agents.policy`, :meth:`observe` makes the TD update in a small numba kernel) and
+saves ``w`` and ``z`` through the declared :meth:`state_schema`.
 """
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numba
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents import policy
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
 from cobelrun.errors import ConfigError
-from cobelrun.records import TrialBatch
-
-
-@numba.njit(cache=True)
-def _sample(z: np.ndarray, f: np.ndarray, beta: float, u: float) -> int:
-    """Draw an action from softmax(beta * z @ f) with the uniform number ``u``."""
-    n = z.shape[0]
-    pref = np.empty(n)
-    for j in range(n):
-        s = 0.0
-        for i in range(f.shape[0]):
-            s += z[j, i] * f[i]
-        pref[j] = beta * s
-    top = pref.max()
-    total = 0.0
-    for j in range(n):
-        pref[j] = np.exp(pref[j] - top)
-        total += pref[j]
-    target = u * total
-    acc = 0.0
-    for j in range(n):
-        acc += pref[j]
-        if target < acc:
-            return j
-    return n - 1
 
 
 @numba.njit(cache=True)
@@ -100,7 +74,6 @@ class ActorCritic(Agent):
 
     observation_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Box,)
     action_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Discrete,)
-    requires: ClassVar[tuple[str, ...]] = ()
 
     def __init__(
         self,
@@ -148,110 +121,34 @@ class ActorCritic(Agent):
         """Actor preferences ``a_j`` of a batch of observations, shape (n, n_actions)."""
         return np.atleast_2d(np.asarray(observations, np.float64)) @ self.z.T
 
-    def policy(self, obs: np.ndarray) -> np.ndarray:
+    def action_probabilities(self, obs: np.ndarray) -> np.ndarray:
         """Softmax action probabilities at one observation."""
-        pref = self.beta * (self.z @ obs)
-        pref -= pref.max()
-        p = np.exp(pref)
+        pref = self.beta * (self.z @ np.asarray(obs, np.float64))
+        p = np.exp(pref - pref.max())
         return p / p.sum()
 
     # ------------------------------------------------------------------ step-loop hooks
-    def begin_trial(self, obs: np.ndarray, info: dict[str, Any], learn: bool) -> None:
-        """Nothing to reset between trials (no eligibility traces)."""
-
     def act(self, obs: np.ndarray, info: dict[str, Any], learn: bool) -> int:
         """Draw an action from the softmax policy (in tests too: the policy is stochastic)."""
-        return int(_sample(self.z, obs, self.beta, self.rng.random()))
+        return policy.softmax(self.rng, self.z @ obs, self.beta)
 
-    def observe(self, transition: dict[str, Any], learn: bool) -> None:
+    def observe(self, transition: Transition, learn: bool) -> None:
         """The TD update of critic and actor after one step (when learning)."""
         if not learn:
             return
-        _td_update(self.w, self.z, transition["obs"], transition["next_obs"],
-                   int(transition["action"]), float(transition["reward"]), self.gamma,
-                   bool(transition["terminated"]), self.critic_lr, self.actor_lr)  # fmt: skip
-
-    def end_trial(self, learn: bool) -> None:
-        """Nothing to do at trial end."""
+        t = transition
+        _td_update(self.w, self.z, t.obs, t.next_obs, t.action, t.reward, self.gamma,
+                   t.terminated, self.critic_lr, self.actor_lr)  # fmt: skip
 
     # ------------------------------------------------------------------ save / load
-    def state_schema(self) -> dict[str, tuple[tuple[int, ...], str]]:
-        """Arrays saved with the agent: name -> (shape, dtype)."""
-        return {"w": ((self.n_features,), "float64"),
-                "z": ((self.n_actions, self.n_features), "float64")}  # fmt: skip
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """Critic weights ``w`` (features,) and actor weights ``z`` (actions, features)."""
+        return {"w": ArraySpec((self.n_features,)),
+                "z": ArraySpec((self.n_actions, self.n_features))}  # fmt: skip
 
     def get_state(self) -> dict[str, np.ndarray]:
         return {"w": self.w.copy(), "z": self.z.copy()}
 
-    def set_state(self, arrays: dict[str, np.ndarray]) -> None:
-        for name, (shape, dtype) in self.state_schema().items():
-            if name not in arrays:
-                raise ConfigError(f"saved ActorCritic has no array {name!r}")
-            a = np.asarray(arrays[name])
-            if a.shape != shape or a.dtype != np.dtype(dtype):
-                raise ConfigError(
-                    f"saved ActorCritic array {name!r} has shape {a.shape} ({a.dtype}); "
-                    f"this environment needs {shape} ({dtype})"
-                )
-            if not np.isfinite(a).all():
-                raise ConfigError(f"saved ActorCritic array {name!r} has non-finite values")
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         self.w[...] = arrays["w"]
         self.z[...] = arrays["z"]
-
-    def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        np.savez(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                 **self.get_state())  # fmt: skip
-        return path
-
-    def load(self, path: str | Path) -> None:
-        with np.load(path, allow_pickle=False) as data:
-            self.set_state({k: data[k] for k in data.files if k != "hyperparameters"})
-
-    # ------------------------------------------------------------------ the step loop
-    def _run(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        """Run trials step by step through the hooks above; record states, poses, rewards."""
-        env = self.env
-        base = env.unwrapped
-        posed = hasattr(base, "agent_pose")
-        trials = []
-        for t in range(n_trials):
-            obs, info = env.reset()
-            s = int(info.get("state", -1))
-            states, actions, rewards = [s], [], []
-            poses = [base.agent_pose()] if posed else None
-            self.begin_trial(obs, info, learn)
-            for cb in callbacks:
-                cb.on_trial_start(self, t, s)
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = self.act(obs, info, learn)
-                obs2, r, terminated, truncated, info2 = env.step(a)
-                self.observe({"obs": obs, "action": a, "reward": r, "next_obs": obs2,
-                              "terminated": terminated, "truncated": truncated, "info": info,
-                              "next_info": info2}, learn)  # fmt: skip
-                s2 = int(info2.get("state", -1))
-                states.append(s2)
-                actions.append(a)
-                rewards.append(float(r))
-                if poses is not None:
-                    poses.append(base.agent_pose())
-                keep = True
-                if callbacks:
-                    tr = {"state": states[-2], "action": a, "reward": float(r), "next_state": s2,
-                          "terminated": bool(terminated)}  # fmt: skip
-                    keep = all([cb.on_step(self, t, step, tr) for cb in callbacks])
-                obs, info = obs2, info2
-                if terminated or truncated or not keep:
-                    break
-            self.end_trial(learn)
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": bool(terminated), "poses": poses}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, t, record)
-            trials.append(record)
-        return TrialBatch.from_trials(trials)

@@ -392,7 +392,9 @@ class RunRecorder:
             else:
                 rows = n
             self._add(table, cols, rows)
-        self._write_mcap(run, phase, trial, batch, merged.get("trials", {}))
+        per_trial = {k: v for name, cols in merged.items() if self.tables[name][0] == "trial"
+                     for k, v in cols.items()}  # fmt: skip
+        self._write_mcap(run, phase, trial, batch, per_trial)
 
     def _write_mcap(
         self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict

@@ -1,0 +1,185 @@
+"""Spatial activity maps: the probe grid, and maps as arrays from the ``activity_maps`` table.
+
+An activity map is a unit's activation with the agent placed at each position of a regular grid
+over the maze, facing each of a few headings (paper section 2.3.1). :func:`probe_grid` lays the
+grid: ``nx x ny`` bins over the maze's bounding box, one probe position at each bin centre, and
+the mask of the bins inside the maze (free cells of a gridworld-derived maze; the convex hull of
+the nodes of a free-form graph such as the hexagonal maze). Only inside positions are probed.
+
+``activity_maps.parquet`` (written by :class:`cobelrun.monitors.maps.ActivityMapMonitor`) is long
+format: ``run, trial, layer, unit, heading, ix, iy, x, y, value`` with ``heading`` in degrees;
+its Parquet metadata holds the grid (``cobel.grid``: ``nx``, ``ny``, bin edges and the inside
+mask). :func:`load_activity_maps` reads both; :func:`maps_array` turns one snapshot into the
+``(units, headings, ny, nx)`` array and ``(ny, nx)`` explored mask that
+:func:`cobelrun.analysis.place_cells.place_cells` takes. Row ``iy = 0`` is the lowest ``y``
+(plot with ``origin="lower"``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from cobelrun.errors import CobelError, ConfigError
+
+__all__ = [
+    "GRID_METADATA_KEY",
+    "ProbeGrid",
+    "load_activity_maps",
+    "maps_array",
+    "probe_grid",
+    "spatial_distances",
+]
+
+#: Parquet schema metadata key of the probe grid in ``activity_maps.parquet``.
+GRID_METADATA_KEY = "cobel.grid"
+
+
+@dataclass(frozen=True)
+class ProbeGrid:
+    """Probe positions of an activity map.
+
+    Attributes
+    ----------
+    x_edges : (nx + 1,) float64
+        Bin edges along x (world units).
+    y_edges : (ny + 1,) float64
+        Bin edges along y.
+    inside : (ny, nx) bool
+        Bins whose centre lies inside the maze (the explored area).
+    """
+
+    x_edges: np.ndarray
+    y_edges: np.ndarray
+    inside: np.ndarray
+
+    @property
+    def nx(self) -> int:
+        return int(self.x_edges.size - 1)
+
+    @property
+    def ny(self) -> int:
+        return int(self.y_edges.size - 1)
+
+    @property
+    def x_centres(self) -> np.ndarray:
+        return (self.x_edges[:-1] + self.x_edges[1:]) / 2
+
+    @property
+    def y_centres(self) -> np.ndarray:
+        return (self.y_edges[:-1] + self.y_edges[1:]) / 2
+
+    def indices(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(ix, iy)`` of the inside bins, row-major (iy, then ix)."""
+        iy, ix = np.nonzero(self.inside)
+        return ix, iy
+
+    def points(self) -> np.ndarray:
+        """(M, 2) ``(x, y)`` of the inside bins' centres, in :meth:`indices` order."""
+        ix, iy = self.indices()
+        return np.stack([self.x_centres[ix], self.y_centres[iy]], axis=1)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "nx": self.nx,
+            "ny": self.ny,
+            "x_edges": self.x_edges.round(9).tolist(),
+            "y_edges": self.y_edges.round(9).tolist(),
+            "inside": ["".join("1" if v else "0" for v in row) for row in self.inside],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ProbeGrid:
+        inside = np.array([[c == "1" for c in row] for row in d["inside"]], dtype=bool)
+        return cls(np.asarray(d["x_edges"], float), np.asarray(d["y_edges"], float), inside)
+
+
+def probe_grid(
+    positions: np.ndarray,
+    cells: bool = False,
+    nx: int = 25,
+    ny: int = 25,
+    cell_size: float = 1.0,
+) -> ProbeGrid:
+    """The ``nx x ny`` probe grid over a maze.
+
+    Parameters
+    ----------
+    positions : (N, 2) array
+        Node positions (world units).
+    cells : bool
+        The nodes are the centres of square gridworld cells of side ``cell_size`` (walls around
+        them): the grid spans the cells and a bin is inside if its centre lies in a node's cell.
+        Otherwise (an open arena around a free-form graph) the grid spans the nodes' bounding
+        box and a bin is inside if its centre lies in the nodes' convex hull.
+    nx, ny : int
+        Bins along x and y (default 25 x 25, as the paper).
+    """
+    for name, v in (("nx", nx), ("ny", ny)):
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 2:
+            raise ConfigError(f"probe grid {name} must be an integer >= 2, got {v!r}")
+    pos = np.asarray(positions, np.float64).reshape(-1, 2)
+    half = cell_size / 2 if cells else 0.0
+    lo, hi = pos.min(axis=0) - half, pos.max(axis=0) + half
+    if np.any(hi - lo <= 0):
+        raise ConfigError("probe grid: the maze has no extent in x or y")
+    xe, ye = np.linspace(lo[0], hi[0], nx + 1), np.linspace(lo[1], hi[1], ny + 1)
+    xc, yc = (xe[:-1] + xe[1:]) / 2, (ye[:-1] + ye[1:]) / 2
+    gx, gy = np.meshgrid(xc, yc)  # (ny, nx)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    if cells:
+        d = np.abs(pts[:, None, :] - pos[None, :, :]).max(axis=2)
+        inside = (d <= half + 1e-9).any(axis=1)
+    elif pos.shape[0] >= 3 and np.linalg.matrix_rank(pos - pos.mean(axis=0)) == 2:
+        from scipy.spatial import Delaunay
+
+        inside = Delaunay(pos).find_simplex(pts, tol=1e-9) >= 0
+    else:
+        inside = np.ones(len(pts), bool)
+    return ProbeGrid(xe, ye, inside.reshape(ny, nx))
+
+
+def load_activity_maps(run_dir: str | Path) -> tuple[pd.DataFrame, ProbeGrid]:
+    """``activity_maps.parquet`` of a run folder and its probe grid."""
+    import pyarrow.parquet as pq
+
+    path = Path(run_dir) / "activity_maps.parquet"
+    if not path.is_file():
+        raise CobelError(f"{Path(run_dir)} has no activity_maps.parquet (no activity-map monitor)")
+    table = pq.read_table(path)
+    meta = table.schema.metadata or {}
+    raw = meta.get(GRID_METADATA_KEY.encode())
+    if raw is None:
+        raise CobelError(f"{path} has no probe grid in its metadata ({GRID_METADATA_KEY})")
+    return table.to_pandas(), ProbeGrid.from_dict(json.loads(raw))
+
+
+def maps_array(
+    df: pd.DataFrame, grid: ProbeGrid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One snapshot's rows -> ``(maps, explored, units, headings_deg)``.
+
+    ``df`` holds the rows of one (run, trial, layer). ``maps`` is ``(units, headings, ny, nx)``
+    float64 with NaN outside the probed bins; ``explored`` the grid's inside mask.
+    """
+    for col in ("run", "trial", "layer"):
+        if col in df and df[col].nunique() > 1:
+            raise ConfigError(f"maps_array takes one snapshot; the rows have several {col}s")
+    units = np.unique(df["unit"].to_numpy())
+    heads = np.unique(df["heading"].to_numpy())
+    u = np.searchsorted(units, df["unit"].to_numpy())
+    h = np.searchsorted(heads, df["heading"].to_numpy())
+    maps = np.full((units.size, heads.size, grid.ny, grid.nx), np.nan)
+    maps[u, h, df["iy"].to_numpy(), df["ix"].to_numpy()] = df["value"].to_numpy()
+    return maps, grid.inside.copy(), units, heads.astype(np.float64)
+
+
+def spatial_distances(grid: ProbeGrid) -> np.ndarray:
+    """(M, M) Euclidean distances between the inside probe positions (world units)."""
+    p = grid.points()
+    return np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))

@@ -183,3 +183,53 @@ def spatial_distances(grid: ProbeGrid) -> np.ndarray:
     """(M, M) Euclidean distances between the inside probe positions (world units)."""
     p = grid.points()
     return np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+
+
+def classify_snapshots(
+    df: pd.DataFrame,
+    grid: ProbeGrid,
+    layer: str | None = None,
+    criterion: Any = None,
+    rsa: bool = True,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Classify every snapshot of an ``activity_maps`` table.
+
+    Returns ``(units, snapshots)``: ``units`` has one row per (run, trial, unit) with the
+    columns of :func:`cobelrun.analysis.place_cells.place_cells`; ``snapshots`` one row per
+    (run, trial) with ``place_cells``, ``units``, ``place_cell_fraction``, the median
+    ``spatial_information`` and (``rsa=True``) ``rsa_spatial``: the Spearman correlation of
+    the population RDM with the spatial-distance RDM (:func:`cobelrun.analysis.rsa.spatial_rsa`).
+    ``layer`` default: the table's only layer.
+    """
+    from cobelrun.analysis.place_cells import place_cells
+
+    layers = df["layer"].unique()
+    if layer is None:
+        if len(layers) != 1:
+            raise ConfigError(f"the table has layers {sorted(layers)}; pick one with layer=")
+        layer = str(layers[0])
+    elif layer not in layers:
+        raise ConfigError(f"layer {layer!r} is not in the table; it has {sorted(layers)}")
+    rows, per_unit = [], []
+    points = grid.points()
+    for (run, trial), snap in df[df["layer"] == layer].groupby(["run", "trial"], sort=True):
+        maps, explored, units, heads = maps_array(snap, grid)
+        pc = place_cells(maps, explored, criterion, headings_rad=np.deg2rad(heads))
+        pc.insert(0, "trial", int(trial))
+        pc.insert(0, "run", int(run))
+        pc["unit"] = units
+        per_unit.append(pc)
+        row = {
+            "run": int(run),
+            "trial": int(trial),
+            "place_cells": int(pc["is_place_cell"].sum()),
+            "units": len(units),
+            "place_cell_fraction": float(pc["is_place_cell"].mean()),
+            "spatial_information_median": float(pc["spatial_information"].median()),
+        }
+        if rsa:
+            from cobelrun.analysis.rsa import spatial_rsa
+
+            row["rsa_spatial"] = spatial_rsa(maps, explored, points)
+        rows.append(row)
+    return pd.concat(per_unit, ignore_index=True), pd.DataFrame(rows)

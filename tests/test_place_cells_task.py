@@ -120,12 +120,11 @@ TINY = ["task=place_cells", "task.runs=1", "task.protocol.phases.0.trials=3",
         "task.monitors.maps.grid=[6,5]"]  # fmt: skip
 
 
-def test_place_cells_task_maps_cache_and_nwb(cobel, tmp_path):
+def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
     pytest.importorskip("stable_baselines3")
     pytest.importorskip("pynwb")
     nwbinspector = pytest.importorskip("nwbinspector")
-    env = {"COBEL_CACHE": str(tmp_path / "cache")}
-    out = cobel("run", *TINY, env=env)
+    out = cobel("run", *TINY)
     assert out.returncode == 0, out.stderr
     run_dir = out.stdout.strip().splitlines()[-1]
     df, grid = load_activity_maps(run_dir)
@@ -134,17 +133,8 @@ def test_place_cells_task_maps_cache_and_nwb(cobel, tmp_path):
     assert sorted(df["trial"].unique()) == [0, 2, 3]  # before training, every 2nd, the last
     assert (df["layer"] == "analysis").all() and df["unit"].nunique() == 50
     assert sorted(df["heading"].unique()) == [0, 60, 120, 180, 240, 300]
-    maps, explored, units, heads = maps_array(df[df["trial"] == 3], grid)
+    maps, explored, _, _ = maps_array(df[df["trial"] == 3], grid)
     assert maps.shape == (50, 6, 5, 6) and explored.all()
-
-    # the render cache covers the probe grid: an offline run gives the same maps
-    built = cobel("render-cache", *TINY, "--jobs", "1", env=env)
-    assert built.returncode == 0, built.stderr
-    assert "30 probe positions x 6 headings" in built.stdout
-    off = cobel("run", *TINY, "env.observation.render=offline", env=env)
-    assert off.returncode == 0, off.stderr
-    df_off, _ = load_activity_maps(off.stdout.strip().splitlines()[-1])
-    pd.testing.assert_frame_equal(df, df_off)
 
     exported = cobel("export", "nwb", run_dir)
     assert exported.returncode == 0, exported.stderr
@@ -161,8 +151,25 @@ def test_place_cells_task_maps_cache_and_nwb(cobel, tmp_path):
         assert f.processing["behavior"]["Position"]["position"].rate == 10.0
         table = f.processing["network"]["activity_maps_analysis"]
         assert table["maps"].data.shape == (3 * 50, 6, 5, 6)
+        assert np.allclose(table["maps"].data[2 * 50 + 7], maps[7])
         assert "place cells" in f.keywords[:]
         assert f.subject.subject_id == "DQNAgent-run0"
+
+
+@pytest.mark.slow
+def test_place_cells_task_offline_equals_online(cobel, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    env = {"COBEL_CACHE": str(tmp_path / "cache")}
+    online = cobel("run", *TINY)
+    assert online.returncode == 0, online.stderr
+    built = cobel("render-cache", *TINY, "--jobs", "1", env=env)
+    assert built.returncode == 0, built.stderr
+    assert "30 probe positions x 6 headings" in built.stdout
+    off = cobel("run", *TINY, "env.observation.render=offline", env=env)
+    assert off.returncode == 0, off.stderr
+    df_on, _ = load_activity_maps(online.stdout.strip().splitlines()[-1])
+    df_off, _ = load_activity_maps(off.stdout.strip().splitlines()[-1])
+    pd.testing.assert_frame_equal(df_on, df_off)
 
 
 def test_nwb_export_of_a_tabular_run(cobel, tmp_path):

@@ -92,8 +92,10 @@ def snapshot(render: str) -> dict:
     mon = ActivityMapMonitor()
     mon.setup(env)
     rows = []
-    mon.bind(lambda cols: rows.append(len(cols["value"])))
-    _, wall, cpu = timed(lambda: mon.start_agent(0, agent))  # views + first snapshot
+    mon.bind(
+        lambda table, cols: rows.append(len(cols["value"])) if table == "activity_maps" else None
+    )
+    _, wall, cpu = timed(lambda: mon.start_run(0, agent))  # views + first snapshot
     _, wall2, cpu2 = timed(lambda: mon.snapshot(agent, 800))  # views kept: forward passes only
     env.close()
     return {"render": render, "views": int(mon.grid.inside.sum()) * 6, "rows": rows[0],

@@ -8,8 +8,8 @@ the nodes of a free-form graph such as the hexagonal maze). Only inside position
 
 ``activity_maps.parquet`` (written by :class:`cobelrun.monitors.maps.ActivityMapMonitor`) is long
 format: ``run, trial, layer, unit, heading, ix, iy, x, y, value`` with ``heading`` in degrees;
-its Parquet metadata holds the grid (``cobel.grid``: ``nx``, ``ny``, bin edges and the inside
-mask). :func:`load_activity_maps` reads both; :func:`maps_array` turns one snapshot into the
+``activity_map_grid.parquet`` holds the grid, one row per bin (``ix, iy``, bin edges ``x0, x1,
+y0, y1`` and ``explored``, the inside mask). :func:`load_activity_maps` reads both; :func:`maps_array` turns one snapshot into the
 ``(units, headings, ny, nx)`` array and ``(ny, nx)`` explored mask that
 :func:`cobelrun.analysis.place_cells.place_cells` takes. Row ``iy = 0`` is the lowest ``y``
 (plot with ``origin="lower"``).
@@ -17,7 +17,6 @@ mask). :func:`load_activity_maps` reads both; :func:`maps_array` turns one snaps
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +27,8 @@ import pandas as pd
 from cobelrun.errors import CobelError, ConfigError
 
 __all__ = [
-    "GRID_METADATA_KEY",
+    "GRID_TABLE",
+    "MAPS_TABLE",
     "ProbeGrid",
     "load_activity_maps",
     "maps_array",
@@ -36,8 +36,9 @@ __all__ = [
     "spatial_distances",
 ]
 
-#: Parquet schema metadata key of the probe grid in ``activity_maps.parquet``.
-GRID_METADATA_KEY = "cobel.grid"
+#: Table names (``<name>.parquet`` in a run folder) of the maps and of their probe grid.
+MAPS_TABLE = "activity_maps"
+GRID_TABLE = "activity_map_grid"
 
 
 @dataclass(frozen=True)
@@ -83,20 +84,6 @@ class ProbeGrid:
         """(M, 2) ``(x, y)`` of the inside bins' centres, in :meth:`indices` order."""
         ix, iy = self.indices()
         return np.stack([self.x_centres[ix], self.y_centres[iy]], axis=1)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "nx": self.nx,
-            "ny": self.ny,
-            "x_edges": self.x_edges.round(9).tolist(),
-            "y_edges": self.y_edges.round(9).tolist(),
-            "inside": ["".join("1" if v else "0" for v in row) for row in self.inside],
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ProbeGrid:
-        inside = np.array([[c == "1" for c in row] for row in d["inside"]], dtype=bool)
-        return cls(np.asarray(d["x_edges"], float), np.asarray(d["y_edges"], float), inside)
 
 
 def probe_grid(
@@ -144,19 +131,32 @@ def probe_grid(
     return ProbeGrid(xe, ye, inside.reshape(ny, nx))
 
 
+def grid_from_table(df: pd.DataFrame) -> ProbeGrid:
+    """The :class:`ProbeGrid` of an ``activity_map_grid`` table (one row per bin)."""
+    nx, ny = int(df["ix"].max()) + 1, int(df["iy"].max()) + 1
+    if len(df) != nx * ny:
+        raise CobelError(f"probe grid table has {len(df)} rows for a {nx} x {ny} grid")
+    xs = df.drop_duplicates("ix").sort_values("ix")
+    ys = df.drop_duplicates("iy").sort_values("iy")
+    inside = np.zeros((ny, nx), bool)
+    inside[df["iy"].to_numpy(), df["ix"].to_numpy()] = df["explored"].to_numpy(bool)
+    x_edges = np.append(xs["x0"].to_numpy(), xs["x1"].to_numpy()[-1])
+    y_edges = np.append(ys["y0"].to_numpy(), ys["y1"].to_numpy()[-1])
+    return ProbeGrid(x_edges, y_edges, inside)
+
+
 def load_activity_maps(run_dir: str | Path) -> tuple[pd.DataFrame, ProbeGrid]:
     """``activity_maps.parquet`` of a run folder and its probe grid."""
-    import pyarrow.parquet as pq
-
-    path = Path(run_dir) / "activity_maps.parquet"
-    if not path.is_file():
-        raise CobelError(f"{Path(run_dir)} has no activity_maps.parquet (no activity-map monitor)")
-    table = pq.read_table(path)
-    meta = table.schema.metadata or {}
-    raw = meta.get(GRID_METADATA_KEY.encode())
-    if raw is None:
-        raise CobelError(f"{path} has no probe grid in its metadata ({GRID_METADATA_KEY})")
-    return table.to_pandas(), ProbeGrid.from_dict(json.loads(raw))
+    run_dir = Path(run_dir)
+    paths = [run_dir / f"{name}.parquet" for name in (MAPS_TABLE, GRID_TABLE)]
+    for p in paths:
+        if not p.is_file():
+            raise CobelError(f"{run_dir} has no {p.name} (no activity-map monitor)")
+    try:
+        maps, grid = (pd.read_parquet(p) for p in paths)
+    except Exception as exc:
+        raise CobelError(f"cannot read the activity maps of {run_dir}: {exc}") from None
+    return maps, grid_from_table(grid)
 
 
 def maps_array(

@@ -13,13 +13,13 @@ the render cache when the environment renders offline (``cobel render-cache`` bu
 grid's cache for tasks with this monitor). A snapshot is then only forward passes.
 
 Rows go to ``activity_maps.parquet``: ``run, trial, layer, unit, heading`` (degrees), ``ix, iy``
-(grid bin), ``x, y`` (world units), ``value``; the grid with its inside mask is in the file's
-metadata (:func:`cobelrun.analysis.maps.load_activity_maps`).
+(grid bin), ``x, y`` (world units), ``value``; the grid with its inside mask goes to
+``activity_map_grid.parquet`` (one row per bin: ``ix, iy, x0, x1, y0, y1, explored``), read
+back by :func:`cobelrun.analysis.maps.load_activity_maps`.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -27,8 +27,9 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from cobelrun.analysis.maps import GRID_METADATA_KEY, ProbeGrid, probe_grid
+from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, ProbeGrid, probe_grid
 from cobelrun.errors import ConfigError
+from cobelrun.monitors import Table
 from cobelrun.monitors.activity import ActivityMonitor
 
 
@@ -51,7 +52,7 @@ class ActivityMapMonitor(ActivityMonitor):
         Views per forward pass.
     """
 
-    table = "activity_maps"
+    requires = ("render_at_pose",)
 
     def __init__(
         self,
@@ -92,12 +93,17 @@ class ActivityMapMonitor(ActivityMonitor):
         self.view_seconds: float | None = None
         #: seconds of each snapshot's forward passes and row building
         self.snapshot_seconds: list[float] = []
+        self._grid_written = False
 
     # -- wiring ------------------------------------------------------------------------------
     def setup(self, env: Any) -> None:
         base = env.unwrapped
         topology = getattr(base, "topology", None)
-        if topology is None or not hasattr(base, "observe_grid"):
+        if (
+            topology is None
+            or not hasattr(base, "observe_grid")
+            or not hasattr(base, "render_at_pose")
+        ):
             raise ConfigError(
                 f"activity maps need an environment that renders at any pose (a topology env); "
                 f"{type(base).__name__} does not"
@@ -121,6 +127,7 @@ class ActivityMapMonitor(ActivityMonitor):
         ]
 
     def fields(self) -> list[pa.Field]:
+        """Columns of ``activity_maps``."""
         return [
             pa.field("run", pa.int32()),
             pa.field("trial", pa.int32()),
@@ -134,13 +141,33 @@ class ActivityMapMonitor(ActivityMonitor):
             pa.field("value", pa.float32()),
         ]
 
-    def schema(self) -> pa.Schema:
-        """The table's schema, with the probe grid in its metadata."""
-        meta = {} if self.grid is None else {GRID_METADATA_KEY: json.dumps(self.grid.to_dict())}
-        return pa.schema(self.fields(), metadata=meta)
+    def tables(self) -> list[Table]:
+        grid = (
+            pa.field("ix", pa.int16()), pa.field("iy", pa.int16()),
+            pa.field("x0", pa.float64()), pa.field("x1", pa.float64()),
+            pa.field("y0", pa.float64()), pa.field("y1", pa.float64()),
+            pa.field("explored", pa.bool_()),
+        )  # fmt: skip
+        return [Table(MAPS_TABLE, tuple(self.fields()), per="event"),
+                Table(GRID_TABLE, grid, per="event")]  # fmt: skip
+
+    def _emit_grid(self) -> None:
+        g = self.grid
+        assert g is not None
+        iy, ix = np.indices((g.ny, g.nx))
+        ix, iy = ix.ravel(), iy.ravel()
+        self.emit(GRID_TABLE, {
+            "ix": ix.astype(np.int16), "iy": iy.astype(np.int16),
+            "x0": g.x_edges[ix], "x1": g.x_edges[ix + 1],
+            "y0": g.y_edges[iy], "y1": g.y_edges[iy + 1],
+            "explored": g.inside.ravel(),
+        })  # fmt: skip
 
     # -- snapshots ---------------------------------------------------------------------------
-    def start_agent(self, run: int, agent: Any) -> None:
+    def start_run(self, run: int, agent: Any = None) -> None:
+        if not self._grid_written:
+            self._emit_grid()
+            self._grid_written = True
         if self.layers is None and hasattr(agent, "layer_names"):
             names = list(agent.layer_names())
             if "analysis" not in names:
@@ -149,7 +176,7 @@ class ActivityMapMonitor(ActivityMonitor):
                     f"pick task.monitors.maps.layers from: {', '.join(names)}"
                 )
             self.layers = ["analysis"]
-        super().start_agent(run, agent)
+        super().start_run(run, agent)
 
     def views(self) -> Any:
         """The observations at every probe pose, ``(M * D, ...)`` (produced once, then kept)."""
@@ -200,5 +227,5 @@ class ActivityMapMonitor(ActivityMonitor):
             cols["value"].append(values.ravel())
         self._last = trial
         self.snapshot_seconds.append(time.perf_counter() - t0)
-        if self._sink is not None and cols["run"]:
-            self._sink({k: np.concatenate(v) for k, v in cols.items()})
+        if cols["run"]:
+            self.emit(MAPS_TABLE, {k: np.concatenate(v) for k, v in cols.items()})

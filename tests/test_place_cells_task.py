@@ -106,13 +106,21 @@ def test_offline_probe_grid_equals_online(tmp_path, monkeypatch):
     module = offline.observation_module
     cache.build(module.cache_request(grid.points(), heads), jobs=1)
     assert np.array_equal(offline.observe_grid(grid.points(), heads), want)
+
+    # with the cache there, an online env reads it instead of rendering
+    def no_render(*args):
+        raise AssertionError("rendered although the cache exists")
+
+    node_view = online.observe_pose(7, 0)
+    monkeypatch.setattr(online.observation_module, "render_raw_at", no_render)
+    assert np.array_equal(online.observe_grid(grid.points(), heads), want)
     x, y = grid.points()[3]
     assert np.array_equal(offline.render_at_pose(x, y, heads[1]), want[3, 1])
     cache.build(module.cache_request(), jobs=1)  # the graph's views
     with pytest.raises(CobelError, match="not in the loaded render caches"):
         offline.render_at_pose(x + 0.01, y, heads[1])
     node_x, node_y = offline.topology.positions[7]
-    assert np.array_equal(offline.render_at_pose(node_x, node_y, 0.0), online.observe_pose(7, 0))
+    assert np.array_equal(offline.render_at_pose(node_x, node_y, 0.0), node_view)
 
 
 TINY = ["task=place_cells", "task.runs=1", "task.protocol.phases.0.trials=3",

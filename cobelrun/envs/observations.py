@@ -357,18 +357,23 @@ class ImageObservation(ObservationModule):
     ) -> np.ndarray:
         """Observations at every ``positions x headings`` pose, ``(M, D, *obs_shape)``.
 
-        Online: rendered with pybullet. Offline: read from the render cache of exactly this
-        grid (``cobel render-cache`` builds it for tasks with an activity-map monitor); the
-        views are also kept for :meth:`render_at_pose`.
+        Offline: read from the render cache of exactly this grid (``cobel render-cache``
+        builds it for tasks with an activity-map monitor); the views are also kept for
+        :meth:`render_at_pose`. Online: read from that cache too where it exists for the
+        installed pybullet (the same pixels, content-addressed), else rendered with pybullet.
         """
-        pos = np.asarray(positions, np.float64).reshape(-1, 2)
-        heads = np.asarray(headings_rad, np.float64).reshape(-1)
-        if self.render == "online":
-            raw = np.stack([[self.render_raw_at(x, y, h) for h in heads] for x, y in pos])
-            return self.process(raw)
         from cobelrun.render import cache
 
-        obs = self.process(cache.load(self.cache_request(pos, heads)))
+        pos = np.asarray(positions, np.float64).reshape(-1, 2)
+        heads = np.asarray(headings_rad, np.float64).reshape(-1)
+        request = self.cache_request(pos, heads)
+        if self.render == "online":
+            try:
+                return self.process(cache.load(request))
+            except CobelError:  # no cache (or a stale one): render
+                raw = np.stack([[self.render_raw_at(x, y, h) for h in heads] for x, y in pos])
+                return self.process(raw)
+        obs = self.process(cache.load(request))
         for i, (x, y) in enumerate(pos):
             for j, h in enumerate(heads):
                 self._pose_views[_pose_key(x, y, h)] = obs[i, j]

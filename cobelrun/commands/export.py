@@ -24,7 +24,7 @@ def nwb_cmd(
 ) -> None:
     """Write one NWB file per run: session, subject (the agent), trials, positions and, for deep
     agents with an activity-map monitor, the activity maps and a unit table (pynwb)."""
-    from cobelrun.cli import fail
+    from cobelrun.commands.common import fail
     from cobelrun.errors import CobelError
     from cobelrun.io.nwb import export_run_folder
 

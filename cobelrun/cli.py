@@ -148,6 +148,10 @@ from cobelrun.commands.render_cache import register as _register_render_cache  #
 
 _register_render_cache(app)
 
+from cobelrun.commands.export import register as _register_export  # noqa: E402
+
+_register_export(app)
+
 
 STATUS_STYLE = {
     "done": "green",

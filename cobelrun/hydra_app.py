@@ -22,14 +22,14 @@ from cobelrun.config import GROUPS, builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 
 
-def _check_choices(parsed: list[Any]) -> None:
+def _check_choices(parsed: list[Any], config_dir: Path | None = None) -> None:
     from cobelrun.config import group_options
 
     for o in parsed:
         key = o.key_or_group
         if key not in GROUPS or o.package:
             continue
-        options = group_options(key)
+        options = group_options(key, config_dir)
         values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
         for value in values:
             if value is None and key != "task":
@@ -94,44 +94,85 @@ def _parse(overrides: list[str]) -> list[Any]:
         raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
 
 
+def search_path(config_dir: Path | None = None) -> Any:
+    """The config search path of ``cobel run`` (Hydra's ``ConfigSearchPath``).
+
+    Without ``config_dir``: the built-in configs (``./conf`` first, through
+    ``hydra_plugins/cobel_searchpath``). With a user's ``config_dir`` (``-cd``/``-cp``): that
+    folder is the primary one (its ``config.yaml`` wins) and the built-in configs come after
+    it, so its configs can still pick built-in envs, agents and tasks.
+    """
+    from hydra._internal.utils import create_config_search_path
+    from hydra.core.config_search_path import SearchPathQuery
+
+    if config_dir is None:
+        return create_config_search_path(str(builtin_conf_dir()))
+    sp = create_config_search_path(str(config_dir))
+    sp.prepend(provider="cobel", path=f"file://{builtin_conf_dir()}",
+               anchor=SearchPathQuery(provider="schema"))  # fmt: skip
+    return sp
+
+
+def user_config_dir(value: str | None) -> Path | None:
+    """A ``-cd``/``-cp`` folder as an absolute path (relative to the working directory)."""
+    if value is None:
+        return None
+    path = Path(value.removeprefix("file://")).expanduser().absolute()
+    if not path.is_dir():
+        raise ConfigError(f"config folder {value} does not exist (given with -cd/-cp)")
+    return path
+
+
 @contextlib.contextmanager
-def composer() -> Iterator[Callable[..., DictConfig]]:
+def composer(
+    config_dir: Path | None = None, config_name: str = "config"
+) -> Iterator[Callable[..., DictConfig]]:
     """Compose configs as ``cobel run`` does, with errors as one-line ConfigErrors.
 
     Yields ``compose(overrides, return_hydra_config=False)``: built-in configs (``./conf``
-    searched first through ``hydra_plugins/cobel_searchpath``), overrides parsed, chosen
-    task/env/agent/protocol names checked with close-match suggestions, typos in keys
-    explained. Used by ``cobel run``'s up-front validation, ``cobel render-cache`` and
-    ``cobel figure``.
+    searched first through ``hydra_plugins/cobel_searchpath``; a user's ``config_dir`` first
+    when given, see :func:`search_path`), overrides parsed, chosen task/env/agent/protocol
+    names checked with close-match suggestions, typos in keys explained. Used by ``cobel
+    run``'s up-front validation, the Python API, ``cobel render-cache`` and ``cobel figure``.
     """
-    from hydra import compose, initialize_config_dir
+    from hydra import compose
+    from hydra._internal.hydra import Hydra
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException, MissingConfigException
 
     def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
-        _check_choices(_parse(overrides))
+        _check_choices(_parse(overrides), config_dir)
         try:
-            return compose("config", overrides=overrides, return_hydra_config=return_hydra_config)
+            return compose(config_name, overrides=overrides,
+                           return_hydra_config=return_hydra_config)  # fmt: skip
         except MissingConfigException as exc:
             raise ConfigError(str(exc).strip().splitlines()[0]) from None
         except HydraException as exc:
             base_cfg = None
             try:  # the config without the bad override, to list the keys that are allowed
                 plain = [o for o in overrides if o.split("=", 1)[0] in GROUPS]
-                base_cfg = compose("config", overrides=plain)
+                base_cfg = compose(config_name, overrides=plain)
             except HydraException:
                 pass
             raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
 
+    from hydra import version
+
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(builtin_conf_dir()), version_base="1.3"):
-            yield _compose
+        version.setbase("1.3")
+        Hydra.create_main_hydra2(task_name="cobel", config_search_path=search_path(config_dir))
+        yield _compose
     finally:
         GlobalHydra.instance().clear()
 
 
-def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dict]]:
+def validate(
+    overrides: list[str],
+    multirun: bool,
+    config_dir: Path | None = None,
+    config_name: str = "config",
+) -> tuple[DictConfig, list[dict]]:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
     Returns the composed config of the first combination, ``hydra`` node included, and for a
@@ -142,10 +183,12 @@ def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dic
 
     first, jobs = overrides, []
     if multirun:
-        _check_choices(_parse(overrides))  # every swept value, not only the first combination's
+        _check_choices(
+            _parse(overrides), config_dir
+        )  # every swept value, not only the first combination's
         _, jobs = plan(overrides)
         first = jobs[0]["overrides"] if jobs else overrides
-    with composer() as compose:
+    with composer(config_dir, config_name) as compose:
         cfg = compose(first, return_hydra_config=True)
     if not multirun:
         try:
@@ -178,8 +221,16 @@ def job(cfg: DictConfig) -> str:
     except KeyboardInterrupt:
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)
         sys.exit(130)
+    if SUMMARY:
+        from cobelrun.commands.summary import print_run_summary
+
+        print_run_summary(run_dir)
     print(run_dir)
     return str(run_dir)
+
+
+#: print the end-of-run summary (``cobel run --quiet`` sets it to False)
+SUMMARY = True
 
 
 def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
@@ -274,22 +325,43 @@ def report_sweep(sweep_dir: Path) -> int:
         print(f"cobel: error: {what}; see cobel status {sweep_dir}", file=sys.stderr)
         return 1
     note = f" (launch {launched})" if launched > 1 else ""
+    if SUMMARY:
+        from cobelrun.commands.summary import print_sweep_summary
+
+        print_sweep_summary(sweep_dir)
     print(f"cobel: {total} of {total} jobs done{note}", file=sys.stderr)
     print(sweep_dir)
     return 0
 
 
-def launch(args: list[str]) -> int:
-    """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code."""
+def launch(args: list[str], *, quiet: bool = False) -> int:
+    """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code.
+
+    ``quiet`` leaves out the end-of-run summary.
+    """
     import shlex
 
+    global SUMMARY
+    SUMMARY = not quiet
+
+    import hydra._internal.utils as hydra_utils
     from hydra._internal.utils import _run_hydra, get_args_parser
 
+    # Hydra's help prints the command that installs shell completion from this; `cobel -sc`
+    # is forwarded to `cobel run -sc` (cli._shell_completion_args)
+    hydra_utils._get_exec_command = lambda: "cobel"  # type: ignore[attr-defined]
     parser = get_args_parser()
     parser.prog = "cobel run"
     parsed = parser.parse_args(args)
-    # ./conf is put first on the search path by hydra_plugins/cobel_searchpath
-    config_dir, overrides = builtin_conf_dir(), list(parsed.overrides)
+    # ./conf is put first on the search path by hydra_plugins/cobel_searchpath. A user's
+    # -cd/-cp folder becomes the primary config folder (so -cd RUN/.hydra -cn config runs the
+    # saved config), with the built-in configs searched after it.
+    user_dir = user_config_dir(parsed.config_dir or parsed.config_path)
+    config_name = parsed.config_name or "config"
+    config_dir, overrides = user_dir or builtin_conf_dir(), list(parsed.overrides)
+    if user_dir is not None:
+        parsed.config_path = None
+        parsed.config_dir = str(builtin_conf_dir())  # searched after the user's folder
     informational = (
         parsed.help or parsed.hydra_help or parsed.cfg or parsed.info or parsed.shell_completion
     )
@@ -299,7 +371,7 @@ def launch(args: list[str]) -> int:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
     if not informational:
-        cfg, jobs = validate(overrides, multirun)
+        cfg, jobs = validate(overrides, multirun, user_dir, config_name)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
             _writable_root(sweep_dir)
@@ -310,7 +382,7 @@ def launch(args: list[str]) -> int:
         args_parser=parser,
         task_function=job,
         config_path=str(config_dir),
-        config_name="config",
+        config_name=config_name,
     )
     if sweep_dir is not None:
         return report_sweep(sweep_dir)

@@ -179,8 +179,13 @@ def execute(
     background_writes: bool = True,
     guard: SignalGuard | None = None,
     metadata: Mapping[str, str] | None = None,
+    phase_times: dict[str, float] | None = None,
 ) -> Any:
-    """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
+    """Run every (run, phase) of ``task`` and stream the records into ``run_dir``.
+
+    ``phase_times``, when given, is filled with each phase's wall time in seconds (summed over
+    runs; recording included).
+    """
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
     folder = RunFolder(run_dir)
@@ -208,12 +213,17 @@ def execute(
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
                 callbacks = recorder.phase_callbacks(first, run)
+                t_phase = time.perf_counter()
                 batch = (
                     go(phase.trials, max_steps, callbacks)
                     if callbacks
                     else go(phase.trials, max_steps)
                 )
                 recorder.record(run, phase.name, first, batch)
+                if phase_times is not None:
+                    phase_times[phase.name] = (
+                        phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
+                    )
                 first += phase.trials
                 if progress is not None:  # trials over all runs; phases are the finest grain
                     per_run = task.protocol.n_trials
@@ -259,10 +269,11 @@ def run(
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
     guard = SignalGuard()
+    phase_times: dict[str, float] = {}
     with guard.installed():
         try:
             result = execute(task, run_dir, progress=progress, background_writes=background_writes,
-                             guard=guard, metadata=metadata)  # fmt: skip
+                             guard=guard, metadata=metadata, phase_times=phase_times)  # fmt: skip
         except KeyboardInterrupt:
             with guard.closing():
                 manifest.finish("interrupted")
@@ -273,6 +284,8 @@ def run(
             raise
         with guard.closing():
             summary = {"job_result": result} if isinstance(result, Mapping) else {}
+            if phase_times:
+                summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
             manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
             folder.done.write_text("completed\n")
     return run_dir

@@ -283,7 +283,7 @@ def status_cmd(
     for key in sweep["swept"]:
         table.add_column(key, style="cyan")
     table.add_column("status")
-    table.add_column("time [s]", justify="right")
+    table.add_column("time \\[s]", justify="right")
     table.add_column("error", overflow="fold")
     for r in rows:
         if problems and r["status"] == "done":

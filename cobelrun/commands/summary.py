@@ -17,9 +17,13 @@ from cobelrun.io.run_folder import RunFolder
 
 
 def _console() -> Any:
+    import sys
+
     from rich.console import Console
 
-    return Console(stderr=True, highlight=False)
+    # logs and pipes get whole lines, not rich's 80-column default
+    width = None if sys.stderr.isatty() else 200
+    return Console(stderr=True, highlight=False, width=width)
 
 
 def _num(value: Any, digits: int = 3) -> str:
@@ -50,8 +54,8 @@ def run_summary_table(run_dir: str | Path) -> Any:
     table.add_column("trials", justify="right")
     measures = [c for c in ("reward", "latency", "response") if c in frame]
     for c in measures:
-        table.add_column(f"mean {c}" if c != "latency" else "latency [steps]", justify="right")
-    table.add_column("wall [s]", justify="right")
+        table.add_column(f"mean {c}" if c != "latency" else "latency \\[steps]", justify="right")
+    table.add_column("wall \\[s]", justify="right")
     for row in frame.to_dict("records"):
         table.add_row(
             row["phase"],
@@ -109,7 +113,7 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     for key in sweep["swept"]:
         table.add_column(key, style="cyan")
     table.add_column("status")
-    table.add_column("time [s]", justify="right")
+    table.add_column("time \\[s]", justify="right")
     if has_objective:
         table.add_column("objective", justify="right")
     for r in rows:

@@ -238,6 +238,10 @@ from cobelrun.commands.show import register as _register_show  # noqa: E402
 
 _register_show(app)
 
+from cobelrun.commands.fit import register as _register_fit  # noqa: E402
+
+_register_fit(app)
+
 
 STATUS_STYLE = {
     "done": "green",

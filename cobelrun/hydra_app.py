@@ -12,6 +12,7 @@ import contextlib
 import os
 import re
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -182,7 +183,11 @@ def validate(
     from cobelrun.sweep import plan
 
     first, jobs = overrides, []
-    if multirun:
+    if multirun and foreign_sweeper(overrides):
+        # another sweeper (Optuna, ...) expands its own search space: check one job's config
+        # with the swept keys left at their defaults
+        first = [o.input_line for o in _parse(overrides) if not o.is_sweep_override()]
+    elif multirun:
         _check_choices(
             _parse(overrides), config_dir
         )  # every swept value, not only the first combination's
@@ -249,10 +254,11 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     subdir = str(hc.sweep.subdir)
     num = int(subdir) if subdir.isdigit() else int(hc.job.num)
     fields = {"job": num, "overrides": list(hc.overrides.task)}
+    wants_number = cfg.task.get("objective") is not None  # optimising sweepers need a float
     try:
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
-            return str(run_dir)
+            return job_result(run_dir, wants_number)
         clear_outputs(run_dir)
         status(run_dir, "running", config_hash=chash, **fields)
         run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
@@ -262,9 +268,22 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     except Exception as exc:
         status(run_dir, "failed", error=one_line(exc), traceback=traceback.format_exc(), **fields)
         print(f"cobel: job {num} failed: {one_line(exc)}", file=sys.stderr)
-        return "failed"
+        return float("nan") if wants_number else "failed"
     status(run_dir, "completed", **fields)
-    return str(run_dir)
+    return job_result(run_dir, wants_number)
+
+
+def job_result(run_dir: Path, objective: bool) -> Any:
+    """What a sweep job returns: the task's objective (a float) when it declares one, so that
+    optimising sweepers (Optuna) can use it, else the run folder."""
+    if not objective:
+        return str(run_dir)
+    import json
+
+    from cobelrun.io.run_folder import RunFolder
+
+    value = json.loads(RunFolder(run_dir).manifest.read_text()).get("objective")
+    return float("nan") if value is None else float(value)
 
 
 def _quote(value: str) -> str:
@@ -334,6 +353,24 @@ def report_sweep(sweep_dir: Path) -> int:
     return 0
 
 
+def foreign_sweeper(overrides: list[str]) -> str | None:
+    """The sweeper chosen with ``hydra/sweeper=NAME`` when it is not cobel's own."""
+    for o in overrides:
+        key, _, value = o.partition("=")
+        if key.lstrip("+~") == "hydra/sweeper" and value not in ("", "cobel"):
+            return value
+    return None
+
+
+def report_foreign_sweep(sweep_dir: Path) -> int:
+    """Print what a sweeper other than cobel's left (Optuna's best parameters and value)."""
+    results = sweep_dir / "optimization_results.yaml"
+    if SUMMARY and results.is_file():
+        print(results.read_text().rstrip(), file=sys.stderr)
+    print(sweep_dir)
+    return 0
+
+
 def launch(args: list[str], *, quiet: bool = False) -> int:
     """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code.
 
@@ -372,6 +409,19 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
         parsed.overrides = overrides
     if not informational:
         cfg, jobs = validate(overrides, multirun, user_dir, config_name)
+        if multirun and foreign_sweeper(overrides):
+            keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+            if "hydra.sweep.dir" not in keys:
+                root = Path(os.environ.get("COBEL_RESULTS") or "results")
+                name = f"{foreign_sweeper(overrides)}_{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+                sweep_dir = (root / str(cfg.task.name) / "sweeps" / name).absolute()
+                parsed.overrides = [*overrides, f"hydra.sweep.dir={_quote(str(sweep_dir))}"]
+            else:
+                sweep_dir = Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
+            _writable_root(sweep_dir)
+            _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
+            return report_foreign_sweep(sweep_dir)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
             _writable_root(sweep_dir)

@@ -28,6 +28,7 @@ from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuar
 
 TASK_KEYS = (
     "name", "description", "runs", "protocol", "monitors", "record", "save_agents", "job",
+    "objective",
 )  # fmt: skip
 
 
@@ -52,6 +53,8 @@ class Task:
     #: progress=...) -> dict | None`` (the dict goes into the manifest).
     job: Any = None
     config: Any = None
+    #: ``task.objective``: ``objective(trials) -> float``, stored in the manifest
+    objective: Any = None
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -73,6 +76,11 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     runs = task_cfg.get("runs", 1)
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
         raise ConfigError(f"task.runs must be an integer >= 1, got {runs!r}")
+    objective = None
+    if task_cfg.get("objective") is not None:
+        objective = instantiate("task.objective", task_cfg.objective)
+        if not callable(objective):
+            raise ConfigError("task.objective must build a callable objective(trials) -> float")
     if task_cfg.get("job") is not None:
         return build_job(cfg)
     protocol = Protocol.from_config(OmegaConf.to_container(task_cfg.protocol, resolve=True))
@@ -119,6 +127,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         seed=seed,
         load_from=None if load_from is None else str(load_from),
         save_agents=save_agents,
+        objective=objective,
     )
 
 
@@ -286,6 +295,13 @@ def run(
             summary = {"job_result": result} if isinstance(result, Mapping) else {}
             if phase_times:
                 summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
+            if task.objective is not None:
+                import pandas as pd
+
+                summary["objective"] = float(
+                    task.objective(pd.read_parquet(folder.table("trials")))
+                )
+                summary["objective_name"] = str(getattr(task.objective, "name", "objective"))
             manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
             folder.done.write_text("completed\n")
     return run_dir

@@ -28,7 +28,10 @@ import pandas as pd
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.run_folder import RunFolder
 
-__all__ = ["Run", "default_run_dir", "load", "load_sweep", "rerun", "run", "summary"]
+__all__ = [
+    "Run", "compose", "default_run_dir", "load", "load_sweep", "make_env", "rerun", "run",
+    "summary",
+]  # fmt: skip
 
 #: trials over which the summary's "last" columns are averaged
 LAST_TRIALS = 10
@@ -213,6 +216,38 @@ def compose(task: str | None = None, overrides: Sequence[str] = ()) -> Any:
     register_resolvers()
     with composer() as compose_:
         return compose_(_task_overrides(task, overrides))
+
+
+def make_env(task: str | None = None, overrides: Sequence[str] = (), *, time_limit: bool = True):
+    """The gymnasium env of a task, composed as ``cobel run`` composes it.
+
+    With ``time_limit`` the env is wrapped in ``gymnasium.wrappers.TimeLimit`` with
+    ``max_episode_steps`` = the protocol's ``max_steps`` (the trial length the task's agents
+    get), so a plain gymnasium loop or another library's agent sees the same episodes.
+
+    Parameters
+    ----------
+    task
+        A task name (``cobel list task``), or ``None`` to take it from ``overrides``.
+    overrides
+        Hydra overrides (``["env=blodgett"]``, ``["task.protocol.max_steps=50"]``).
+    time_limit
+        Wrap the env in a ``TimeLimit`` from the config.
+    """
+    from omegaconf import OmegaConf
+
+    from cobelrun.config import instantiate
+
+    cfg = compose(task, overrides)
+    env = instantiate("env", cfg.env)
+    steps = OmegaConf.select(cfg, "task.protocol.max_steps")
+    if time_limit and steps is not None:
+        from gymnasium.wrappers import TimeLimit
+
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ConfigError(f"task.protocol.max_steps must be an integer >= 1, got {steps!r}")
+        env = TimeLimit(env, max_episode_steps=steps)
+    return env
 
 
 def _execute(cfg: Any, out: str | os.PathLike[str] | None, progress: bool) -> Run:

@@ -64,7 +64,7 @@ DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 class ConvFeatures(BaseFeaturesExtractor):
     """Convolutions ``[channels, kernel, stride]`` (ReLU), flattened, then a dense ReLU layer.
 
-    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (FACTS.md).
+    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md).
     """
 
     def __init__(
@@ -95,7 +95,7 @@ class ConvFeatures(BaseFeaturesExtractor):
 class DQNAgent(Agent):
     """DQN (Mnih et al. 2015) through stable-baselines3, trained in trials.
 
-    Defaults are CoBeL-RL's DQN defaults (FACTS.md): 4 x dense 64 tanh, epsilon 0.3,
+    Defaults are CoBeL-RL's DQN defaults (docs/paper-settings.md): 4 x dense 64 tanh, epsilon 0.3,
     gamma 0.8, batch 32, Adam 1e-3, soft target update 0.01, warm-up 100 steps.
 
     Parameters

@@ -146,6 +146,7 @@ def plot_sweep_file(
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue=hue, units=("job", "run"), ylabel=ylabel)
     ax.set_title(f"{sweep_dir.name}" + (f" by {hue}" if hue else ""))
+    fig.tight_layout()
     return save_figure(fig, Path(out) if out else sweep_dir / "plot.png")
 
 
@@ -169,6 +170,7 @@ def compare_file(
     column, ylabel = _curve_column(trials, y)
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue="source", units=("source", "run"), ylabel=ylabel)
+    fig.tight_layout()
     return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / "compare.png")
 
 
@@ -299,6 +301,7 @@ def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> 
     except BaseException:
         plt.close(fig)
         raise
+    fig.tight_layout()
     return save_figure(fig, Path(out) if out else run_dir / f"plot_{kind}.png")
 
 

@@ -9,6 +9,7 @@ folder is created.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import sys
@@ -215,17 +216,23 @@ def job(cfg: DictConfig) -> str:
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
+    log_start(cfg, run_dir, list(hc.overrides.task))
     if str(hc.mode) == "RunMode.MULTIRUN":
-        return sweep_job(cfg, hc, run_dir)
+        result = sweep_job(cfg, hc, run_dir)
+        log_end(run_dir)
+        return result
     try:
         with run_progress(f"{cfg.task.name}") as progress:
             run(cfg, run_dir, progress=progress)
     except CobelError as exc:
+        LOG.info("failed: %s", exc)
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
+        LOG.info("interrupted")
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)
         sys.exit(130)
+    log_end(run_dir)
     if SUMMARY:
         from cobelrun.commands.summary import print_run_summary
 
@@ -236,6 +243,39 @@ def job(cfg: DictConfig) -> str:
 
 #: print the end-of-run summary (``cobel run --quiet`` sets it to False)
 SUMMARY = True
+
+#: the job's log lines (Hydra's job logging writes them to RUN_DIR/cobel.log)
+LOG = logging.getLogger("cobel")
+
+
+def log_start(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> None:
+    """Log what the job runs: task, seed, overrides, folder."""
+    LOG.info("task %s, seed %s, folder %s", cfg.task.name, cfg.seed, run_dir)
+    LOG.info("overrides: %s", " ".join(overrides) or "(none)")
+
+
+def log_end(run_dir: Path) -> None:
+    """Log how the job ended and each phase's summary row (from the run folder)."""
+    import json
+
+    from cobelrun.io.run_folder import RunFolder
+
+    folder = RunFolder(run_dir)
+    if not folder.manifest.is_file():
+        return
+    manifest = json.loads(folder.manifest.read_text())
+    LOG.info("status %s, wall time %s s%s", manifest.get("status"), manifest.get("wall_time_s"),
+             f", error {manifest['error']}" if manifest.get("error") else "")  # fmt: skip
+    if "objective" in manifest:
+        LOG.info("objective (%s) = %s", manifest.get("objective_name"), manifest["objective"])
+    if folder.table("trials").is_file() and manifest.get("status") == "completed":
+        import pandas as pd
+
+        from cobelrun.api import summary
+
+        for row in summary(pd.read_parquet(folder.table("trials"))).to_dict("records"):
+            LOG.info("phase %s: %s", row.pop("phase"),
+                     ", ".join(f"{k} {v:.4g}" for k, v in row.items()))  # fmt: skip
 
 
 def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:

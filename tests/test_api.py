@@ -45,6 +45,9 @@ def test_api_matches_cli_tables(api_run, cobel, tmp_path):
                  "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "folder:" not in proc.stderr  # --quiet: no summary
+    log = (out / "cobel.log").read_text()  # the run's log lines, not an empty file
+    assert "task tmaze_extinction, seed 5" in log and "status completed" in log
+    assert "phase extinction: runs 2, trials 12" in log
     pd.testing.assert_frame_equal(pd.read_parquet(out / "trials.parquet"), api_run.trials)
 
 

@@ -43,6 +43,7 @@ def test_run_stores_the_objective(tmp_path):
                                           "lst:4}"], out=tmp_path / "bad")  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("optuna") is None, reason="needs cobelrun[fit]")
 def test_optuna_sweeper_optimises_the_objective(cobel, tmp_path):
     proc = cobel("run", "-m", "hydra/sweeper=optuna", "hydra/launcher=basic",

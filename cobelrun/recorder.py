@@ -25,6 +25,7 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.errors import ConfigError
+from cobelrun.io.agents_archive import AgentArchive
 from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
@@ -324,6 +325,7 @@ class RunRecorder:
         guard: SignalGuard | None = None,
         background: bool = True,
         geometry: Any = None,
+        save_agents: bool = False,
     ) -> None:
         self.folder = folder
         self.env = env
@@ -353,6 +355,13 @@ class RunRecorder:
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
         self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
+        self.agents = (
+            AgentArchive(
+                folder.agents_archive, folder.agent_parts, flush_seconds=record.flush_seconds
+            )
+            if save_agents
+            else None
+        )
 
     def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
         tables: dict[str, tuple[str, list[pa.Field]]] = {}
@@ -393,6 +402,13 @@ class RunRecorder:
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:
         for m in self.monitors:
             m.end_run(run, agent, last_trial)
+
+    def save_agent(self, run: int, agent: Any) -> None:
+        """Add run ``run``'s trained agent to the job's ``agents.npz`` (written in batches)."""
+        assert self.agents is not None, "the recorder was built without save_agents"
+        with self.guard.critical():
+            if self.agents.add(run, agent.get_state(), agent.saved_meta()):
+                self._writer.submit(self.agents.write_batch, self.agents.take())
 
     def _emit(self, table: str, columns: Mapping[str, Any]) -> None:
         if table not in self.tables:
@@ -494,5 +510,7 @@ class RunRecorder:
                 finally:
                     for sink in self._sinks.values():
                         sink.writer.close()
+                    if self.agents is not None:
+                        self.agents.close()
                     if self.mcap is not None:
                         self.mcap.close()

@@ -61,6 +61,10 @@ class RecordConfig:
         Also write the env's camera frames (``env.render()``, ``rgb_array``) of the MCAP runs
         as ``foxglove.RawImage`` (``/run_0007/camera``); per-step hooks make compiled agents
         take their Python path.
+    training_log
+        Deep (SB3) agents log their training curves (loss, max Q at the current observation,
+        epsilon, mean trial return) through SB3's logger as CSV, and TensorBoard when installed,
+        into ``training/run_NNNN/``.
     """
 
     steps: bool = True
@@ -70,8 +74,10 @@ class RecordConfig:
     mcap_runs: int | str = 10
     flush_seconds: float = 2.0
     images: bool = False
+    training_log: bool = False
 
-    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds", "images")
+    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds", "images",
+            "training_log")  # fmt: skip
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
@@ -89,8 +95,8 @@ class RecordConfig:
         every = cfg.get("trial_every", 1)
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ConfigError(f"record.trial_every must be an integer >= 1, got {every!r}")
-        for key in ("steps", "mcap", "images"):
-            if not isinstance(cfg.get(key, key != "images"), bool):
+        for key in ("steps", "mcap", "images", "training_log"):
+            if not isinstance(cfg.get(key, key in ("steps", "mcap")), bool):
                 raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
         mcap_runs = cfg.get("mcap_runs", 10)
         if mcap_runs != "all" and (
@@ -110,6 +116,7 @@ class RecordConfig:
             mcap_runs=mcap_runs,
             flush_seconds=float(flush),
             images=cfg.get("images", False),
+            training_log=cfg.get("training_log", False),
         )
 
     def records_run(self, run: int) -> bool:

@@ -110,11 +110,16 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
             raise ConfigError(f"task.monitors.{name} does not build a Monitor")
         monitor.setup(env)
         monitors[str(name)] = monitor
-    if probe_agent:
-        make_agent(seed=run_seed(seed, 0)[0])  # constructor errors surface before any output
     record = RecordConfig.from_config(
         OmegaConf.to_container(task_cfg.record, resolve=True) if "record" in task_cfg else None
     )
+    if probe_agent or record.training_log:
+        probe = make_agent(seed=run_seed(seed, 0)[0])  # constructor errors surface here
+        if record.training_log and not callable(getattr(probe, "log_training", None)):
+            raise ConfigError(
+                f"task.record.training_log needs a deep (SB3) agent such as agent=dqn; "
+                f"{type(probe).__name__} has no training curves"
+            )
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(
             "task.record.images needs an env that renders camera images (render_mode "
@@ -269,6 +274,8 @@ def execute(
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
+            if task.record.training_log:
+                agent.log_training(folder.training_log(run))
             if task.load_from is not None:
                 load_saved_agent(agent, task.load_from, run)
             recorder.start_run(run, agent)

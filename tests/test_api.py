@@ -151,3 +151,17 @@ def test_shell_completion_through_cobel(cobel):
     query = cobel("-sc", "query=bash", env={"COMP_LINE": line, "COMP_POINT": str(len(line))})
     assert query.returncode == 0, query.stderr
     assert "task=tmaze_extinction" in query.stdout
+
+
+def test_training_log_of_deep_agents(tmp_path):
+    """record.training_log: SB3's logger writes one CSV row per trial into training/run_NNNN."""
+    pytest.importorskip("stable_baselines3")
+    r = cobelrun.run("two_afc", ["task.runs=1", "task.protocol.phases.0.trials=6",
+                                 "task.record.training_log=true"], out=tmp_path / "r")  # fmt: skip
+    log = pd.read_csv(r.folder.training_log(0) / "progress.csv")
+    assert len(log) == 6
+    assert {"train/loss", "train/q_max", "rollout/exploration_rate",
+            "rollout/ep_rew_mean"} <= set(log.columns)  # fmt: skip
+    assert log["train/loss"].notna().any()
+    with pytest.raises(ConfigError, match="needs a deep"):
+        cobelrun.run("tmaze_extinction", ["task.record.training_log=true"], out=tmp_path / "x")

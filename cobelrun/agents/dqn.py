@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -347,10 +348,25 @@ class DQNAgent(Agent):
             m._last_obs = m.env.reset()
             m._last_episode_starts = np.ones((1,), dtype=bool)
             m.learn(total_timesteps=n_trials * max_steps, reset_num_timesteps=False,
-                    log_interval=None)  # fmt: skip
+                    log_interval=1 if m.log_q else None)  # fmt: skip
         m.stop_when = None
         rec.finished = rec.finished[:n_trials]
         return rec.batch()
+
+    def log_training(self, folder: str | Path) -> None:
+        """Log training curves through SB3's logger into ``folder`` (``progress.csv``, and
+        TensorBoard event files when ``tensorboard`` is installed), one row per trial:
+        ``train/loss``, ``train/q_max`` (max Q at the current observation),
+        ``rollout/exploration_rate`` (epsilon), ``rollout/ep_rew_mean`` (mean trial return,
+        SB3's window of 100 trials)."""
+        import importlib.util
+
+        from stable_baselines3.common.logger import configure
+
+        formats = ["csv"] + (["tensorboard"] if importlib.util.find_spec("tensorboard") else [])
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        self.model.set_logger(configure(str(folder), formats))
+        self.model.log_q = True
 
     # -- inference ---------------------------------------------------------------------------
     def _obs_tensor(self, observations: Any) -> torch.Tensor:

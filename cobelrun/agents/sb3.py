@@ -100,6 +100,17 @@ class TrialDQN(DQN):
     """SB3 DQN that stops collecting once ``stop_when()`` is true (checked before each step)."""
 
     stop_when: Callable[[], bool] | None = None
+    #: training log on (``DQNAgent.log_training``): also log ``train/q_max``
+    log_q: bool = False
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        super().train(gradient_steps, batch_size)
+        if self.log_q:  # training log on: max Q at the current observation
+            import torch
+
+            with torch.no_grad():
+                obs, _ = self.policy.obs_to_tensor(self._last_obs)
+                self.logger.record("train/q_max", float(self.q_net(obs).max()))
 
     def collect_rollouts(self, env, callback, train_freq, replay_buffer, *args, **kwargs):  # type: ignore[override]
         if self.stop_when is not None and self.stop_when():

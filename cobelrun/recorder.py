@@ -12,11 +12,8 @@ drops rows that were already taken from a buffer.
 from __future__ import annotations
 
 import collections
-import contextlib
-import signal
-import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +27,10 @@ from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
+from cobelrun.signals import Interrupted, SignalGuard
+
+__all__ = ["Interrupted", "RecordConfig", "RunRecorder", "SignalGuard"]
+from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
@@ -76,47 +77,24 @@ class RecordConfig:
     images: bool = False
     training_log: bool = False
 
-    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds", "images",
-            "training_log")  # fmt: skip
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "task.record") -> RecordConfig:
+        """Build from a plain mapping (``task.record``; ``None``: the defaults), validated by
+        :class:`cobelrun.schema.RecordSpec` (errors are one-line ConfigErrors)."""
+        return cls.from_spec(validate(RecordSpec, {} if cfg is None else cfg, where))
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
-        cfg = dict(cfg or {})
-        for key in cfg:
-            if key not in cls.KEYS:
-                raise ConfigError(f"unknown key 'record.{key}'; allowed: {', '.join(cls.KEYS)}")
-        runs = cfg.get("runs", "all")
-        if runs != "all" and (
-            isinstance(runs, str)
-            or not isinstance(runs, Sequence)
-            or not all(isinstance(r, int) and not isinstance(r, bool) and r >= 0 for r in runs)
-        ):
-            raise ConfigError(f"record.runs must be 'all' or a list of run indices, got {runs!r}")
-        every = cfg.get("trial_every", 1)
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ConfigError(f"record.trial_every must be an integer >= 1, got {every!r}")
-        for key in ("steps", "mcap", "images", "training_log"):
-            if not isinstance(cfg.get(key, key in ("steps", "mcap")), bool):
-                raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
-        mcap_runs = cfg.get("mcap_runs", 10)
-        if mcap_runs != "all" and (
-            isinstance(mcap_runs, bool) or not isinstance(mcap_runs, int) or mcap_runs < 0
-        ):
-            raise ConfigError(
-                f"record.mcap_runs must be 'all' or an integer >= 0, got {mcap_runs!r}"
-            )
-        flush = cfg.get("flush_seconds", 2.0)
-        if isinstance(flush, bool) or not isinstance(flush, int | float) or not flush > 0:
-            raise ConfigError(f"record.flush_seconds must be a number > 0, got {flush!r}")
+    def from_spec(cls, spec: RecordSpec) -> RecordConfig:
+        """Build from a validated :class:`cobelrun.schema.RecordSpec`."""
         return cls(
-            steps=cfg.get("steps", True),
-            mcap=cfg.get("mcap", True),
-            runs=runs if runs == "all" else tuple(runs),
-            trial_every=every,
-            mcap_runs=mcap_runs,
-            flush_seconds=float(flush),
-            images=cfg.get("images", False),
-            training_log=cfg.get("training_log", False),
+            steps=spec.steps,
+            mcap=spec.mcap,
+            runs=spec.runs if spec.runs == "all" else tuple(spec.runs),
+            trial_every=spec.trial_every,
+            mcap_runs=spec.mcap_runs,
+            flush_seconds=float(spec.flush_seconds),
+            images=spec.images,
+            training_log=spec.training_log,
         )
 
     def records_run(self, run: int) -> bool:
@@ -124,82 +102,6 @@ class RecordConfig:
 
     def mcap_run(self, run: int) -> bool:
         return self.mcap_runs == "all" or run < int(self.mcap_runs)
-
-
-class SignalGuard:
-    """Ctrl-C and SIGTERM as :class:`KeyboardInterrupt`, but never inside a critical section
-    and never while files are being closed.
-
-    A signal inside :meth:`critical` is held and raised when the section ends; during
-    :meth:`closing` (the files are being finished) further signals are ignored with one
-    notice, so a second Ctrl-C cannot cut the shutdown short. Outside the main thread the
-    guard installs nothing (signals go to the main thread anyway).
-    """
-
-    def __init__(self) -> None:
-        self._depth = 0
-        self._pending: int | None = None
-        self._closing = False
-        self._noticed = False
-        self._previous: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self._closing:
-            if not self._noticed:
-                self._noticed = True
-                print("cobel: finishing the run's files, please wait", file=sys.stderr)
-            return
-        if self._depth:
-            self._pending = signum
-            return
-        self._closing = True  # the run is stopping: later signals must not cut the shutdown
-        raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[SignalGuard]:
-        try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handler)
-        except ValueError:  # not the main thread
-            self._previous.clear()
-        try:
-            yield self
-        finally:
-            for sig, prev in self._previous.items():
-                signal.signal(sig, prev)
-            self._previous.clear()
-
-    @contextlib.contextmanager
-    def critical(self) -> Iterator[None]:
-        self._depth += 1
-        try:
-            yield
-        finally:
-            self._depth -= 1
-        if not self._depth and self._pending is not None and not self._closing:
-            signum, self._pending = self._pending, None
-            self._closing = True
-            raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def closing(self) -> Iterator[None]:
-        """Files are being finished: signals are ignored (with one notice) until the end."""
-        was, self._closing = self._closing, True
-        try:
-            yield
-        finally:
-            self._closing = was
-        if self._pending is not None and not was:
-            signum, self._pending = self._pending, None
-            raise Interrupted(signum)
-
-
-class Interrupted(KeyboardInterrupt):
-    """The run was stopped by SIGINT or SIGTERM."""
-
-    def __init__(self, signum: int = signal.SIGINT) -> None:
-        super().__init__(f"received signal {signum}")
-        self.signum = signum
 
 
 class WriterThread:
@@ -255,17 +157,14 @@ class _TableSink:
             self._pending and time.monotonic() - self._last >= self._seconds
         )
 
-    def take(self) -> pa.Table | None:
-        """The buffered rows as one Arrow table (the buffer is emptied only after the table
-        exists, inside the caller's critical section)."""
+    def take(self) -> list[Mapping[str, Any]] | None:
+        """The buffered column batches (emptied inside the caller's critical section; joined
+        and converted to Arrow on the writer thread)."""
         self._last = time.monotonic()
         if not self._parts:
             return None
-        names = self._parts[0].keys()
-        joined = {k: np.concatenate([np.asarray(p[k]) for p in self._parts]) for k in names}
-        table = self.writer.to_table(joined)
-        self._parts, self._pending = [], 0
-        return table
+        parts, self._parts, self._pending = self._parts, [], 0
+        return parts
 
 
 class _FrameGrabber:
@@ -294,6 +193,12 @@ class _FrameGrabber:
     def take(self, n: int) -> list[np.ndarray]:
         frames, self.frames = self.frames[:n], self.frames[n:]
         return frames
+
+
+def _write_columns(writer: PartedTableWriter, parts: list[Mapping[str, Any]]) -> None:
+    """Join column batches and write them as one part (runs on the writer thread)."""
+    names = parts[0].keys()
+    writer.write_part({k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in names})
 
 
 class RunRecorder:
@@ -359,6 +264,7 @@ class RunRecorder:
 
             self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns,
                                      metadata=dict(metadata or {}))  # fmt: skip
+        self._active: dict[bool, list[Monitor]] = {}
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
         self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
@@ -432,9 +338,9 @@ class RunRecorder:
 
     def _flush(self, table: str) -> None:
         sink = self._sinks[table]
-        part = sink.take()
-        if part is not None:
-            self._writer.submit(sink.writer.write_part, part)
+        parts = sink.take()
+        if parts is not None:
+            self._writer.submit(_write_columns, sink.writer, parts)
 
     # -- batches -------------------------------------------------------------------------------
     def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
@@ -445,13 +351,31 @@ class RunRecorder:
         with self.guard.critical():
             self._record(run, phase, first_trial, batch)
 
+    def _batch_monitors(self, steps_recorded: bool) -> list[Monitor]:
+        """Monitors whose batch rows are written: a monitor that fills only per-step tables
+        is skipped when steps are not recorded (``record.steps=false`` or a run outside
+        ``record.runs``); monitors without trial/step tables (event tables, hooks) always run
+        (their ``on_batch`` may keep state)."""
+        key = steps_recorded
+        if key not in self._active:
+            active = []
+            for m in self.monitors:
+                kinds = {self.tables[t.name][0]: t.name for t in m.tables()}
+                rows = [name for per, name in kinds.items() if per in ("trial", "step")]
+                written = [name for name in rows if name in self._sinks
+                           and (steps_recorded or self.tables[name][0] != "step")]  # fmt: skip
+                if written or not rows:
+                    active.append(m)
+            self._active[key] = active
+        return self._active[key]
+
     def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
         n = batch.n_trials
         if n == 0:
             return
         info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
         merged: dict[str, dict[str, Any]] = {}
-        for m in self.monitors:
+        for m in self._batch_monitors(self.record_cfg.records_run(run)):
             for table, cols in m.on_batch(batch, info).items():
                 if table not in self.tables or self.tables[table][0] == "event":
                     raise ConfigError(
@@ -474,7 +398,9 @@ class RunRecorder:
             else:
                 rows = n
             self._add(table, cols, rows)
-        self._write_mcap(run, phase, trial, batch, merged.get("trials", {}))
+        per_trial = {k: v for name, cols in merged.items() if self.tables[name][0] == "trial"
+                     for k, v in cols.items()}  # fmt: skip
+        self._write_mcap(run, phase, trial, batch, per_trial)
 
     def _write_mcap(
         self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict

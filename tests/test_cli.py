@@ -162,6 +162,12 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         (["agent.epsilon=abc"], "agent.epsilon must be a number, got 'abc'"),
         (["agent.policy=greedy"], "agent.policy 'greedy' is not known"),
         (["task.runs=0"], "task.runs must be an integer >= 1"),
+        (["task.runs=null"], "task.runs must not be null"),
+        (
+            ["+task.record.flush_secs=1"],
+            "unknown key 'task.record.flush_secs' (did you mean 'flush_seconds'?)",
+        ),
+        (["task.protocol.phases.0.trials=-1"], "task.protocol.phases[0].trials must be an integer"),
         (["task.monitors.response.states=[nowhere]"], "unknown place 'nowhere'"),
         (["env=gridworld_layout", LAYOUT_UNKNOWN], "unknown layout symbol 'X' at row 1, col 3"),
         (["env=gridworld_layout", "env.world.layout='#####\n#..G#\n#####'"], "no start"),
@@ -210,12 +216,12 @@ def test_interrupted_run_leaves_readable_files(tmp_path, sig):
         [*cobel_exe(), "run", "task=tmaze_extinction", "task.runs=200000", f"hydra.run.dir={out}"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        if (out / "manifest.json").is_file() and (out / "world.json").is_file():
+    deadline = time.time() + 120
+    while time.time() < deadline:  # until the first rows were handed to disk
+        if (out / ".parts" / "trials").is_dir():
             break
-        time.sleep(0.1)
-    time.sleep(1.5)  # let some runs finish
+        time.sleep(0.05)
+    time.sleep(0.5)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

@@ -31,13 +31,14 @@ Importing this module imports torch and stable-baselines3 (the ``deep`` extra).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
+import torch.nn.functional as F
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -58,6 +59,8 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
     "linear": torch.nn.Identity,
 }
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
+#: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
+LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 
@@ -65,7 +68,9 @@ DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 class ConvFeatures(BaseFeaturesExtractor):
     """Convolutions ``[channels, kernel, stride]`` (ReLU), flattened, then a dense ReLU layer.
 
-    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md).
+    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md). ``padding``:
+    ``"valid"`` (none, default) or ``"same"`` (Keras': zero padding so that a layer's output is
+    ``ceil(input / stride)``; the original's Fig. 4 network, which also takes 16 x 16 images).
     """
 
     def __init__(
@@ -73,15 +78,21 @@ class ConvFeatures(BaseFeaturesExtractor):
         observation_space: gym.spaces.Box,
         convs: Sequence[Sequence[int]] = DEFAULT_CONVS,
         features_dim: int = 256,
+        padding: str = "valid",
     ) -> None:
         super().__init__(observation_space, features_dim)
         layers: list[torch.nn.Module] = []
-        channels = observation_space.shape[0]
+        channels, h, w = observation_space.shape
         for out, kernel, stride in convs:
-            layers += [
-                torch.nn.Conv2d(channels, int(out), int(kernel), int(stride)),
-                torch.nn.ReLU(),
-            ]
+            k, st = int(kernel), int(stride)
+            if padding == "same":  # Keras/TensorFlow "same": extra padding goes right/bottom
+                ph = max((-(-h // st) - 1) * st + k - h, 0)
+                pw = max((-(-w // st) - 1) * st + k - w, 0)
+                layers.append(torch.nn.ZeroPad2d((pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)))
+                h, w = -(-h // st), -(-w // st)
+            else:
+                h, w = (h - k) // st + 1, (w - k) // st + 1
+            layers += [torch.nn.Conv2d(channels, int(out), k, st), torch.nn.ReLU()]
             channels = int(out)
         layers.append(torch.nn.Flatten())
         self.cnn = torch.nn.Sequential(*layers)
@@ -120,12 +131,18 @@ class DQNAgent(Agent):
         Steps of random actions before learning starts (0: learn from the first step).
     train_freq, gradient_steps
         Gradient steps every ``train_freq`` environment steps (default 1 and 1: keras-rl's).
+    trial_end_updates
+        Extra gradient steps when a trial ends (default 0, SB3's schedule; CoBeL-RL's keras-rl
+        DQN makes 1: its fit loop calls ``backward`` once more on the terminal observation).
     tau, target_update_interval
         Target network update ``target <- tau * online + (1 - tau) * target`` every
         ``target_update_interval`` steps: soft (0.01 every step, default) or hard
         (``tau=1``, interval N).
+    loss
+        TD loss: ``"huber"`` (SB3's smooth L1, default) or ``"mse"`` (squared error, keras-rl's
+        and so CoBeL-RL's: its ``delta_clip`` is infinite by default).
     max_grad_norm
-        Gradient-norm clipping (SB3's default 10).
+        Gradient-norm clipping (SB3's default 10; ``None``: no clipping, as keras-rl).
     policy
         ``"auto"`` (``MultiInputPolicy`` for Dict, ``CnnPolicy`` for images, else
         ``MlpPolicy``) or one of those names.
@@ -136,6 +153,8 @@ class DQNAgent(Agent):
     convs, features_dim
         CNN layers ``[[channels, kernel, stride], ...]`` and the dense features after them
         (Fig. 6A's by default); used with ``CnnPolicy``.
+    conv_padding
+        ``"valid"`` (default) or ``"same"`` (Keras' zero padding; any image size fits).
     prioritized
         Use proportional prioritized experience replay (:mod:`cobelrun.agents.per`).
     per_alpha, per_beta, per_beta_steps, per_epsilon
@@ -165,14 +184,17 @@ class DQNAgent(Agent):
         learning_starts: int = 100,
         train_freq: int = 1,
         gradient_steps: int = 1,
+        trial_end_updates: int = 0,
         tau: float = 0.01,
         target_update_interval: int = 1,
-        max_grad_norm: float = 10.0,
+        loss: str = "huber",
+        max_grad_norm: float | None = 10.0,
         policy: str = "auto",
         net_arch: Sequence[int] | None = None,
         activation: str = "tanh",
         convs: Sequence[Sequence[int]] | None = None,
         features_dim: int = 256,
+        conv_padding: str = "valid",
         prioritized: bool = False,
         per_alpha: float = 0.6,
         per_beta: float = 0.4,
@@ -199,6 +221,7 @@ class DQNAgent(Agent):
             ("learning_starts", learning_starts, 0),
             ("train_freq", train_freq, 1),
             ("gradient_steps", gradient_steps, 1),
+            ("trial_end_updates", trial_end_updates, 0),
             ("target_update_interval", target_update_interval, 1),
             ("per_beta_steps", per_beta_steps, 1),
         ):
@@ -206,6 +229,17 @@ class DQNAgent(Agent):
                 raise ConfigError(f"agent.{name} must be an integer >= {lo}, got {value!r}")
         if learning_rate <= 0:
             raise ConfigError(f"agent.learning_rate must be > 0, got {learning_rate}")
+        if conv_padding not in ("valid", "same"):
+            raise ConfigError(
+                f"agent.conv_padding {conv_padding!r} is not known; allowed: 'valid', 'same'"
+            )
+        if max_grad_norm is not None and not max_grad_norm > 0:
+            raise ConfigError(f"agent.max_grad_norm must be > 0 or null, got {max_grad_norm}")
+        if loss not in LOSSES:
+            raise ConfigError(
+                f"agent.loss {loss!r} is not known{suggest(loss, list(LOSSES))}; "
+                f"allowed: {allowed_list(list(LOSSES))}"
+            )
         if activation not in ACTIVATIONS:
             raise ConfigError(
                 f"agent.activation {activation!r} is not known{suggest(activation, list(ACTIVATIONS))}; "
@@ -247,6 +281,7 @@ class DQNAgent(Agent):
             policy_kwargs["features_extractor_kwargs"] = {
                 "convs": [list(map(int, c)) for c in (convs or DEFAULT_CONVS)],
                 "features_dim": int(features_dim),
+                "padding": conv_padding,
             }
         self.hyper = {
             "epsilon": self.epsilon, "test_epsilon": self.test_epsilon, "gamma": gamma,
@@ -254,7 +289,8 @@ class DQNAgent(Agent):
             "learning_starts": learning_starts, "tau": tau,
             "target_update_interval": target_update_interval, "policy": policy,
             "net_arch": policy_kwargs["net_arch"], "activation": activation,
-            "prioritized": self.prioritized,
+            "prioritized": self.prioritized, "loss": loss, "max_grad_norm": max_grad_norm,
+            "trial_end_updates": trial_end_updates,
         }  # fmt: skip
 
         np_seed, torch_seed, space_seed, per_seed = self.seed_sequence.generate_state(4)
@@ -294,6 +330,8 @@ class DQNAgent(Agent):
                 seed=None,  # seeded through _rng_scope; SB3's seed= would also reseed the env
                 **kwargs,
             )
+        self.model.td_loss = LOSSES[loss]
+        self.model.trial_end_updates = int(trial_end_updates)
         # a private action space: its sampler is the agent's, not the environment's
         self.model.action_space = gym.spaces.Discrete(int(env.action_space.n))
         self.model.action_space.seed(int(space_seed))

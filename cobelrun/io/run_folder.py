@@ -151,7 +151,8 @@ class RunFolder:
                  *(self.path / p for p in self.PLOTS)]  # fmt: skip
         seen = set()
         for p in [*fixed, *(self.table(t) for t in self.tables()),
-                  *self.path.glob("agent_run*.*"), *self.path.glob(f".{self.MCAP}.*")]:  # fmt: skip
+                  *self.path.glob("agent_run*.*"), *self.path.glob(f".{self.MCAP}.*"),
+                  *self.path.glob(f".*{self.TABLE_SUFFIX}.tmp")]:  # fmt: skip
             if p not in seen and (p.exists() or p.is_symlink()):
                 seen.add(p)
                 yield p

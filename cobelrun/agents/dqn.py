@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -111,7 +112,7 @@ def _channel_first(space: gym.spaces.Space) -> tuple[int, int, int]:
 class ConvFeatures(BaseFeaturesExtractor):
     """Convolutions ``[channels, kernel, stride]`` (ReLU), flattened, then a dense ReLU layer.
 
-    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (FACTS.md). ``padding``:
+    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md). ``padding``:
     ``"valid"`` (none, default) or ``"same"`` (Keras': zero padding so that a layer's output is
     ``ceil(input / stride)``; the original's Fig. 4 network, which also takes 16 x 16 images).
     ``dropout > 0`` adds dropout after the dense layer (Fig. 8: dense 50 ReLU -> dropout 0.35);
@@ -156,7 +157,7 @@ class ConvFeatures(BaseFeaturesExtractor):
 class DQNAgent(Agent):
     """DQN (Mnih et al. 2015) through stable-baselines3, trained in trials.
 
-    Defaults are CoBeL-RL's DQN defaults (FACTS.md): 4 x dense 64 tanh, epsilon 0.3,
+    Defaults are CoBeL-RL's DQN defaults (docs/paper-settings.md): 4 x dense 64 tanh, epsilon 0.3,
     gamma 0.8, batch 32, Adam 1e-3, soft target update 0.01, warm-up 100 steps.
 
     Parameters
@@ -456,10 +457,25 @@ class DQNAgent(Agent):
             m._last_obs = m.env.reset()
             m._last_episode_starts = np.ones((1,), dtype=bool)
             m.learn(total_timesteps=n_trials * max_steps, reset_num_timesteps=False,
-                    log_interval=None)  # fmt: skip
+                    log_interval=1 if m.log_q else None)  # fmt: skip
         m.stop_when = None
         rec.finished = rec.finished[:n_trials]
         return rec.batch()
+
+    def log_training(self, folder: str | Path) -> None:
+        """Log training curves through SB3's logger into ``folder`` (``progress.csv``, and
+        TensorBoard event files when ``tensorboard`` is installed), one row per trial:
+        ``train/loss``, ``train/q_max`` (max Q at the current observation),
+        ``rollout/exploration_rate`` (epsilon), ``rollout/ep_rew_mean`` (mean trial return,
+        SB3's window of 100 trials)."""
+        import importlib.util
+
+        from stable_baselines3.common.logger import configure
+
+        formats = ["csv"] + (["tensorboard"] if importlib.util.find_spec("tensorboard") else [])
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        self.model.set_logger(configure(str(folder), formats))
+        self.model.log_q = True
 
     # -- inference ---------------------------------------------------------------------------
     def _obs_tensor(self, observations: Any) -> torch.Tensor:

@@ -107,6 +107,9 @@ class TrialDQN(DQN):
     """
 
     stop_when: Callable[[], bool] | None = None
+    #: training log on (``DQNAgent.log_training``): also log ``train/q_max``
+    log_q: bool = False
+
     td_loss: Callable[..., torch.Tensor] = staticmethod(F.smooth_l1_loss)
     #: extra gradient steps after the step that ends a trial (keras-rl's fit loop makes one more
     #: backward call on the terminal observation, which trains once more)
@@ -142,3 +145,7 @@ class TrialDQN(DQN):
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/loss", np.mean(losses))
+        if self.log_q:  # training log on: max Q at the current observation (no RNG draws)
+            with torch.no_grad():
+                obs, _ = self.policy.obs_to_tensor(self._last_obs)
+                self.logger.record("train/q_max", float(self.q_net(obs).max()))

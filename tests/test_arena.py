@@ -391,3 +391,20 @@ def test_sb3_check_env(movement):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # SB3 warns about spaces it would mishandle
         sb3_checker.check_env(env, warn=True)
+
+
+def test_3d_view_is_an_observation_part():
+    """``{kind: view}``: the pybullet view of the arena through the scene renderer, flattened
+    into the observation (so any agent on Box observations can learn from it)."""
+    from cobelrun.envs.continuous import Continuous2DEnv
+
+    cam = {"height": 8, "width": 16, "fov": 90}
+    env = Continuous2DEnv(observation=[{"kind": "view"}, {"kind": "pose"}], camera=cam)
+    assert env.observation_space.shape == (8 * 16 * 3 + 4,)
+    obs, _ = env.reset(seed=0)
+    x, y, h = env.agent_pose()
+    view = env.view_at_pose(x, y, h)
+    np.testing.assert_allclose(obs[: view.size], view.reshape(-1) / 255.0, atol=1e-6)
+    turned = env.render_at_pose(x, y, h + np.pi)[: view.size]
+    assert np.abs(turned - obs[: view.size]).max() > 0.05  # another heading, another view
+    assert env.observation_space.contains(obs)

@@ -12,7 +12,7 @@ from gymnasium import spaces
 
 from cobelrun.envs.arena import Arena, Shape, points_in_polygon
 from cobelrun.envs.base import Geometry, check_action
-from cobelrun.envs.cells import SpatialCode, build_observation
+from cobelrun.envs.cells import CameraView, SpatialCode, build_observation
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 MOVEMENTS = ("directions", "differential", "continuous")
@@ -261,6 +261,9 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
         self._n_actions = int(getattr(self.action_space, "n", 0))
         self.walls = self.arena.wall_segments()
         self.observation_parts: list[SpatialCode] = build_observation(observation, self.arena)
+        for part in self.observation_parts:
+            if isinstance(part, CameraView):  # the 3D view through the scene renderer
+                part.attach(self.view_at_pose, self.camera.height, self.camera.width)
         dim = sum(p.n for p in self.observation_parts)
         lows = np.concatenate([p.low for p in self.observation_parts])
         highs = np.concatenate([p.high for p in self.observation_parts])

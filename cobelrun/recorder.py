@@ -384,17 +384,21 @@ class RunRecorder:
                     )
                 merged.setdefault(table, {}).update(cols)
         trial = info.trials(n)
-        keep = (trial - 1) % self.record_cfg.trial_every == 0
+        every = self.record_cfg.trial_every
+        keep = None if every == 1 else (trial - 1) % every == 0
         records_run = self.record_cfg.records_run(run)
-        step_keep = np.repeat(keep, batch.steps) if records_run else None
+        step_keep = None if keep is None else np.repeat(keep, batch.steps)
         for table, cols in merged.items():
             if table not in self._sinks:
                 continue
             if self.tables[table][0] == "step":
-                if step_keep is None:
+                if not records_run:
                     continue
-                cols = {k: np.asarray(v)[step_keep] for k, v in cols.items()}
-                rows = int(step_keep.sum())
+                if step_keep is not None:
+                    cols = {k: np.asarray(v)[step_keep] for k, v in cols.items()}
+                    rows = int(step_keep.sum())
+                else:
+                    rows = batch.n_steps
             else:
                 rows = n
             self._add(table, cols, rows)

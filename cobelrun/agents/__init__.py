@@ -3,7 +3,7 @@
 import importlib
 from typing import Any
 
-from cobelrun.agents.base import Agent, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.errors import CobelError
@@ -16,7 +16,7 @@ _LAZY = {
     "MFEC": "cobelrun.agents.mfec",
 }
 
-__all__ = ["Agent", "DynaQ", "TabularMemory", "TrialCallback", *_LAZY]
+__all__ = ["Agent", "ArraySpec", "DynaQ", "TabularMemory", "Transition", "TrialCallback", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

@@ -1,19 +1,59 @@
-"""Agent base class: trial-based training, batch prediction, save/load, declared capabilities."""
+"""Agent base class: the trial loop, batch prediction, checked save/load, declared needs.
+
+An agent is trial based: :meth:`Agent.train` and :meth:`Agent.test` run whole trials and return
+a :class:`~cobelrun.records.TrialBatch`. The base owns the Python step loop (:meth:`Agent._run`);
+an agent supplies
+
+- :meth:`Agent.act` (pick an action) and, to learn, :meth:`Agent.observe` (called after every
+  step with a :class:`Transition`) and/or :meth:`Agent.end_trial`;
+- :meth:`Agent.predict` (action values of a batch of observations);
+- its learned state as named arrays: :meth:`Agent.state_schema`, :meth:`Agent.get_state`,
+  :meth:`Agent.set_state`. :meth:`Agent.save` / :meth:`Agent.load` are written once, here: an
+  ``.npz`` without pickle plus a JSON ``__meta__``, checked against the schema before anything
+  is loaded (a crafted index would otherwise crash a compiled kernel).
+
+Agents with a compiled trial loop (Dyna-Q) override :meth:`Agent._run` and fall back to the
+base loop when per-step callbacks are given. What an agent needs from its environment is
+declared in :attr:`Agent.requires` (names of :data:`cobelrun.envs.base.CONTRACTS`) and checked
+when the agent is built.
+"""
 
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
+import json
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 
+from cobelrun.envs.base import Posed, require
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 
+__all__ = [
+    "META_KEY",
+    "Agent",
+    "ArraySpec",
+    "SeedLike",
+    "Transition",
+    "TrialCallback",
+    "as_seed_sequence",
+    "check_budget",
+    "pose_of",
+    "state_of",
+]
+
 SeedLike = int | np.random.SeedSequence | None
+
+#: name of the JSON metadata entry in a saved agent's npz
+META_KEY = "__meta__"
+#: version of the save-file layout (the ``__meta__`` keys), independent of agents' schemas
+FILE_FORMAT = 1
 
 
 def as_seed_sequence(seed: SeedLike) -> np.random.SeedSequence:
@@ -29,6 +69,54 @@ def check_budget(n_trials: int, max_steps: int) -> None:
         raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
 
 
+def state_of(obs: Any, info: Mapping[str, Any]) -> int:
+    """The discrete state of a step: ``info["state"]`` if given, else the observation if it is
+    an integer, else -1 (continuous worlds have no state index)."""
+    s = info.get("state") if info else None
+    if s is not None:
+        return int(s)
+    if isinstance(obs, int | np.integer) and not isinstance(obs, bool):
+        return int(obs)
+    if isinstance(obs, np.ndarray) and obs.ndim == 0 and obs.dtype.kind in "iu":
+        return int(obs)
+    return -1
+
+
+def pose_of(env: gym.Env) -> np.ndarray | None:
+    """The agent's pose ``(x, y, heading)`` (float64, a copy) if the env is
+    :class:`~cobelrun.envs.base.Posed`, else None."""
+    base = env.unwrapped
+    if isinstance(base, Posed):
+        return np.array(base.agent_pose(), dtype=np.float64).reshape(3)
+    return None
+
+
+@dataclass(slots=True)
+class Transition:
+    """One step of the loop, handed to :meth:`Agent.observe` and to callbacks.
+
+    ``state``/``next_state`` are :func:`state_of` the observations (-1 where there is none).
+    For callbacks written against the earlier dict, ``transition["state"]`` etc. still work.
+    """
+
+    obs: Any
+    action: int
+    reward: float
+    next_obs: Any
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any]
+    next_info: dict[str, Any]
+    state: int = -1
+    next_state: int = -1
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return getattr(self, key)
+        except AttributeError:
+            raise KeyError(key) from None
+
+
 class TrialCallback:
     """Per-step hooks for the opt-in slow path (template-method style, as SB3's callbacks).
 
@@ -41,7 +129,7 @@ class TrialCallback:
     def on_trial_start(self, agent: Agent, trial: int, state: int) -> None:
         self._on_trial_start(agent, trial, state)
 
-    def on_step(self, agent: Agent, trial: int, step: int, transition: dict[str, Any]) -> bool:
+    def on_step(self, agent: Agent, trial: int, step: int, transition: Transition) -> bool:
         return self._on_step(agent, trial, step, transition) is not False
 
     def on_trial_end(self, agent: Agent, trial: int, record: dict[str, Any]) -> None:
@@ -50,14 +138,60 @@ class TrialCallback:
     def _on_trial_start(self, agent: Agent, trial: int, state: int) -> None:
         """Called after the environment was reset for ``trial`` (0-based within the call)."""
 
-    def _on_step(
-        self, agent: Agent, trial: int, step: int, transition: dict[str, Any]
-    ) -> bool | None:
-        """Called after every step with ``state, action, reward, next_state, terminated``."""
+    def _on_step(self, agent: Agent, trial: int, step: int, transition: Transition) -> bool | None:
+        """Called after every step (``step`` is 1-based) with the step's :class:`Transition`."""
         return True
 
     def _on_trial_end(self, agent: Agent, trial: int, record: dict[str, Any]) -> None:
-        """Called at trial end with ``states, actions, rewards, terminated``."""
+        """Called at trial end with ``states, actions, rewards, terminated`` (and ``poses``)."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What one array of a saved agent must look like.
+
+    Attributes
+    ----------
+    shape
+        Expected shape; ``None`` entries accept any size on that axis.
+    kind
+        numpy dtype kind: ``"f"`` float, ``"i"`` signed integer, ``"u"`` unsigned, ``"b"`` bool.
+    low, high
+        Values must lie in ``[low, high)`` (e.g. state indices in ``[0, S)``); None: no bound.
+    finite
+        Float values must be finite (no NaN or inf).
+    """
+
+    shape: tuple[int | None, ...]
+    kind: str = "f"
+    low: float | None = None
+    high: float | None = None
+    finite: bool = True
+
+    def problem(self, arr: np.ndarray) -> str | None:
+        """What is wrong with ``arr`` (one phrase), or None if it fits."""
+        want = "(" + ", ".join("*" if d is None else str(d) for d in self.shape) + ")"
+        if arr.ndim != len(self.shape) or any(
+            d is not None and d != n for d, n in zip(self.shape, arr.shape, strict=True)
+        ):
+            return f"expected shape {want}, got {tuple(arr.shape)}"
+        if arr.dtype.kind != self.kind:
+            return f"expected dtype kind '{self.kind}', got {arr.dtype}"
+        if arr.size == 0:
+            return None
+        if self.finite and self.kind == "f" and not np.isfinite(arr).all():
+            return "expected finite values, found NaN or inf"
+        if self.low is not None and arr.min() < self.low:
+            return f"expected values in [{_num(self.low)}, {_num(self.high)}), found {arr.min()}"
+        if self.high is not None and arr.max() >= self.high:
+            return f"expected values in [{_num(self.low)}, {_num(self.high)}), found {arr.max()}"
+        return None
+
+
+def _num(x: float | None) -> str:
+    if x is None:
+        return "inf"
+    return str(int(x)) if float(x).is_integer() else str(x)
 
 
 class Agent(abc.ABC):
@@ -65,8 +199,9 @@ class Agent(abc.ABC):
 
     Agents are trial based: :meth:`train` and :meth:`test` run ``n_trials`` whole trials of at
     most ``max_steps`` steps in the agent's environment and return a :class:`TrialBatch`.
-    Subclasses declare which observation and action spaces they support; constructing an agent
-    on any other space raises :class:`~cobelrun.errors.ConfigError` naming what is allowed.
+    Subclasses declare which observation and action spaces they support and which environment
+    contracts they need (:attr:`requires`); constructing an agent on anything else raises
+    :class:`~cobelrun.errors.ConfigError` naming what is allowed.
 
     Parameters
     ----------
@@ -79,9 +214,14 @@ class Agent(abc.ABC):
     #: Gymnasium space classes the agent accepts as observation / action space.
     observation_spaces: ClassVar[tuple[type[gym.Space], ...]] = ()
     action_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Discrete,)
+    #: Environment contracts the agent needs (names of :data:`cobelrun.envs.base.CONTRACTS`).
+    requires: ClassVar[tuple[str, ...]] = ()
+    #: Version of the agent's :meth:`state_schema`; a saved file of another version is refused.
+    state_version: ClassVar[int] = 1
 
     def __init__(self, env: gym.Env, *, seed: SeedLike = None) -> None:
         self.check_spaces(env)
+        require(env, self.requires, f"agent {type(self).__name__}")
         self.env = env
         self.seed_sequence = as_seed_sequence(seed)
         self.rng = np.random.default_rng(self.seed_sequence)
@@ -100,6 +240,7 @@ class Agent(abc.ABC):
                     f"{type(space).__name__}; allowed: {names}"
                 )
 
+    # -- trials --------------------------------------------------------------------------------
     def train(
         self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback] = ()
     ) -> TrialBatch:
@@ -114,20 +255,190 @@ class Agent(abc.ABC):
         check_budget(n_trials, max_steps)
         return self._run(n_trials, max_steps, False, callbacks)
 
-    @abc.abstractmethod
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        """Run trials (arguments already checked); subclasses implement this."""
+        """The step loop (arguments already checked).
 
+        Per trial: ``env.reset()``, :meth:`begin_trial`, then per step :meth:`act`,
+        ``env.step``, :meth:`observe` and the callbacks' ``on_step``; the trial ends when the
+        env terminates or truncates, after ``max_steps`` steps, or when a callback returns
+        False; then :meth:`end_trial` and the callbacks' ``on_trial_end``. States, actions,
+        rewards and (for :class:`~cobelrun.envs.base.Posed` envs) poses are recorded.
+        """
+        env = self.env
+        base = env.unwrapped
+        posed = isinstance(base, Posed)
+        trials = []
+        for trial in range(n_trials):
+            obs, info = env.reset()
+            s = state_of(obs, info)
+            self.begin_trial(obs, info, learn)
+            for cb in callbacks:
+                cb.on_trial_start(self, trial, s)
+            states, actions, rewards = [s], [], []
+            poses = [np.array(base.agent_pose(), np.float64)] if posed else None
+            terminated = False
+            for step in range(1, max_steps + 1):
+                a = int(self.act(obs, info, learn))
+                next_obs, r, terminated, truncated, next_info = env.step(a)
+                s2, r = state_of(next_obs, next_info), float(r)
+                t = Transition(obs, a, r, next_obs, bool(terminated), bool(truncated), info,
+                               next_info, s, s2)  # fmt: skip
+                self.observe(t, learn)
+                states.append(s2)
+                actions.append(a)
+                rewards.append(r)
+                if poses is not None:
+                    poses.append(np.array(base.agent_pose(), np.float64))
+                keep = all([cb.on_step(self, trial, step, t) for cb in callbacks])
+                obs, info, s = next_obs, next_info, s2
+                if terminated or truncated or not keep:
+                    break
+            self.end_trial(learn)
+            record = {"states": states, "actions": actions, "rewards": rewards,
+                      "terminated": bool(terminated), "poses": poses}  # fmt: skip
+            for cb in callbacks:
+                cb.on_trial_end(self, trial, record)
+            trials.append(record)
+        return TrialBatch.from_trials(trials)
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        """Called after each ``env.reset()`` (default: nothing)."""
+        return None  # a hook: nothing by default
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """The action to take on ``obs``; agents that use the base loop implement this."""
+        raise NotImplementedError(f"agent {type(self).__name__} does not implement act()")
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        """Called after every step; agents learn here when ``learn`` (default: nothing)."""
+        return None  # a hook: nothing by default
+
+    def end_trial(self, learn: bool) -> None:
+        """Called when a trial ends, before the callbacks' ``on_trial_end`` (default: nothing)."""
+        return None  # a hook: nothing by default
+
+    # -- inference -------------------------------------------------------------------------------
     @abc.abstractmethod
     def predict(self, observations: np.ndarray) -> np.ndarray:
         """Action values for a batch of observations, shape (n, n_actions)."""
 
-    @abc.abstractmethod
-    def save(self, path: str | Path) -> Path:
-        """Save the agent's learned state (no pickle) and return the file written."""
+    # -- persistence -----------------------------------------------------------------------------
+    def hyperparameters(self) -> dict[str, Any]:
+        """The agent's settings, written to the saved file's metadata (not read back)."""
+        return {}
 
-    @abc.abstractmethod
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """Every array of :meth:`get_state` and what it must look like (checked on load)."""
+        raise NotImplementedError(f"agent {type(self).__name__} declares no state schema")
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The learned state as named arrays (the keys of :meth:`state_schema`)."""
+        raise NotImplementedError(f"agent {type(self).__name__} cannot save its state")
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Restore arrays from :meth:`get_state` (already checked against the schema)."""
+        raise NotImplementedError(f"agent {type(self).__name__} cannot load a state")
+
+    def check_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Checks across arrays beyond the schema; raise ValueError with what is wrong."""
+        return None  # a hook: nothing by default
+
+    def state_meta(self) -> dict[str, Any]:
+        """JSON-ready state that is not an array (saved in ``__meta__["state"]``)."""
+        return {}
+
+    def set_state_meta(self, meta: Mapping[str, Any]) -> None:
+        """Check (ValueError) and keep :meth:`state_meta` of a file; called by :meth:`load`
+        before :meth:`set_state`, and it must not change the agent yet."""
+        return None  # a hook: nothing by default
+
+    @classmethod
+    def agent_name(cls) -> str:
+        """The name a saved file records: ``module.Class``."""
+        return f"{cls.__module__}.{cls.__qualname__}"
+
+    def save(self, path: str | Path) -> Path:
+        """Write the learned state to ``PATH.npz`` (no pickle) and return the file written.
+
+        The archive holds the arrays of :meth:`get_state` and ``__meta__``: JSON with the agent
+        class, schema version, hyperparameters and :meth:`state_meta`. Written to a temporary
+        file first, then renamed, so a crash never leaves a half-written agent.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        meta = {"format": FILE_FORMAT, "agent": self.agent_name(),
+                "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
+                "state": self.state_meta()}  # fmt: skip
+        arrays = self.get_state()
+        if META_KEY in arrays:
+            raise ValueError(f"state key {META_KEY!r} is reserved")
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
+        os.replace(tmp, path)
+        return path
+
     def load(self, path: str | Path) -> None:
-        """Restore learned state written by :meth:`save` into this agent."""
+        """Restore a state written by :meth:`save`, after checking the whole file.
+
+        Raises a one-line :class:`~cobelrun.errors.ConfigError` naming the file, the key and
+        what was expected if the file is not an npz (or needs pickle), was written by another
+        agent or schema version, lacks a key or has an unknown one, or an array has the wrong
+        shape, dtype kind, an index out of range or a non-finite value. Nothing is changed
+        unless every check passes.
+        """
+        arrays, _meta = self._read_checked(Path(path))
+        self.set_state(arrays)
+
+    def _read_checked(self, path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        def fail(what: str) -> ConfigError:
+            return ConfigError(f"cannot load agent from {path}: {what}")
+
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if not isinstance(data, np.lib.npyio.NpzFile):
+                    raise fail("not an .npz archive")  # pragma: no cover - np.load closes
+                files = list(data.files)
+                raw = {k: data[k] for k in files}
+        except ConfigError:
+            raise
+        except FileNotFoundError:
+            raise fail("no such file") from None
+        except (AttributeError, TypeError):  # an .npy array has no context manager/files
+            raise fail("not an .npz archive of arrays") from None
+        except Exception as exc:  # zipfile.BadZipFile, pickle refused, truncated, ...
+            raise fail(f"not a readable .npz archive without pickle ({exc})") from None
+        if META_KEY not in raw:
+            raise fail(f"no {META_KEY!r} entry (not a cobel agent file)")
+        try:
+            meta = json.loads(str(raw.pop(META_KEY)))
+            if not isinstance(meta, dict):
+                raise ValueError
+        except ValueError:
+            raise fail(f"{META_KEY!r} is not a JSON object") from None
+        if meta.get("agent") != self.agent_name():
+            raise fail(f"it holds agent {meta.get('agent')!r}, expected {self.agent_name()!r}")
+        if meta.get("schema_version") != self.state_version:
+            raise fail(
+                f"schema version {meta.get('schema_version')!r}, expected {self.state_version}"
+            )
+        schema = self.state_schema()
+        missing = [k for k in schema if k not in raw]
+        if missing:
+            raise fail(f"key {missing[0]!r} is missing ({len(missing)} missing)")
+        unknown = sorted(set(raw) - set(schema))
+        if unknown:
+            raise fail(f"unknown key {unknown[0]!r}; expected only {', '.join(schema)}")
+        for key, spec in schema.items():
+            problem = spec.problem(raw[key])
+            if problem:
+                raise fail(f"key {key!r}: {problem}")
+        try:
+            self.check_state(raw)
+            self.set_state_meta(meta.get("state") or {})
+        except ValueError as exc:
+            raise fail(str(exc)) from None
+        return raw, meta

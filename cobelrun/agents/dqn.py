@@ -3,10 +3,10 @@
 CoBeL-RL's DQN agent wrapped keras-rl2 and used callbacks to train "for N trials" instead of
 "for N steps" (paper, section 2.1.1). We wrap SB3's :class:`~stable_baselines3.DQN` the same way:
 
-- every trial is an episode, capped at ``max_steps`` by :class:`TrialRecorder`, a thin gymnasium
-  wrapper that also records each trial (start state, actions, rewards, states from
-  ``info["state"]``) so monitors get the same :class:`~cobelrun.records.TrialBatch` as from
-  tabular agents;
+- every trial is an episode, capped at ``max_steps`` by
+  :class:`~cobelrun.agents.sb3.TrialRecorder`, a thin gymnasium wrapper that also records each
+  trial (states, actions, rewards, poses of ``Posed`` envs) as the base class's loop does, so
+  monitors get the same :class:`~cobelrun.records.TrialBatch` as from every other agent;
 - :meth:`DQNAgent.train` calls ``model.learn(total_timesteps=n_trials * max_steps,
   reset_num_timesteps=False)`` and :class:`TrialDQN` ends the rollout loop once ``n_trials``
   trials are finished. (Stopping from an SB3 ``BaseCallback._on_step`` would be the textbook
@@ -14,8 +14,11 @@ CoBeL-RL's DQN agent wrapped keras-rl2 and used callbacks to train "for N trials
   usually rewarded, transition of the last trial would be lost; checking at the start of the
   next rollout keeps it and its gradient step.)
 - the model acts with fixed exploration (``exploration_initial_eps = exploration_final_eps =
-  epsilon``), as the original's ``EpsGreedyQPolicy``; tests run without learning, greedy by
-  default (keras-rl's ``test_policy``) or with ``test_epsilon``.
+  epsilon``), as the original's ``EpsGreedyQPolicy``; tests run without learning through the
+  base class's step loop (:meth:`DQNAgent.act` asks the model), greedy by default (keras-rl's
+  ``test_policy``) or with ``test_epsilon``.
+- :meth:`~cobelrun.agents.base.Agent.save` writes the policy's weights and the Adam state as
+  plain arrays (no ``torch.save``, no pickle), checked on load like every agent's.
 
 SB3 draws from numpy's and torch's *global* generators (exploration, replay sampling, weight
 initialisation). The agent keeps its own copies of both states and swaps them in around every
@@ -28,22 +31,20 @@ Importing this module imports torch and stable-baselines3 (the ``deep`` extra).
 from __future__ import annotations
 
 import contextlib
-import json
-from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3 import DQN
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.type_aliases import RolloutReturn
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback
 from cobelrun.agents.networks import set_torch_threads
+from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
+from cobelrun.agents.sb3 import TrialDQN, TrialRecorder
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -58,78 +59,6 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
-
-
-class TrialRecorder(gym.Wrapper):
-    """Caps episodes (trials) at ``max_steps`` and records them.
-
-    Records, per trial, the states (``info["state"]``; -1 if the env gives none), actions,
-    rewards and whether it ended in a terminal state. Optional :class:`TrialCallback` hooks
-    run here too; returning ``False`` from ``on_step`` truncates the trial.
-    """
-
-    def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
-        self.max_steps: int | None = None
-        self.finished: list[dict[str, Any]] = []
-        self.callbacks: Sequence[TrialCallback] = ()
-        self.agent: Any = None
-        self._current: dict[str, Any] | None = None
-
-    def begin(self, max_steps: int, callbacks: Sequence[TrialCallback], agent: Any) -> None:
-        """Start recording a new batch of trials."""
-        self.max_steps, self.callbacks, self.agent = max_steps, callbacks, agent
-        self.finished = []
-        self._current = None
-
-    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
-        obs, info = self.env.reset(**kwargs)
-        s = int(info.get("state", -1))
-        self._current = {"states": [s], "actions": [], "rewards": [], "terminated": False}
-        for cb in self.callbacks:
-            cb.on_trial_start(self.agent, len(self.finished), s)
-        return obs, info
-
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        cur = self._current
-        assert cur is not None, "step() before reset()"
-        s = cur["states"][-1]
-        s2 = int(info.get("state", -1))
-        a = int(np.asarray(action).reshape(-1)[0])
-        cur["states"].append(s2)
-        cur["actions"].append(a)
-        cur["rewards"].append(float(reward))
-        n = len(cur["actions"])
-        if self.max_steps is not None and n >= self.max_steps:
-            truncated = True
-        if self.callbacks:
-            transition = {"state": s, "action": a, "reward": float(reward), "next_state": s2,
-                          "terminated": bool(terminated)}  # fmt: skip
-            trial = len(self.finished)
-            keep = all([cb.on_step(self.agent, trial, n, transition) for cb in self.callbacks])
-            truncated = truncated or not keep
-        if terminated or truncated:
-            cur["terminated"] = bool(terminated)
-            self.finished.append(cur)
-            self._current = None
-            for cb in self.callbacks:
-                cb.on_trial_end(self.agent, len(self.finished) - 1, cur)
-        return obs, reward, terminated, truncated, info
-
-    def batch(self) -> TrialBatch:
-        return TrialBatch.from_trials(self.finished)
-
-
-class TrialDQN(DQN):
-    """SB3 DQN that stops collecting once ``stop_when()`` is true (checked before each step)."""
-
-    stop_when: Callable[[], bool] | None = None
-
-    def collect_rollouts(self, env, callback, train_freq, replay_buffer, *args, **kwargs):  # type: ignore[override]
-        if self.stop_when is not None and self.stop_when():
-            return RolloutReturn(0, 0, continue_training=False)
-        return super().collect_rollouts(env, callback, train_freq, replay_buffer, *args, **kwargs)
 
 
 class ConvFeatures(BaseFeaturesExtractor):
@@ -331,11 +260,10 @@ class DQNAgent(Agent):
         self._np_state = np.random.RandomState(int(np_seed)).get_state()
         self._torch_state = torch.Generator().manual_seed(int(torch_seed)).get_state()
         self.recorder = TrialRecorder(env)
+        self._pending_groups: list[dict[str, Any]] | None = None  # from a file being loaded
         algo: type[TrialDQN] = TrialDQN
         kwargs: dict[str, Any] = {}
         if self.prioritized:
-            from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
-
             algo = PrioritizedDQN
             kwargs["replay_buffer_class"] = PrioritizedReplayBuffer
             kwargs["replay_buffer_kwargs"] = {
@@ -388,8 +316,22 @@ class DQNAgent(Agent):
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        go = self._learn_trials if learn else self._test_trials
-        return go(n_trials, max_steps, callbacks)
+        if learn:
+            return self._learn_trials(n_trials, max_steps, callbacks)
+        m = self.model
+        m.policy.set_training_mode(False)
+        eps = m.exploration_rate
+        m.exploration_rate = self.test_epsilon
+        try:
+            with self._rng_scope():
+                return super()._run(n_trials, max_steps, learn, callbacks)  # the base loop
+        finally:
+            m.exploration_rate = eps
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """The model's action (test trials): greedy, or epsilon-greedy with ``test_epsilon``."""
+        action, _ = self.model.predict(obs, deterministic=self.test_epsilon == 0.0)
+        return int(np.asarray(action).reshape(-1)[0])
 
     def _learn_trials(
         self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback]
@@ -408,28 +350,6 @@ class DQNAgent(Agent):
                     log_interval=None)  # fmt: skip
         m.stop_when = None
         rec.finished = rec.finished[:n_trials]
-        return rec.batch()
-
-    def _test_trials(
-        self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        rec = self.recorder
-        rec.begin(max_steps, callbacks, self)
-        m = self.model
-        m.policy.set_training_mode(False)
-        eps = m.exploration_rate
-        m.exploration_rate = self.test_epsilon
-        try:
-            with self._rng_scope():
-                for _ in range(n_trials):
-                    obs, _ = rec.reset()
-                    done = False
-                    while not done:
-                        action, _ = m.predict(obs, deterministic=self.test_epsilon == 0.0)
-                        obs, _, terminated, truncated, _ = rec.step(action)
-                        done = terminated or truncated
-        finally:
-            m.exploration_rate = eps
         return rec.batch()
 
     # -- inference ---------------------------------------------------------------------------
@@ -485,39 +405,84 @@ class DQNAgent(Agent):
         return {name: out[name] for name in layers}
 
     # -- persistence ---------------------------------------------------------------------------
-    def save(self, path: str | Path) -> Path:
-        """Write network weights, optimizer state and step counters to ``PATH.pt``.
+    # The policy's tensors (online and target Q networks) and the Adam state, as plain arrays;
+    # Adam's param_groups (learning rate, betas, ...) go to the JSON metadata. Parameters that
+    # the optimizer has not stepped yet are saved as step 0 with zero moments, which is exactly
+    # the state Adam starts from, so the schema does not depend on whether the agent learned.
+    # The replay memory is not saved: a continued agent starts with an empty one.
+    def hyperparameters(self) -> dict[str, Any]:
+        return dict(self.hyper)
 
-        The replay memory is not saved: a continued agent starts with an empty one.
-        """
-        path = Path(path)
-        if path.suffix != ".pt":
-            path = path.with_suffix(".pt")
+    def _adam_params(self) -> list[torch.Tensor]:
+        return [p for g in self.model.policy.optimizer.param_groups for p in g["params"]]
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        schema = {
+            f"policy.{k}": ArraySpec(tuple(v.shape), "f")
+            for k, v in self.model.policy.state_dict().items()
+        }
+        for i, p in enumerate(self._adam_params()):
+            shape = tuple(p.shape)
+            schema[f"optimizer.{i}.step"] = ArraySpec((), "f", low=0)
+            schema[f"optimizer.{i}.exp_avg"] = ArraySpec(shape, "f")
+            schema[f"optimizer.{i}.exp_avg_sq"] = ArraySpec(shape, "f", low=0)
+        schema["num_timesteps"] = ArraySpec((), "i", low=0)
+        schema["n_calls"] = ArraySpec((), "i", low=0)
+        return schema
+
+    def get_state(self) -> dict[str, np.ndarray]:
         m = self.model
-        torch.save(
-            {
-                "policy": m.policy.state_dict(),
-                "optimizer": m.policy.optimizer.state_dict(),
-                "num_timesteps": m.num_timesteps,
-                "n_calls": m._n_calls,
-                "hyperparameters": json.dumps(self.hyper),
-            },
-            path,
+        arrays = {f"policy.{k}": v.detach().cpu().numpy()
+                  for k, v in m.policy.state_dict().items()}  # fmt: skip
+        state = m.policy.optimizer.state_dict()["state"]
+        for i, p in enumerate(self._adam_params()):
+            st = state.get(i, {})
+            zeros = np.zeros(tuple(p.shape), np.float32)
+            arrays[f"optimizer.{i}.step"] = np.array(float(st.get("step", 0.0)), np.float32)
+            for key in ("exp_avg", "exp_avg_sq"):
+                value = st.get(key)
+                arrays[f"optimizer.{i}.{key}"] = (
+                    zeros if value is None else value.detach().cpu().numpy()
+                )
+        arrays["num_timesteps"] = np.array(m.num_timesteps, np.int64)
+        arrays["n_calls"] = np.array(m._n_calls, np.int64)
+        return arrays
+
+    def state_meta(self) -> dict[str, Any]:
+        groups = self.model.policy.optimizer.state_dict()["param_groups"]
+        return {"param_groups": [{k: (list(v) if isinstance(v, tuple) else v)
+                                  for k, v in g.items()} for g in groups]}  # fmt: skip
+
+    def set_state_meta(self, meta: Mapping[str, Any]) -> None:
+        mine = self.model.policy.optimizer.state_dict()["param_groups"]
+        groups = meta.get("param_groups")
+        if not isinstance(groups, list) or len(groups) != len(mine):
+            raise ValueError(f"__meta__ state.param_groups: expected a list of {len(mine)}")
+        for g, own in zip(groups, mine, strict=True):
+            if not isinstance(g, dict) or set(g) != set(own) or g["params"] != own["params"]:
+                raise ValueError(
+                    "__meta__ state.param_groups: expected the keys and params of "
+                    f"{sorted(own)} / {own['params']}"
+                )
+        self._pending_groups = [{k: (tuple(v) if isinstance(own[k], tuple) else v)
+                                 for k, v in g.items()}
+                                for g, own in zip(groups, mine, strict=True)]  # fmt: skip
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        m = self.model
+        m.policy.load_state_dict(
+            {k[len("policy.") :]: torch.tensor(v) for k, v in arrays.items() if k[:7] == "policy."}
         )
-        return path
-
-    def load(self, path: str | Path) -> None:
-        try:
-            state = torch.load(path, map_location=self.model.device, weights_only=True)
-        except (OSError, RuntimeError) as exc:
-            raise ConfigError(f"cannot load agent from {path}: {exc}") from None
-        m = self.model
-        try:
-            m.policy.load_state_dict(state["policy"])
-        except RuntimeError as exc:
-            raise ConfigError(
-                f"saved agent {path} does not fit this network/environment: {exc}"
-            ) from None
-        m.policy.optimizer.load_state_dict(state["optimizer"])
-        m.num_timesteps = int(state["num_timesteps"])
-        m._n_calls = int(state["n_calls"])
+        state = {
+            i: {
+                "step": torch.tensor(float(arrays[f"optimizer.{i}.step"]), dtype=torch.float32),
+                "exp_avg": torch.tensor(arrays[f"optimizer.{i}.exp_avg"]),
+                "exp_avg_sq": torch.tensor(arrays[f"optimizer.{i}.exp_avg_sq"]),
+            }
+            for i in range(len(self._adam_params()))
+        }
+        groups = self._pending_groups or m.policy.optimizer.state_dict()["param_groups"]
+        m.policy.optimizer.load_state_dict({"state": state, "param_groups": groups})
+        self._pending_groups = None
+        m.num_timesteps = int(arrays["num_timesteps"])
+        m._n_calls = int(arrays["n_calls"])

@@ -25,21 +25,19 @@ observations, persistence); subclasses implement :meth:`~DynaDeepAgent.q_values`
 from __future__ import annotations
 
 import abc
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.networks import Network, build_network, set_torch_threads
-from cobelrun.errors import ConfigError, allowed_list
+from cobelrun.agents.policy import check_policy, select
+from cobelrun.envs.base import StateObservations
+from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
-
-POLICIES = ("epsilon_greedy", "softmax")
 
 
 def allowed_next(mask: np.ndarray, states: np.ndarray) -> np.ndarray:
@@ -86,6 +84,7 @@ class DynaDeepAgent(Agent):
 
     observation_spaces = (gym.spaces.Discrete, gym.spaces.Box)
     action_spaces = (gym.spaces.Discrete,)
+    requires = ("tabular_model",)
 
     def __init__(
         self,
@@ -111,11 +110,6 @@ class DynaDeepAgent(Agent):
     ) -> None:
         super().__init__(env, seed=seed)
         base = env.unwrapped
-        if not hasattr(base, "world"):
-            raise ConfigError(
-                f"agent {type(self).__name__} needs a tabular environment with states "
-                f"(GridWorldEnv, DiscreteGridWorldEnv); got {type(base).__name__}"
-            )
         for name, value, lo, hi in (
             ("epsilon", epsilon, 0.0, 1.0),
             ("gamma", gamma, 0.0, 1.0),
@@ -123,10 +117,7 @@ class DynaDeepAgent(Agent):
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
-        if policy not in POLICIES:
-            raise ConfigError(
-                f"agent.policy {policy!r} is not known; allowed: {allowed_list(POLICIES)}"
-            )
+        check_policy(policy)
         if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
             raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
         set_torch_threads(torch_threads)
@@ -148,8 +139,8 @@ class DynaDeepAgent(Agent):
     # -- construction helpers ----------------------------------------------------------------
     def _observation_matrix(self, env: gym.Env, observations: Any) -> np.ndarray:
         base = env.unwrapped
-        if observations is None:
-            observations = getattr(base, "observations", None)
+        if observations is None and isinstance(base, StateObservations):
+            observations = base.observations
         if observations is None:
             return np.eye(self.n_states, dtype=np.float32)
         obs = np.asarray(observations, dtype=np.float32)
@@ -192,57 +183,25 @@ class DynaDeepAgent(Agent):
     def networks(self) -> dict[str, Network]:
         """The agent's networks by name (saved, and used for activations)."""
 
-    # -- acting ---------------------------------------------------------------------------------
-    def select_action(self, q: np.ndarray, allowed: np.ndarray) -> int:
-        """Epsilon-greedy with random tie-break, or softmax(beta), over allowed actions."""
-        idx = np.flatnonzero(allowed) if allowed.any() else np.arange(q.shape[0])
-        qa = q[idx]
-        if self.policy == "softmax":
-            p = np.exp(self.beta * (qa - qa.max()))
-            return int(idx[self.rng.choice(idx.size, p=p / p.sum())])
-        if self.rng.random() < self.epsilon:
-            return int(idx[self.rng.integers(idx.size)])
-        best = np.flatnonzero(qa == qa.max())
-        return int(idx[best[self.rng.integers(best.size)]])
-
-    # -- trials -----------------------------------------------------------------------------------
+    # -- trials (the base loop) ----------------------------------------------------------------
     def _run(
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
-        env, mem = self.env, self.memory
-        mask = self._mask()
-        trials = []
-        for trial in range(n_trials):
-            _, info = env.reset()
-            s = int(info["state"])
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            states, actions, rewards = [s], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = self.select_action(self.q_values(np.array([s]))[0], mask[s])
-                _, r, terminated, _, info = env.step(a)
-                s2, r = int(info["state"]), float(r)
-                if learn:
-                    mem.store(s, a, r, s2, terminated)
-                    self._learn(s, a, mask)
-                states.append(s2)
-                actions.append(a)
-                rewards.append(r)
-                keep = True
-                if callbacks:
-                    transition = {"state": s, "action": a, "reward": r, "next_state": s2,
-                                  "terminated": terminated}  # fmt: skip
-                    keep = all([cb.on_step(self, trial, step, transition) for cb in callbacks])
-                s = s2
-                if terminated or not keep:
-                    break
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": terminated}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        return TrialBatch.from_trials(trials)
+        self._loop_mask = self._mask()
+        return super()._run(n_trials, max_steps, learn, callbacks)
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Epsilon-greedy with random tie-break, or softmax(beta), over the allowed actions."""
+        s = int(info["state"])
+        q = self.q_values(np.array([s]))[0]
+        allowed = self._loop_mask[s] if self.use_mask else None
+        return select(self.rng, q, self.policy, self.epsilon, self.beta, allowed)
+
+    def observe(self, t: Transition, learn: bool) -> None:
+        """Store the step in the model memory and replay (when learning)."""
+        if learn:
+            self.memory.store(t.state, t.action, t.reward, t.next_state, t.terminated)
+            self._learn(t.state, t.action, self._loop_mask)
 
     def _learn(self, s: int, a: int, mask: np.ndarray) -> None:
         """Replay the current experience plus ``replay_batch`` from the model memory."""
@@ -303,30 +262,30 @@ class DynaDeepAgent(Agent):
         """Networks to save: :meth:`networks` plus their targets."""
         return self.networks()
 
-    def save(self, path: str | Path) -> Path:
-        """Write network weights and the model memory to ``PATH.npz`` (no pickle)."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        arrays: dict[str, np.ndarray] = {}
-        for name, net in self._all_networks().items():
-            arrays.update({f"{name}.{k}": v for k, v in net.get_weights().items()})
-        np.savez_compressed(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                            **arrays, **self.memory.state_dict())  # fmt: skip
-        return path
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """Every network weight (its current shape, finite) and the model memory."""
+        schema = {
+            f"{name}.{k}": ArraySpec(v.shape, "f")
+            for name, net in self._all_networks().items()
+            for k, v in net.get_weights().items()
+        }
+        return {**schema, **self.memory.state_schema()}
 
-    def load(self, path: str | Path) -> None:
-        try:
-            data = np.load(path, allow_pickle=False)
-        except OSError as exc:
-            raise ConfigError(f"cannot load agent from {path}: {exc}") from None
-        with data:
-            for name, net in self._all_networks().items():
-                prefix = f"{name}."
-                net.set_weights(
-                    {k[len(prefix) :]: data[k] for k in data.files if k.startswith(prefix)}
-                )
-            self.memory.load_state_dict({k: data[k] for k in self.memory.state_dict()})
+    def get_state(self) -> dict[str, np.ndarray]:
+        arrays = {
+            f"{name}.{k}": v
+            for name, net in self._all_networks().items()
+            for k, v in net.get_weights().items()
+        }
+        return {**arrays, **self.memory.state_dict()}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for name, net in self._all_networks().items():
+            prefix = f"{name}."
+            net.set_weights(
+                {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+            )
+        self.memory.load_state_dict(arrays)
 
 
 class DynaDQN(DynaDeepAgent):

@@ -9,24 +9,27 @@ The update rule, top to bottom (one step):
 4. replay ``replay_batch`` experiences sampled from the memory with the same update
    (after every step, once at trial end, or never).
 
-On tabular environments (``GridWorldEnv`` and its variants) whole trials run in compiled code
-(:func:`cobelrun.agents.kernels.run_trials`); with callbacks, or on other environments with discrete observations,
-trials run step by step in Python through the gymnasium API. Both paths call the same compiled
-building blocks in the same order, so they give identical results for the same seeds.
+On environments with a known model (the ``tabular_model`` contract: ``GridWorldEnv`` and its
+variants) whole trials run in compiled code (:func:`cobelrun.agents.kernels.run_trials`); with
+callbacks, or on other environments with discrete observations, trials run step by step through
+the base class's loop (:meth:`~cobelrun.agents.base.Agent._run`), whose hooks call the same
+compiled building blocks in the same order, so both give identical results for the same seeds.
+Action selection is :func:`cobelrun.agents.kernels.select_action`, the numba twin of
+:func:`cobelrun.agents.policy.select`.
 """
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
 from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
 from cobelrun.agents.memory import TabularMemory
+from cobelrun.envs.base import TabularModel, require
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -117,14 +120,11 @@ class DynaQ(Agent):
         base = env.unwrapped
         self.n_states = int(env.observation_space.n)
         self.n_actions = int(env.action_space.n)
-        self.tabular = hasattr(base, "world") and hasattr(base, "action_mask")
-        if self.engine == "compiled" and not self.tabular:
-            raise ConfigError(
-                f"agent.engine 'compiled' needs a tabular environment (GridWorldEnv); "
-                f"got {type(base).__name__}; use engine 'auto' or 'python'"
-            )
-        if self.use_mask and not self.tabular:
-            raise ConfigError("agent.action_mask needs a tabular environment (GridWorldEnv)")
+        self.tabular = isinstance(base, TabularModel)
+        if self.engine == "compiled":
+            require(env, ("tabular_model",), "agent.engine 'compiled' (use 'auto' or 'python')")
+        if self.use_mask:
+            require(env, ("tabular_model",), "agent.action_mask")
         self.Q = np.zeros((self.n_states, self.n_actions))
         self.memory = TabularMemory(
             self.n_states, self.n_actions, reward_rate=memory_reward_rate, sampling=memory_sampling
@@ -163,7 +163,14 @@ class DynaQ(Agent):
     ) -> TrialBatch:
         if self._use_compiled(callbacks):
             return self._run_compiled(n_trials, max_steps, learn)
-        return self._run_python(n_trials, max_steps, learn, callbacks)
+        # the Python engine: the base step loop with the same compiled building blocks, called
+        # in the same order as run_trials, so both engines give identical results
+        import cobelrun.agents.kernels as kernels
+
+        self._k = kernels
+        self._loop_mask = self._mask()
+        self._loop_params = self._params()
+        return super()._run(n_trials, max_steps, learn, callbacks)
 
     def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
         from cobelrun.agents.kernels import run_trials  # numba: imported on first use
@@ -209,58 +216,27 @@ class DynaQ(Agent):
             step_reward=step_reward,
         )
 
-    def _run_python(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        from cobelrun.agents.kernels import q_update, select_action
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        s = int(obs)
+        policy, eps, beta = self._loop_params[:3]
+        return int(
+            self._k.select_action(self.rng, self.Q[s], self._loop_mask[s], self.use_mask,
+                                  policy, eps, beta)
+        )  # fmt: skip
 
-        env = self.env
-        mask = self._mask()
-        (policy, eps, beta, lr, gamma, replay_mode, batch, _sampling) = self._params()
-        mem = self.memory
-        trials = []
-        for trial in range(n_trials):
-            s, _ = env.reset()
-            s = int(s)
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            states, actions, rewards = [s], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                a = int(
-                    select_action(self.rng, self.Q[s], mask[s], self.use_mask, policy, eps, beta)
-                )
-                s2, r, terminated, _, _ = env.step(a)
-                s2, r = int(s2), float(r)
-                if learn:
-                    q_update(self.Q, mask, self.use_mask, s, a, r, s2, terminated, lr, gamma)
-                    mem.store(s, a, r, s2, terminated)
-                    if replay_mode == REPLAY_STEP:
-                        self._replay(mask, batch)
-                states.append(s2)
-                actions.append(a)
-                rewards.append(r)
-                transition_info = {
-                    "state": s,
-                    "action": a,
-                    "reward": r,
-                    "next_state": s2,
-                    "terminated": terminated,
-                }
-                keep_going = all(
-                    [cb.on_step(self, trial, step, transition_info) for cb in callbacks]
-                )
-                s = s2
-                if terminated or not keep_going:
-                    break
-            if learn and replay_mode == REPLAY_TRIAL_END:
-                self._replay(mask, batch)
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": terminated}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        return TrialBatch.from_trials(trials)
+    def observe(self, t: Transition, learn: bool) -> None:
+        if not learn:
+            return
+        s, s2 = int(t.obs), int(t.next_obs)
+        self._k.q_update(self.Q, self._loop_mask, self.use_mask, s, t.action, t.reward, s2,
+                         t.terminated, self.learning_rate, self.gamma)  # fmt: skip
+        self.memory.store(s, t.action, t.reward, s2, t.terminated)
+        if self._loop_params[5] == REPLAY_STEP:
+            self._replay(self._loop_mask, self.replay_batch)
+
+    def end_trial(self, learn: bool) -> None:
+        if learn and self._loop_params[5] == REPLAY_TRIAL_END:
+            self._replay(self._loop_mask, self.replay_batch)
 
     def _replay(self, mask: np.ndarray, n: int) -> None:
         from cobelrun.agents.kernels import replay
@@ -276,7 +252,7 @@ class DynaQ(Agent):
             raise ValueError(f"observations must be state indices in [0, {self.n_states})")
         return self.Q[obs].copy()
 
-    def hyperparameters(self) -> dict:
+    def hyperparameters(self) -> dict[str, Any]:
         return {
             "epsilon": self.epsilon, "beta": self.beta, "learning_rate": self.learning_rate,
             "gamma": self.gamma, "policy": self.policy, "action_mask": self.use_mask,
@@ -285,22 +261,13 @@ class DynaQ(Agent):
             "memory_reward_rate": self.memory.reward_rate,
         }  # fmt: skip
 
-    def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
-        np.savez(  # uncompressed: tables are small, and this runs once per run
-            path, Q=self.Q, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-            **self.memory.state_dict(),
-        )  # fmt: skip
-        return path
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"Q": ArraySpec((S, A), "f"), **self.memory.state_schema()}
 
-    def load(self, path: str | Path) -> None:
-        with np.load(path, allow_pickle=False) as data:
-            if data["Q"].shape != self.Q.shape:
-                raise ConfigError(
-                    f"saved agent {path} has a Q table of shape {data['Q'].shape}, "
-                    f"this environment needs {self.Q.shape}"
-                )
-            self.Q[...] = data["Q"]
-            self.memory.load_state_dict({k: data[k] for k in self.memory.state_dict()})
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"Q": self.Q, **self.memory.state_dict()}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        self.Q[...] = arrays["Q"]
+        self.memory.load_state_dict(arrays)

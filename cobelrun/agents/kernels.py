@@ -93,6 +93,9 @@ def select_action(rng, q_row, mask_row, use_mask, policy, epsilon, beta):
     the greedy action with ties broken at random. softmax: P(a) proportional to
     exp(beta * q[a]) over allowed actions. A state with no allowed action falls back to all
     actions. Allocation-free (counting passes instead of index arrays).
+
+    The numba twin of :func:`cobelrun.agents.policy.select` (used by the numpy-side agents):
+    same semantics and, from the same generator, the same draws (tested).
     """
     n = q_row.shape[0]
     k = n

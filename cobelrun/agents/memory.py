@@ -6,10 +6,11 @@ trial loop that inlines them (imported on first use, so building an agent does n
 
 from __future__ import annotations
 
-from pathlib import Path
+from collections.abc import Mapping
 
 import numpy as np
 
+from cobelrun.agents.base import ArraySpec
 from cobelrun.agents.codes import SAMPLING
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
@@ -98,9 +99,19 @@ class TabularMemory:
             "memory_n_visited": self.n_visited,
         }
 
-    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """What :meth:`state_dict`'s arrays must look like: next states are state indices
+        (the compiled kernels index with them unchecked), the visited list holds pair indices."""
+        S, A = self.n_states, self.n_actions
+        return {
+            "memory_next_state": ArraySpec((S, A), "i", 0, S),
+            "memory_reward": ArraySpec((S, A), "f"),
+            "memory_terminal": ArraySpec((S, A), "b"),
+            "memory_visited": ArraySpec((S, A), "b"),
+            "memory_visited_list": ArraySpec((S * A,), "i", 0, S * A),
+            "memory_n_visited": ArraySpec((1,), "i", 0, S * A + 1),
+        }
+
+    def load_state_dict(self, state: Mapping[str, np.ndarray]) -> None:
         for key, arr in self.state_dict().items():
             arr[...] = state[key]
-
-    def save(self, path: str | Path) -> None:
-        np.savez(path, **self.state_dict())

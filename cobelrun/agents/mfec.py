@@ -40,18 +40,16 @@ Numpy and scipy only; no torch.
 from __future__ import annotations
 
 import hashlib
-import json
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cobelrun.agents.base import Agent, SeedLike, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.policy import epsilon_greedy
 from cobelrun.errors import ConfigError
-from cobelrun.records import TrialBatch
 
 PROJECTIONS = ("gaussian", "none")
 
@@ -119,13 +117,9 @@ class EpisodicBuffer:
         return {"keys": self.keys[: self.size], "values": self.values[: self.size],
                 "times": self.times[: self.size], "clock": np.array(self.clock)}  # fmt: skip
 
-    def load(self, state: dict[str, np.ndarray]) -> None:
+    def load(self, state: Mapping[str, np.ndarray]) -> None:
+        """Restore :meth:`state` (checked by :meth:`MFEC.check_state`)."""
         n = len(state["values"])
-        if n > self.capacity or state["keys"].shape[1:] != (self.dim,):
-            raise ConfigError(
-                f"saved MFEC buffer ({n} keys of shape {state['keys'].shape[1:]}) does not fit "
-                f"capacity {self.capacity} and key size {self.dim}"
-            )
         self.size = n
         self.keys[:n], self.values[:n], self.times[:n] = (
             state["keys"],
@@ -272,80 +266,64 @@ class MFEC(Agent):
         """Q estimates ``(n, A)`` of a batch of observations."""
         return np.array([self._q(key) for key in self.keys(observations)])
 
-    def _act(self, q: np.ndarray) -> int:
-        if self.rng.random() < self.epsilon:
-            return int(self.rng.integers(self.n_actions))
-        best = np.flatnonzero(q == q.max())
-        return int(best[self.rng.integers(best.size)])
+    # -- trials (the base loop) ------------------------------------------------------------------
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._trial: list[tuple[np.ndarray, int, float]] = []  # (key, action, reward) per step
+        self._key: np.ndarray | None = None
 
-    # -- trials -----------------------------------------------------------------------------------
-    def _run(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        env = self.env
-        trials = []
-        for trial in range(n_trials):
-            obs, info = env.reset()
-            s = int(info.get("state", -1))
-            for cb in callbacks:
-                cb.on_trial_start(self, trial, s)
-            states, actions, rewards, keys = [s], [], [], []
-            terminated = False
-            for step in range(1, max_steps + 1):
-                key, tag = self.key(obs)
-                a = self._act(self._q(key, tag))
-                obs, r, terminated, truncated, info = env.step(a)
-                s2 = int(info.get("state", -1))
-                keys.append(key)
-                states.append(s2)
-                actions.append(a)
-                rewards.append(float(r))
-                keep = True
-                if callbacks:
-                    transition = {"state": states[-2], "action": a, "reward": float(r),
-                                  "next_state": s2, "terminated": bool(terminated)}  # fmt: skip
-                    keep = all([cb.on_step(self, trial, step, transition) for cb in callbacks])
-                if terminated or truncated or not keep:
-                    break
-            if learn:
-                self._update(keys, actions, rewards)
-            record = {"states": states, "actions": actions, "rewards": rewards,
-                      "terminated": bool(terminated)}  # fmt: skip
-            for cb in callbacks:
-                cb.on_trial_end(self, trial, record)
-            trials.append(record)
-        return TrialBatch.from_trials(trials)
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Epsilon-greedy over the estimates, ties broken at random."""
+        key, tag = self.key(obs)
+        self._key = key
+        return epsilon_greedy(self.rng, self._q(key, tag), self.epsilon)
 
-    def _update(self, keys: list[np.ndarray], actions: list[int], rewards: list[float]) -> None:
-        ret = 0.0
-        for key, a, r in zip(reversed(keys), reversed(actions), reversed(rewards), strict=True):
-            ret = r + self.gamma * ret
-            self.buffers[a].update(key, ret)
+    def observe(self, t: Transition, learn: bool) -> None:
+        assert self._key is not None
+        self._trial.append((self._key, t.action, t.reward))
+
+    def end_trial(self, learn: bool) -> None:
+        """Learn from the trial's discounted returns (module docstring)."""
+        if learn:
+            ret = 0.0
+            for key, a, r in reversed(self._trial):
+                ret = r + self.gamma * ret
+                self.buffers[a].update(key, ret)
+        self._trial = []
 
     # -- persistence ------------------------------------------------------------------------------
-    def save(self, path: str | Path) -> Path:
-        """Write the projection and every buffer to ``PATH.npz`` (no pickle)."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(".npz")
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """The projection (if any) and every buffer's keys, values, insertion times and clock."""
+        schema: dict[str, ArraySpec] = {}
+        if self.matrix is not None:
+            schema["projection"] = ArraySpec(self.matrix.shape, "f")
+        for a in range(self.n_actions):
+            schema[f"a{a}.keys"] = ArraySpec((None, self.key_dim), "f")
+            schema[f"a{a}.values"] = ArraySpec((None,), "f")
+            schema[f"a{a}.times"] = ArraySpec((None,), "i", low=0)
+            schema[f"a{a}.clock"] = ArraySpec((), "i", low=0)
+        return schema
+
+    def get_state(self) -> dict[str, np.ndarray]:
         arrays: dict[str, np.ndarray] = {}
         if self.matrix is not None:
             arrays["projection"] = self.matrix
         for a, buf in enumerate(self.buffers):
             arrays.update({f"a{a}.{k}": v for k, v in buf.state().items()})
-        np.savez_compressed(path, hyperparameters=np.array(json.dumps(self.hyperparameters())),
-                            **arrays)  # fmt: skip
-        return path
+        return arrays
 
-    def load(self, path: str | Path) -> None:
-        try:
-            data = np.load(path, allow_pickle=False)
-        except OSError as exc:
-            raise ConfigError(f"cannot load agent from {path}: {exc}") from None
-        with data:
-            if self.matrix is not None:
-                if "projection" not in data or data["projection"].shape != self.matrix.shape:
-                    raise ConfigError(f"saved MFEC agent {path} has a different projection")
-                self.matrix = data["projection"].copy()
-            for a, buf in enumerate(self.buffers):
-                buf.load({k: data[f"a{a}.{k}"] for k in ("keys", "values", "times", "clock")})
+    def check_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for a in range(self.n_actions):
+            keys, n = arrays[f"a{a}.keys"], len(arrays[f"a{a}.values"])
+            if len(keys) != n or len(arrays[f"a{a}.times"]) != n:
+                raise ValueError(f"buffer a{a}: keys, values and times differ in length")
+            if n > self.capacity:
+                raise ValueError(f"buffer a{a} holds {n} keys, capacity is {self.capacity}")
+            if len({k.tobytes() for k in keys}) != n:
+                raise ValueError(f"buffer a{a} holds duplicate keys")
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        if self.matrix is not None:
+            self.matrix = np.array(arrays["projection"], dtype=np.float64)
+            self._keys.clear()
+        for a, buf in enumerate(self.buffers):
+            buf.load({k: arrays[f"a{a}.{k}"] for k in ("keys", "values", "times", "clock")})

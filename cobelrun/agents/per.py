@@ -8,7 +8,7 @@
   ``w_i = (N P(i))^-beta / max_j w_j`` (the max over the whole buffer, from the minimum
   priority, as in the paper and OpenAI baselines) and anneals ``beta`` linearly to 1.
   New transitions get the largest priority seen so far.
-- :class:`PrioritizedDQN`: :class:`~cobelrun.agents.dqn.TrialDQN` whose gradient step weights
+- :class:`PrioritizedDQN`: :class:`~cobelrun.agents.sb3.TrialDQN` whose gradient step weights
   each sample's Huber loss by ``w_i`` and sets ``p_i = |TD error_i| + epsilon``.
 
 Draws come from the buffer's own ``numpy.random.Generator`` (seeded by the agent).
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
-from cobelrun.agents.dqn import TrialDQN
+from cobelrun.agents.sb3 import TrialDQN
 from cobelrun.errors import ConfigError
 
 

@@ -16,6 +16,8 @@ capability an environment declares by implementing its methods on ``env.unwrappe
 :class:`TabularModel`
     A known transition table (``world.T``, ``world.rewards``, ...) that tabular and Dyna agents
     plan with, and the ``action_mask`` of actions that leave a state.
+:class:`StateObservations`
+    The observation of every state (one-hot codes, choice displays).
 :class:`HasGeometry`
     The maze, graph or arena as data (:class:`Geometry`), for plots, MCAP scenes and exports.
 :class:`RendersAtPose`
@@ -46,6 +48,7 @@ __all__ = [
     "HasGeometry",
     "Posed",
     "RendersAtPose",
+    "StateObservations",
     "TabularModel",
     "capabilities",
     "check_action",
@@ -105,6 +108,17 @@ class TabularModel(Protocol):
 
 
 @runtime_checkable
+class StateObservations(Protocol):
+    """The observation of every discrete state, e.g. one-hot codes or the displays of a
+    choice task (probes of activity monitors, state-based deep agents)."""
+
+    @property
+    def observations(self) -> np.ndarray:
+        """(n_states, ...) observation of each state."""
+        ...
+
+
+@runtime_checkable
 class HasGeometry(Protocol):
     """The environment's layout as data."""
 
@@ -124,6 +138,7 @@ CONTRACTS: dict[str, type] = {
     "pose": Posed,
     "discrete_states": DiscreteStates,
     "tabular_model": TabularModel,
+    "state_observations": StateObservations,
     "geometry": HasGeometry,
     "render_at_pose": RendersAtPose,
 }

@@ -21,7 +21,7 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.agents.base import TrialCallback
-from cobelrun.envs.base import DiscreteStates
+from cobelrun.envs.base import DiscreteStates, StateObservations
 from cobelrun.errors import ConfigError
 from cobelrun.monitors import Monitor, Table
 
@@ -68,9 +68,8 @@ class ActivityMonitor(Monitor, TrialCallback):
         if self.probes is not None:
             return
         base = env.unwrapped
-        obs = getattr(base, "observations", None)
-        if obs is not None:
-            self.probes = np.asarray(obs)
+        if isinstance(base, StateObservations):
+            self.probes = np.asarray(base.observations)
         elif isinstance(base, DiscreteStates):
             self.probes = np.arange(base.n_states)
         else:

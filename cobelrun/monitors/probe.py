@@ -18,15 +18,24 @@ callback makes tabular agents take their per-step Python path (slower, same resu
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import pyarrow as pa
 
 from cobelrun.agents.base import TrialCallback
+from cobelrun.envs.base import StateObservations
 from cobelrun.errors import ConfigError
 from cobelrun.monitors import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
+
+
+@runtime_checkable
+class HasCorrectActions(Protocol):
+    """Choice tasks that name the correct action of each state (``TwoAFCEnv``)."""
+
+    @property
+    def correct_actions(self) -> np.ndarray: ...
 
 
 class GreedyProbeMonitor(TrialColumnsMonitor, TrialCallback):
@@ -52,21 +61,19 @@ class GreedyProbeMonitor(TrialColumnsMonitor, TrialCallback):
     def setup(self, env: Any) -> None:
         base = env.unwrapped
         if self.probes is None:
-            obs = getattr(base, "observations", None)
-            if obs is None:
+            if not isinstance(base, StateObservations):
                 raise ConfigError(
                     f"greedy probe: {type(base).__name__} has no per-state observations; "
                     "give probe observations with 'probes'"
                 )
-            self.probes = np.asarray(obs)
+            self.probes = np.asarray(base.observations)
         if self.correct is None:
-            correct = getattr(base, "correct_actions", None)
-            if correct is None:
+            if not isinstance(base, HasCorrectActions):
                 raise ConfigError(
                     f"greedy probe: {type(base).__name__} names no correct actions; "
                     "give one per probe with 'correct'"
                 )
-            self.correct = np.asarray(correct, dtype=np.int64)
+            self.correct = np.asarray(base.correct_actions, dtype=np.int64)
         if self.correct.shape != (len(self.probes),):
             raise ConfigError(
                 f"greedy probe: {len(self.probes)} probes but {self.correct.size} correct actions"

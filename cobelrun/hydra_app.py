@@ -9,6 +9,7 @@ folder is created.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import sys
@@ -32,8 +33,11 @@ def _check_choices(parsed: list[Any]) -> None:
         options = group_options(key)
         values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
         for value in values:
-            if value is None and key != "task":
-                continue
+            if value is None:
+                raise ConfigError(
+                    f"{key} must name a config, got null; allowed: {allowed_list(options)} "
+                    f"(see `cobel list {key}`)"
+                )
             if not isinstance(value, str) or value not in options:
                 raise ConfigError(
                     f"unknown {key} {value!r}{suggest(str(value), options)}; "
@@ -62,6 +66,30 @@ def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> s
         )
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     return first
+
+
+def yaml_error(exc: BaseException) -> str | None:
+    """One line naming the file, line and column of a YAML syntax error in ``exc`` (or its
+    causes), or None when ``exc`` is not one."""
+    import yaml
+
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, yaml.YAMLError):
+            mark = getattr(cur, "problem_mark", None) or getattr(cur, "context_mark", None)
+            problem = getattr(cur, "problem", None) or str(cur).strip().splitlines()[0]
+            context = getattr(cur, "context", None)
+            what = f"{context}: {problem}" if context else str(problem)
+            if mark is None:
+                return f"YAML syntax error: {what}"
+            return (
+                f"YAML syntax error in {mark.name}, line {mark.line + 1}, column "
+                f"{mark.column + 1}: {what}"
+            )
+        cur = cur.__cause__ or cur.__context__
+    return None
 
 
 def _writable_root(path: Path) -> None:
@@ -115,6 +143,9 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
         except MissingConfigException as exc:
             raise ConfigError(str(exc).strip().splitlines()[0]) from None
         except HydraException as exc:
+            yaml_msg = yaml_error(exc)
+            if yaml_msg is not None:
+                raise ConfigError(yaml_msg) from None
             base_cfg = None
             try:  # the config without the bad override, to list the keys that are allowed
                 plain = [o for o in overrides if o.split("=", 1)[0] in GROUPS]
@@ -122,6 +153,12 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
             except HydraException:
                 pass
             raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
+        except Exception as exc:  # YAML syntax errors, Hydra's ValueErrors on odd overrides
+            msg = yaml_error(exc)
+            if msg is None:
+                lines = str(exc).strip().splitlines()
+                msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
+            raise ConfigError(msg) from None
 
     GlobalHydra.instance().clear()
     try:
@@ -154,7 +191,15 @@ def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dic
             raise ConfigError(f"cannot resolve hydra.run.dir: {exc}") from None
         _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
-    build_task(job_cfg, probe_agent=True)
+    try:
+        build_task(job_cfg, probe_agent=True)
+    except CobelError:
+        raise
+    except Exception as exc:  # a value no check anticipated: still one line, nothing written
+        lines = str(exc).strip().splitlines()
+        raise ConfigError(
+            f"invalid config: {type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+        ) from exc
     return cfg, jobs
 
 
@@ -318,3 +363,6 @@ def launch(args: list[str]) -> int:
 
 
 register_resolvers()  # also in worker processes that unpickle `job`
+# a log file that cannot be written (a full disk, a read-only folder) must not print a
+# traceback per message: the run itself fails with one line that names the problem
+logging.raiseExceptions = False

@@ -20,11 +20,13 @@ import cobelrun
 from cobelrun.config import instantiate
 from cobelrun.envs.base import Changeable, HasGeometry
 from cobelrun.errors import CobelError, ConfigError
+from cobelrun.io.atomic import atomic_write_text, disk_error, is_disk_error
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
+from cobelrun.safety import check_memory, check_name
 from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
@@ -57,6 +59,9 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     parameters are reported before anything is written.
     """
     spec = validate_run(cfg)
+    check_name("task.name", spec.task.name)  # it names the output folder
+    if spec.task.protocol is not None:
+        check_memory(spec.task.protocol)
     if spec.task.job is not None:
         return build_job(cfg, spec)
     assert spec.task.protocol is not None  # TaskSpec requires one unless there is a job
@@ -80,8 +85,13 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
             raise ConfigError(f"task.monitors.{name} does not build a Monitor")
         monitor.setup(env)
         monitors[str(name)] = monitor
-    if probe_agent:
-        make_agent(seed=run_seed(spec.seed, 0)[0])  # constructor errors surface before any output
+    if probe_agent:  # constructor errors surface before any output
+        try:
+            make_agent(seed=run_seed(spec.seed, 0)[0])
+        except CobelError:
+            raise
+        except Exception as exc:  # a value the agent's own checks did not anticipate
+            raise ConfigError(f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}") from exc
     record = RecordConfig.from_spec(spec.task.record)
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(
@@ -100,6 +110,11 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         load_from=None if load_from is None else str(load_from),
         save_agents=spec.task.save_agents,
     )
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else ""
 
 
 def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
@@ -215,21 +230,21 @@ def run(
     """
     run_dir = Path(run_dir)
     folder = RunFolder(run_dir)
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CobelError(f"cannot create output folder {run_dir}: {exc.strerror}") from None
     resolved = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(resolved, Mapping)
-    task = build_task(cfg)
-    folder.config.write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    task = build_task(cfg)  # everything is checked before the folder is touched
     manifest = Manifest(run_dir)
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
         else {"runs": task.runs, "trials": task.protocol.n_trials}
     )
-    manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(folder.config, OmegaConf.to_yaml(OmegaConf.create(resolved)))
+        manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
+    except OSError as exc:
+        raise CobelError(disk_error(exc, run_dir)) from None
     metadata = {"cobel.version": cobelrun.__version__, "cobel.seed": str(task.seed),
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
@@ -243,11 +258,45 @@ def run(
                 manifest.finish("interrupted")
             raise
         except BaseException as exc:
+            disk = is_disk_error(exc)
+            error = disk_error(exc, run_dir) if disk else f"{type(exc).__name__}: {exc}"
             with guard.closing():
-                manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
+                _finish_failed(manifest, error)
+            if disk:  # a full disk or a read-only folder is not a bug: one line, no traceback
+                raise CobelError(f"{error}; {_kept(folder)}") from exc
             raise
-        with guard.closing():
-            summary = {"job_result": result} if isinstance(result, Mapping) else {}
-            manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
-            folder.done.write_text("completed\n")
+        try:
+            with guard.closing():
+                summary = {"job_result": result} if isinstance(result, Mapping) else {}
+                manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3),
+                                **summary)  # fmt: skip
+                folder.done.write_text("completed\n")
+        except OSError as exc:
+            error = disk_error(exc, run_dir)
+            with guard.closing():
+                _finish_failed(manifest, error)
+            raise CobelError(f"{error}; {_kept(folder)}") from exc
     return run_dir
+
+
+def _finish_failed(manifest: Manifest, error: str) -> None:
+    """Mark the manifest failed; on a disk that cannot take even that, the manifest keeps
+    saying ``running`` and ``cobel status`` marks it when it repairs the folder."""
+    try:
+        manifest.finish("failed", error=error)
+    except OSError:
+        pass
+
+
+def _kept(folder: RunFolder) -> str:
+    """What a failed run left readable (for the one-line error)."""
+    tables = folder.tables()
+    parts = folder.unfinished_tables()
+    what = []
+    if tables:
+        what.append(f"tables {', '.join(tables)}")
+    if parts:
+        what.append(
+            f"parts of {', '.join(parts)} (free space, then `cobel status {folder.path}` merges them)"
+        )
+    return "kept: " + ("; ".join(what) if what else "nothing was written yet")

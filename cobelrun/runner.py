@@ -91,7 +91,9 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         except CobelError:
             raise
         except Exception as exc:  # a value the agent's own checks did not anticipate
-            raise ConfigError(f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}") from exc
+            raise ConfigError(
+                f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
+            ) from exc
     record = RecordConfig.from_spec(spec.task.record)
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(

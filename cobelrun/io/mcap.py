@@ -29,11 +29,11 @@ records and ``mcap.writer.Writer``.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import struct
 import tempfile
-import logging
 import time
 from collections.abc import Iterator, Mapping
 from io import BytesIO

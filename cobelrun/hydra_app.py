@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cobelrun.config import GROUPS, builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+from cobelrun.safety import check_inside, results_root
 
 
 def _check_choices(parsed: list[Any]) -> None:
@@ -189,6 +190,8 @@ def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dic
             out = OmegaConf.select(cfg, "hydra.run.dir")
         except Exception as exc:  # interpolation errors in the output folder pattern
             raise ConfigError(f"cannot resolve hydra.run.dir: {exc}") from None
+        if not str(out or "").strip():
+            raise ConfigError("hydra.run.dir must name a folder, got an empty string")
         _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     try:
@@ -292,10 +295,29 @@ def sweep_folder(overrides: list[str], cfg: DictConfig, jobs: list[dict]) -> tup
 
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     if "hydra.sweep.dir" in keys:
-        return [], Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
-    root = Path(os.environ.get("COBEL_RESULTS") or "results")
-    sweep_dir = (root / str(cfg.task.name) / "sweeps" / sweep_id(jobs)).absolute()
+        given = str(OmegaConf.select(cfg, "hydra.sweep.dir") or "")
+        if not given.strip():
+            raise ConfigError("hydra.sweep.dir must name a folder, got an empty string")
+        return [], Path(given).expanduser().absolute()
+    root = results_root()
+    sweep_dir = check_inside(root / str(cfg.task.name) / "sweeps" / sweep_id(jobs), root,
+                             "the sweep folder")  # fmt: skip
     return [f"hydra.sweep.dir={_quote(str(sweep_dir))}"], sweep_dir
+
+
+def run_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path]:
+    """A single run's folder, absolute and resolved, and the override that pins it.
+
+    Unless ``hydra.run.dir`` is given, the folder must stay inside the results root
+    (``$COBEL_RESULTS`` or ``./results``), also through symlinks.
+    """
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    out = Path(str(OmegaConf.select(cfg, "hydra.run.dir"))).expanduser()
+    if "hydra.run.dir" in keys:
+        path = out.absolute()
+    else:
+        path = check_inside(out, results_root())
+    return [f"hydra.run.dir={_quote(str(path))}"], path
 
 
 def report_sweep(sweep_dir: Path) -> int:
@@ -344,12 +366,16 @@ def launch(args: list[str]) -> int:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
     if not informational:
+        results_root()  # COBEL_RESULTS="" is refused before anything is composed
         cfg, jobs = validate(overrides, multirun)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
             _writable_root(sweep_dir)
             parsed.overrides = [*overrides, *extra]
             os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])
+        else:
+            extra, _ = run_folder(overrides, cfg)
+            parsed.overrides = [*overrides, *extra]
     _run_hydra(
         args=parsed,
         args_parser=parser,

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-import os
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -193,7 +192,9 @@ def get(name: str) -> Figure:
 
 
 def results_root() -> Path:
-    return Path(os.environ.get("COBEL_RESULTS") or "results")
+    from cobelrun.safety import results_root as root
+
+    return root()  # COBEL_RESULTS="" is refused (it used to mean /)
 
 
 @contextlib.contextmanager

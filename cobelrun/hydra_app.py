@@ -239,6 +239,7 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     """
     import traceback
 
+    import cobelrun.sweep as sweep
     from cobelrun.runner import run
     from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
     from cobelrun.sweep import write_job_status as status
@@ -246,16 +247,26 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     subdir = str(hc.sweep.subdir)
     num = int(subdir) if subdir.isdigit() else int(hc.job.num)
     fields = {"job": num, "overrides": list(hc.overrides.task)}
+    sweep_dir = Path(str(hc.sweep.dir))
     try:
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
             return str(run_dir)
+        if sweep.stop_requested(sweep_dir):  # the sweep is stopping: do not start
+            status(run_dir, "interrupted", error="the sweep was stopped before this job started",
+                   **fields)  # fmt: skip
+            return "interrupted"
         clear_outputs(run_dir)
         status(run_dir, "running", config_hash=chash, **fields)
         run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
     except KeyboardInterrupt:
+        # the files are closed and the manifest says interrupted; later jobs must not start
+        # (in-process launchers run them in this process), and the launcher reports it
         status(run_dir, "interrupted", **fields)
-        raise
+        sweep.request_stop(sweep_dir, "a job was interrupted")
+        if sweep._PARENT_PID is not None and os.getppid() != sweep._PARENT_PID:
+            os._exit(130)  # the launcher is gone: this worker must not linger
+        return "interrupted"
     except Exception as exc:
         status(run_dir, "failed", error=one_line(exc), traceback=traceback.format_exc(), **fields)
         print(f"cobel: job {num} failed: {one_line(exc)}", file=sys.stderr)
@@ -376,16 +387,135 @@ def launch(args: list[str]) -> int:
         else:
             extra, _ = run_folder(overrides, cfg)
             parsed.overrides = [*overrides, *extra]
-    _run_hydra(
-        args=parsed,
-        args_parser=parser,
-        task_function=job,
-        config_path=str(config_dir),
-        config_name="config",
-    )
-    if sweep_dir is not None:
-        return report_sweep(sweep_dir)
-    return 0
+    if sweep_dir is None:
+        _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                   config_path=str(config_dir), config_name="config")  # fmt: skip
+        return 0
+    from cobelrun.sweep import SweepLock, clear_stop
+
+    with SweepLock(sweep_dir), SweepStopper(sweep_dir, jobs) as stopper:
+        clear_stop(sweep_dir)
+        try:
+            _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                       config_path=str(config_dir), config_name="config")  # fmt: skip
+        except KeyboardInterrupt:
+            if stopper.signum is None:
+                raise
+            _release_workers()  # the third signal: the pool's workers are killed
+        finally:
+            stopper.finish()
+        if stopper.stopped:
+            return stopper.report()
+    return report_sweep(sweep_dir)
+
+
+def _release_workers() -> None:
+    try:
+        from hydra_plugins.cobel_sweeper.cobel_sweeper import _release_joblib_workers
+    except ImportError:
+        return
+    _release_joblib_workers()
+
+
+class SweepStopper:
+    """Ctrl-C and SIGTERM in a sweep's launcher: stop every job cleanly, orphan nothing.
+
+    The first signal writes the sweep's stop file (jobs that start later see it and stop at
+    once) and sends SIGTERM to the process of every running job (again each second until it
+    has stopped, in case it was between jobs), so each job closes its files and says
+    ``interrupted``; the launcher then gets every job's result as usual, its workers are shut
+    down, and the jobs that never started are marked ``interrupted``. Further signals only
+    print that the sweep is stopping.
+    """
+
+    def __init__(self, sweep_dir: Path, jobs: list[dict]) -> None:
+        import threading
+
+        self.sweep_dir = sweep_dir
+        self.jobs = [int(j["job"]) for j in jobs]
+        self.signum: int | None = None
+        self._noticed = False
+        self._count = 0
+        self._previous: dict[int, Any] = {}
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def stopped(self) -> bool:
+        from cobelrun.sweep import stop_requested
+
+        return self.signum is not None or stop_requested(self.sweep_dir)
+
+    def __enter__(self) -> SweepStopper:
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        self.finish()
+        for sig, prev in self._previous.items():
+            signal.signal(sig, prev)
+        self._previous.clear()
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        import threading
+
+        from cobelrun.sweep import request_stop
+
+        if self.signum is not None:
+            self._count += 1
+            if self._count >= 3:  # a job does not stop: the third signal stops them all now
+                print("cobel: stopping the sweep's workers now", file=sys.stderr)
+                raise KeyboardInterrupt
+            if not self._noticed:
+                self._noticed = True
+                print("cobel: stopping the sweep, please wait (a third signal kills the jobs)",
+                      file=sys.stderr)  # fmt: skip
+            return
+        self._count = 1
+        self.signum = signum
+        request_stop(self.sweep_dir, f"signal {signum}")
+        print("cobel: stopping the sweep: running jobs close their files, the others do not "
+              "start", file=sys.stderr)  # fmt: skip
+        self._thread = threading.Thread(target=self._forward, daemon=True)
+        self._thread.start()
+
+    def _forward(self) -> None:
+        import signal
+
+        from cobelrun.sweep import running_pids
+
+        while not self._done.is_set():
+            for pid in running_pids(self.sweep_dir, self.jobs).values():
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGTERM)
+            self._done.wait(1.0)
+
+    def finish(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def report(self) -> int:
+        """Mark jobs that never started, rebuild the index, print one line; exit code 130."""
+        from cobelrun.sweep import clear_stop, job_rows, mark_not_started, read_json, summary
+
+        mark_not_started(self.sweep_dir, self.jobs, "the sweep was stopped before this job started")
+        clear_stop(self.sweep_dir)
+        try:
+            counts = summary(job_rows(self.sweep_dir))
+        except CobelError:
+            counts = {}
+        command = (read_json(self.sweep_dir / "sweep.json") or {}).get("command", "")
+        done = counts.get("done", 0)
+        print(f"cobel: interrupted; {done} of {len(self.jobs)} jobs done; resume with: {command}",
+              file=sys.stderr)  # fmt: skip
+        return 130
 
 
 register_resolvers()  # also in worker processes that unpickle `job`

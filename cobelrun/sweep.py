@@ -462,7 +462,8 @@ class SweepLock:
                 holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip()
             finally:
                 os.close(fd)
-            who = f"pid {holder}" if holder else "another process"
+            pid, _, host = holder.partition(" ")
+            who = (f"pid {pid}" + (f" on {host}" if host else "")) if pid else "pid unknown"
             raise CobelError(
                 f"sweep folder {self.path.parent} is in use by another `cobel run -m` ({who}); "
                 "wait for it to finish or stop it, then run the command again to resume"

@@ -58,6 +58,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     With ``probe_agent`` one agent is constructed and dropped, so that errors in the agent's
     parameters are reported before anything is written.
     """
+    _check_resolves(cfg)
     spec = validate_run(cfg)
     check_name("task.name", spec.task.name)  # it names the output folder
     if spec.task.protocol is not None:
@@ -112,6 +113,20 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         load_from=None if load_from is None else str(load_from),
         save_agents=spec.task.save_agents,
     )
+
+
+def _check_resolves(cfg: Any) -> None:
+    """Every interpolation (``${...}``) of the config resolves; else one line naming the key."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not isinstance(cfg, DictConfig):
+        return
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        where = f"{key}: " if key else ""
+        raise ConfigError(f"{where}cannot resolve the value: {_first_line(exc)}") from None
 
 
 def _first_line(exc: BaseException) -> str:

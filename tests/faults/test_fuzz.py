@@ -106,7 +106,7 @@ BAD_VALUES = st.one_of(
             "1e999",
             "💥" * 3,
         ]
-    ),  # fmt: skip
+    ),
     st.lists(st.integers(min_value=-5, max_value=10**9), max_size=4),
     st.lists(st.text(max_size=4), max_size=3),
     st.dictionaries(st.text(max_size=4), st.integers(), max_size=2),
@@ -179,8 +179,8 @@ def test_zz_fuzz_figures():
 
 @pytest.mark.parametrize(
     "override",
-    ["agent.epsilon=null", "task.protocol.phases.0.trials=1e999", "env.world=null",
-     "task.record.runs='../../x'", "agent.gamma=[1,2]", "task.monitors.response={}",
+    ["agent.epsilon=null", "task.protocol.phases.0.trials=1e999", "agent.replay_batch=-3",
+     "task.record.runs='../../x'", "agent.gamma=[1,2]", "task.record.trial_every=0",
      "seed=-1", "task.protocol.max_steps=9999999999999"],
 )  # fmt: skip
 def test_cli_examples(cobel, tmp_path, override):

@@ -40,6 +40,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from cobelrun.errors import CobelError, ConfigError
+from cobelrun.io.atomic import atomic_path, atomic_write_text
 
 #: Fig. 4's image sizes (height, width).
 SIZES: tuple[tuple[int, int], ...] = ((20, 80), (30, 120), (45, 180), (60, 240), (75, 300))
@@ -375,7 +376,8 @@ class FrameTimeBenchmark:
             if tmp is not None:
                 shutil.rmtree(tmp, ignore_errors=True)
         table = pd.DataFrame(rows)
-        table.to_csv(run_dir / TABLE, index=False)
+        with atomic_path(run_dir / TABLE) as tmp:
+            table.to_csv(tmp, index=False)
         rat = ratios(table)
         summary = {
             "benchmark": "frame_times",
@@ -390,7 +392,7 @@ class FrameTimeBenchmark:
             },
             "cache_build_s": {f"{b['height']}x{b['width']}": b["seconds"] for b in builds},
         }
-        (run_dir / SUMMARY).write_text(json.dumps(summary, indent=1))
+        atomic_write_text(run_dir / SUMMARY, json.dumps(summary, indent=1))
         if self.plot:
             import matplotlib
 

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from cobelrun.errors import CobelError
+from cobelrun.io.atomic import atomic_write_text
 from cobelrun.render.scene import CameraSpec, SceneSpec, pybullet_version, spec_hash
 
 #: Bump when the cache layout or the scene-building code changes what pixels a key means.
@@ -291,7 +292,7 @@ def build(
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
         **request.payload(),
     }
-    (folder / "meta.json").write_text(json.dumps(meta, indent=1))
+    atomic_write_text(folder / "meta.json", json.dumps(meta, indent=1))
     return path, True
 
 

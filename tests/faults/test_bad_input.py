@@ -289,3 +289,43 @@ def test_validation_happens_before_any_folder(tmp_path, monkeypatch):
     with pytest.raises(ConfigError):
         validate([*TINY, "agent.epsilon=null"], multirun=False)
     assert not (tmp_path / "results").exists()
+
+
+# -- atomic writes ----------------------------------------------------------------------------
+def test_atomic_path_keeps_the_old_file_on_failure(tmp_path):
+    from cobelrun.io.atomic import atomic_path, atomic_write_text
+
+    target = tmp_path / "fig.csv"
+    atomic_write_text(target, "old\n")
+    with pytest.raises(OSError), atomic_path(target) as tmp:
+        assert tmp.suffix == ".csv" and tmp.parent == tmp_path and tmp.name.startswith(".")
+        tmp.write_text("half a fi")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["fig.csv"]
+
+
+def test_figure_files_are_written_atomically(tmp_path, monkeypatch):
+    """A figure whose CSV cannot be written leaves the previous CSV whole and says why."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    from cobelrun.figures import save_figure
+
+    out = tmp_path / "plot.png"
+    fig, _ = plt.subplots()
+    save_figure(fig, out)
+    first = out.read_bytes()
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    fig, _ = plt.subplots()
+    monkeypatch.setattr(type(fig), "savefig", full)
+    with pytest.raises(CobelError, match="the disk is full"):
+        save_figure(fig, out)
+    assert out.read_bytes() == first and len(list(tmp_path.iterdir())) == 1
+    assert pd.DataFrame({"a": [1]}).shape == (1, 1)

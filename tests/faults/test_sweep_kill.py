@@ -182,7 +182,9 @@ def run_case(tmp_path: Path, reference, case: str, seed: int) -> None:
     FIGURES["survived"] += 1
 
 
-@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize(
+    "case", [pytest.param(c, marks=[] if c == "sigterm" else [pytest.mark.slow]) for c in CASES]
+)
 def test_stopped_sweep(tmp_path, reference, case):
     run_case(tmp_path, reference, case, seed=7)
 

@@ -14,6 +14,7 @@ from typing import Annotated, Any
 
 import typer
 
+from cobelrun.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, debug_enabled, fail
 from cobelrun.errors import CobelError
 
 app = typer.Typer(
@@ -26,8 +27,6 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-
-EXIT_USER_ERROR = 2
 
 
 def _version(value: bool) -> None:
@@ -46,21 +45,6 @@ def _root(
     ] = False,
 ) -> None:
     """Config-driven experiments for neuroscience-oriented reinforcement learning."""
-
-
-EXIT_INTERRUPTED = 130
-
-
-def _debug() -> bool:
-    return os.environ.get("HYDRA_FULL_ERROR") == "1" or os.environ.get("COBEL_DEBUG") == "1"
-
-
-def fail(message: str, code: int = EXIT_USER_ERROR) -> None:
-    """Print one error line and exit (raise the original error instead when debugging)."""
-    if _debug() and sys.exc_info()[0] is not None:
-        raise
-    typer.echo(f"cobel: error: {message}", err=True)
-    raise typer.Exit(code)
 
 
 RUN_HELP = """Run a task: `cobel run task=NAME [KEY=VALUE ...]` (Hydra overrides, passed unchanged).
@@ -345,7 +329,7 @@ def main() -> None:
     try:
         app()
     except CobelError as exc:  # errors raised outside a command body
-        if _debug():
+        if debug_enabled():
             raise
         typer.echo(f"cobel: error: {exc}", err=True)
         sys.exit(EXIT_USER_ERROR)

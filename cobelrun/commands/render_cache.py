@@ -87,7 +87,7 @@ def render_cache_cmd(
         bool, typer.Option("--force", help="Rebuild even if the cache exists.")
     ] = False,
 ) -> None:
-    from cobelrun.cli import fail
+    from cobelrun.commands.common import fail
     from cobelrun.config import instantiate
     from cobelrun.errors import CobelError
     from cobelrun.render import cache

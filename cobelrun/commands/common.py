@@ -1,0 +1,31 @@
+"""What every ``cobel`` command shares: exit codes and the one-line error exit.
+
+Kept apart from :mod:`cobelrun.cli` so that command modules (``commands/*.py``) can use it
+without importing the app that registers them (no import cycle).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import NoReturn
+
+import typer
+
+#: exit code of a user error (bad config, name or folder)
+EXIT_USER_ERROR = 2
+#: exit code of a run stopped by Ctrl-C or SIGTERM
+EXIT_INTERRUPTED = 130
+
+
+def debug_enabled() -> bool:
+    """``--debug`` (``COBEL_DEBUG=1``) or ``HYDRA_FULL_ERROR=1``: show tracebacks."""
+    return os.environ.get("HYDRA_FULL_ERROR") == "1" or os.environ.get("COBEL_DEBUG") == "1"
+
+
+def fail(message: str, code: int = EXIT_USER_ERROR) -> NoReturn:
+    """Print one error line and exit (raise the original error instead when debugging)."""
+    if debug_enabled() and sys.exc_info()[0] is not None:
+        raise
+    typer.echo(f"cobel: error: {message}", err=True)
+    raise typer.Exit(code)

@@ -8,10 +8,11 @@ Changes persist into later phases unless a later phase changes them again.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError
+from cobelrun.schema import ProtocolSpec, validate
 
 
 @dataclass(frozen=True)
@@ -58,49 +59,27 @@ class Protocol:
         return sum(p.trials for p in self.phases)
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> Protocol:
-        """Build from a plain mapping ``{max_steps: int, phases: [ {name, trials, ...}, ... ]}``."""
-        _check_keys("task.protocol", cfg, ("max_steps", "phases"))
-        max_steps = _positive_int("task.protocol.max_steps", cfg.get("max_steps"))
-        raw = cfg.get("phases")
-        if not isinstance(raw, Sequence) or isinstance(raw, str) or not raw:
-            raise ConfigError("task.protocol.phases must be a non-empty list of phases")
-        allowed = [f.name for f in fields(Phase)]
-        phases = []
-        for i, p in enumerate(raw):
-            where = f"task.protocol.phases[{i}]"
-            if not isinstance(p, Mapping):
-                raise ConfigError(f"{where} must be a mapping with keys {allowed_list(allowed)}")
-            _check_keys(where, p, allowed)
-            if "name" not in p or "trials" not in p:
-                raise ConfigError(f"{where} needs 'name' and 'trials'")
-            if not isinstance(p.get("learning", True), bool):
-                raise ConfigError(f"{where}.learning must be true or false, got {p['learning']!r}")
-            for key, kind in (("rewards", Mapping), ("terminals", Mapping)):
-                if not isinstance(p.get(key, {}) or {}, kind):
-                    raise ConfigError(f"{where}.{key} must be a mapping state -> value")
-            starts = p.get("starts")
-            if starts is not None and (isinstance(starts, str) or not isinstance(starts, Sequence)):
-                raise ConfigError(f"{where}.starts must be a list of states")
-            phases.append(
-                Phase(
-                    name=str(p["name"]),
-                    trials=_positive_int(f"{where}.trials", p["trials"], allow_zero=True),
-                    learning=p.get("learning", True),
-                    max_steps=(
-                        None
-                        if p.get("max_steps") is None
-                        else _positive_int(f"{where}.max_steps", p["max_steps"])
-                    ),
-                    rewards=dict(p.get("rewards") or {}),
-                    terminals=dict(p.get("terminals") or {}),
-                    starts=None if starts is None else list(starts),
-                )
+    def from_config(cls, cfg: Mapping[str, Any], where: str = "task.protocol") -> Protocol:
+        """Build from a plain mapping ``{max_steps: int, phases: [ {name, trials, ...}, ... ]}``,
+        validated by :class:`cobelrun.schema.ProtocolSpec` (errors are one-line ConfigErrors)."""
+        return cls.from_spec(validate(ProtocolSpec, cfg, where))
+
+    @classmethod
+    def from_spec(cls, spec: ProtocolSpec) -> Protocol:
+        """Build from a validated :class:`cobelrun.schema.ProtocolSpec`."""
+        phases = tuple(
+            Phase(
+                name=p.name,
+                trials=p.trials,
+                learning=p.learning,
+                max_steps=p.max_steps,
+                rewards=dict(p.rewards),
+                terminals=dict(p.terminals),
+                starts=None if p.starts is None else list(p.starts),
             )
-        names = [ph.name for ph in phases]
-        if len(set(names)) != len(names):
-            raise ConfigError(f"task.protocol.phases have duplicate names: {names}")
-        return cls(phases=tuple(phases), max_steps=max_steps)
+            for p in spec.phases
+        )
+        return cls(phases=phases, max_steps=spec.max_steps)
 
     def apply(self, phase: Phase, env: Any) -> None:
         """Apply a phase's changes to ``env`` (which must offer ``apply_changes``)."""
@@ -117,18 +96,3 @@ class Protocol:
         base.apply_changes(
             rewards=phase.rewards or None, terminals=phase.terminals or None, starts=phase.starts
         )
-
-
-def _check_keys(where: str, cfg: Mapping[str, Any], allowed: Sequence[str]) -> None:
-    for key in cfg:
-        if key not in allowed:
-            raise ConfigError(
-                f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: {allowed_list(allowed)}"
-            )
-
-
-def _positive_int(where: str, value: Any, *, allow_zero: bool = False) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < (0 if allow_zero else 1):
-        bound = ">= 0" if allow_zero else ">= 1"
-        raise ConfigError(f"{where} must be an integer {bound}, got {value!r}")
-    return int(value)

@@ -30,6 +30,7 @@ from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
+from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
@@ -71,45 +72,23 @@ class RecordConfig:
     flush_seconds: float = 2.0
     images: bool = False
 
-    KEYS = ("steps", "mcap", "runs", "trial_every", "mcap_runs", "flush_seconds", "images")
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "task.record") -> RecordConfig:
+        """Build from a plain mapping (``task.record``; ``None``: the defaults), validated by
+        :class:`cobelrun.schema.RecordSpec` (errors are one-line ConfigErrors)."""
+        return cls.from_spec(validate(RecordSpec, {} if cfg is None else cfg, where))
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any] | None) -> RecordConfig:
-        cfg = dict(cfg or {})
-        for key in cfg:
-            if key not in cls.KEYS:
-                raise ConfigError(f"unknown key 'record.{key}'; allowed: {', '.join(cls.KEYS)}")
-        runs = cfg.get("runs", "all")
-        if runs != "all" and (
-            isinstance(runs, str)
-            or not isinstance(runs, Sequence)
-            or not all(isinstance(r, int) and not isinstance(r, bool) and r >= 0 for r in runs)
-        ):
-            raise ConfigError(f"record.runs must be 'all' or a list of run indices, got {runs!r}")
-        every = cfg.get("trial_every", 1)
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ConfigError(f"record.trial_every must be an integer >= 1, got {every!r}")
-        for key in ("steps", "mcap", "images"):
-            if not isinstance(cfg.get(key, key != "images"), bool):
-                raise ConfigError(f"record.{key} must be true or false, got {cfg[key]!r}")
-        mcap_runs = cfg.get("mcap_runs", 10)
-        if mcap_runs != "all" and (
-            isinstance(mcap_runs, bool) or not isinstance(mcap_runs, int) or mcap_runs < 0
-        ):
-            raise ConfigError(
-                f"record.mcap_runs must be 'all' or an integer >= 0, got {mcap_runs!r}"
-            )
-        flush = cfg.get("flush_seconds", 2.0)
-        if isinstance(flush, bool) or not isinstance(flush, int | float) or not flush > 0:
-            raise ConfigError(f"record.flush_seconds must be a number > 0, got {flush!r}")
+    def from_spec(cls, spec: RecordSpec) -> RecordConfig:
+        """Build from a validated :class:`cobelrun.schema.RecordSpec`."""
         return cls(
-            steps=cfg.get("steps", True),
-            mcap=cfg.get("mcap", True),
-            runs=runs if runs == "all" else tuple(runs),
-            trial_every=every,
-            mcap_runs=mcap_runs,
-            flush_seconds=float(flush),
-            images=cfg.get("images", False),
+            steps=spec.steps,
+            mcap=spec.mcap,
+            runs=spec.runs if spec.runs == "all" else tuple(spec.runs),
+            trial_every=spec.trial_every,
+            mcap_runs=spec.mcap_runs,
+            flush_seconds=float(spec.flush_seconds),
+            images=spec.images,
         )
 
     def records_run(self, run: int) -> bool:

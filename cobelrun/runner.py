@@ -25,11 +25,7 @@ from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
-
-TASK_KEYS = (
-    "name", "description", "runs", "protocol", "monitors", "record", "save_agents", "job",
-)  # fmt: skip
-
+from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
 
@@ -61,40 +57,23 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     With ``probe_agent`` one agent is constructed and dropped, so that errors in the agent's
     parameters are reported before anything is written.
     """
-    for key in ("task", "env", "agent", "seed"):
-        if key not in cfg:
-            raise ConfigError(f"the config has no '{key}'; pick one with {key}=NAME")
-    task_cfg = cfg.task
-    for key in task_cfg:
-        if key not in TASK_KEYS:
-            raise ConfigError(f"unknown key 'task.{key}'; allowed: {', '.join(TASK_KEYS)}")
-    seed = cfg.seed
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
-    runs = task_cfg.get("runs", 1)
-    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
-        raise ConfigError(f"task.runs must be an integer >= 1, got {runs!r}")
-    if task_cfg.get("job") is not None:
-        return build_job(cfg)
-    protocol = Protocol.from_config(OmegaConf.to_container(task_cfg.protocol, resolve=True))
+    spec = validate_run(cfg)
+    if spec.task.job is not None:
+        return build_job(cfg, spec)
+    assert spec.task.protocol is not None  # TaskSpec requires one unless there is a job
+    protocol = Protocol.from_spec(spec.task.protocol)
     env = instantiate("env", cfg.env)
     agent_node = OmegaConf.to_container(cfg.agent, resolve=True)
     assert isinstance(agent_node, dict)
     load_from = agent_node.pop("load_from", None)  # handled here, not by the agent
     if load_from is not None and not Path(str(load_from).replace("{run}", "0")).exists():
         raise ConfigError(f"agent.load_from {load_from!r} does not exist")
-    save_agents = agents_to_save(
-        OmegaConf.to_container(task_cfg.save_agents)
-        if OmegaConf.is_list(task_cfg.get("save_agents"))
-        else task_cfg.get("save_agents", "all"),
-        runs,
-    )
     deferred = instantiate("agent", agent_node, env=env, _partial_=True)
     # a plain partial: Hydra's deferred target re-checks its target policy on every call,
     # which costs ~0.5 ms per run; the target was validated and imported above
     make_agent = functools.partial(deferred.func, *deferred.args, **deferred.keywords)
     monitors: dict[str, Monitor] = {}
-    for name, node in (task_cfg.get("monitors") or {}).items():
+    for name, node in (spec.task.monitors or {}).items():
         if node is None:
             continue  # a monitor switched off with task.monitors.NAME=null
         monitor = instantiate(f"task.monitors.{name}", node)
@@ -103,44 +82,37 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         monitor.setup(env)
         monitors[str(name)] = monitor
     if probe_agent:
-        make_agent(seed=run_seed(seed, 0)[0])  # constructor errors surface before any output
-    record = RecordConfig.from_config(
-        OmegaConf.to_container(task_cfg.record, resolve=True) if "record" in task_cfg else None
-    )
+        make_agent(seed=run_seed(spec.seed, 0)[0])  # constructor errors surface before any output
+    record = RecordConfig.from_spec(spec.task.record)
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(
             "task.record.images needs an env that renders camera images (render_mode "
             "rgb_array: the 3D mazes with +env.render_mode=rgb_array)"
         )
     return Task(
-        name=str(task_cfg.name),
+        name=spec.task.name,
         env=env,
         make_agent=make_agent,
         protocol=protocol,
         monitors=monitors,
         record=record,
-        runs=runs,
-        seed=seed,
+        runs=spec.task.runs,
+        seed=spec.seed,
         load_from=None if load_from is None else str(load_from),
-        save_agents=save_agents,
+        save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
     )
 
 
-def build_job(cfg: DictConfig) -> Task:
+def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
     """A task with a custom ``task.job``: a ``_target_`` built with its nested nodes left as
     plain config (the job builds the environments and agents it needs from them and from the
     composed config it is called with)."""
-    node = OmegaConf.to_container(cfg.task.job, resolve=True)
-    job = instantiate("task.job", node, _recursive_=False)
+    job = instantiate("task.job", spec.task.job or {}, _recursive_=False)
     if not callable(job):
         raise ConfigError("task.job must build a callable job(config, run_dir, progress=None)")
-    protocol = (
-        Protocol.from_config(OmegaConf.to_container(cfg.task.protocol, resolve=True))
-        if cfg.task.get("protocol") is not None
-        else None
-    )
-    return Task(name=str(cfg.task.name), env=None, make_agent=None, protocol=protocol,  # type: ignore[arg-type]
-                monitors={}, record=RecordConfig.from_config(None), runs=1, seed=cfg.seed,
+    protocol = None if spec.task.protocol is None else Protocol.from_spec(spec.task.protocol)
+    return Task(name=spec.task.name, env=None, make_agent=None, protocol=protocol,  # type: ignore[arg-type]
+                monitors={}, record=RecordConfig(), runs=1, seed=spec.seed,
                 save_agents=frozenset(), job=job, config=cfg)  # fmt: skip
 
 
@@ -209,21 +181,14 @@ def kept(task: Task) -> dict[str, Any]:
 
 def agents_to_save(spec: Any, runs: int) -> frozenset[int]:
     """Runs whose agents ``task.save_agents`` keeps: ``all`` (or true), ``last``, ``none`` (or
-    false) or a list of run indices."""
+    false, or null) or a list of run indices (validated by :class:`cobelrun.schema.TaskSpec`)."""
     if spec is True or spec == "all":
         return frozenset(range(runs))
     if spec is False or spec is None or spec == "none":
         return frozenset()
     if spec == "last":
         return frozenset({runs - 1})
-    if isinstance(spec, list | tuple) and all(
-        isinstance(r, int) and not isinstance(r, bool) and 0 <= r < runs for r in spec
-    ):
-        return frozenset(spec)
-    raise ConfigError(
-        f"task.save_agents must be all, last, none or a list of run indices in 0..{runs - 1}, "
-        f"got {spec!r}"
-    )
+    return frozenset(spec)
 
 
 def execute(

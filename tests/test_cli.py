@@ -162,6 +162,12 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         (["agent.epsilon=abc"], "agent.epsilon must be a number, got 'abc'"),
         (["agent.policy=greedy"], "agent.policy 'greedy' is not known"),
         (["task.runs=0"], "task.runs must be an integer >= 1"),
+        (["task.runs=null"], "task.runs must not be null"),
+        (
+            ["+task.record.flush_secs=1"],
+            "unknown key 'task.record.flush_secs' (did you mean 'flush_seconds'?)",
+        ),
+        (["task.protocol.phases.0.trials=-1"], "task.protocol.phases[0].trials must be an integer"),
         (["task.monitors.response.states=[nowhere]"], "unknown place 'nowhere'"),
         (["env=gridworld_layout", LAYOUT_UNKNOWN], "unknown layout symbol 'X' at row 1, col 3"),
         (["env=gridworld_layout", "env.world.layout='#####\n#..G#\n#####'"], "no start"),

@@ -7,14 +7,16 @@ same seed, and every contract it declares (:func:`cobelrun.envs.base.capabilitie
 Every task in ``conf/task`` then records a tiny run through all of its monitors, and each
 declared table exists with its declared schema and cobel's Parquet metadata.
 
-A new env gets the whole suite by adding its YAML (or registering its id); envs that render
-3D images (pybullet) run with ``-m slow`` and, with a pose observation, in the default suite.
+A new env gets the whole suite by adding its YAML (or registering its id). Tasks that render
+3D scenes or run the frame-time benchmark record with ``-m slow`` only.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -37,6 +39,7 @@ from cobelrun.envs.base import (
     TabularModel,
     capabilities,
 )
+from cobelrun.errors import CobelError
 from cobelrun.hydra_app import composer
 from cobelrun.io.manifest import config_hash
 from cobelrun.io.run_folder import RunFolder
@@ -46,12 +49,10 @@ from cobelrun.runner import build_task, run
 
 COBEL_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("cobel/"))
 ENV_CONFIGS = sorted(group_options("env"))
-#: env configs that render images with pybullet: slow; also tested with a pose observation
-RENDERS = {
-    name for name in ENV_CONFIGS if "ImageObservation" in group_options("env")[name].read_text()
-}
 #: tasks too heavy for the default suite (3D rendering, the frame-time benchmark job)
 HEAVY_TASKS = {t for t in group_options("task") if "_3d" in t or t == "render_benchmark"}
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 
 _composed: dict[tuple[str, ...], DictConfig] = {}
 
@@ -65,16 +66,11 @@ def compose(*overrides: str) -> DictConfig:
 
 
 # ------------------------------------------------------------------------------ env sources
-def _conf_param(name: str) -> Any:
-    marks = [pytest.mark.slow] if name in RENDERS else []
-    return pytest.param(("conf", name, ()), id=f"conf:{name}", marks=marks)
-
-
 ENV_SOURCES = [
-    *(_conf_param(name) for name in ENV_CONFIGS),
-    # the 3D envs' topologies and contracts with a cheap observation (no pybullet)
-    *(pytest.param(("conf", n, ("env.observation=null",)), id=f"conf:{n}[pose]") for n in sorted(RENDERS)),
+    *(pytest.param(("conf", name, ()), id=f"conf:{name}") for name in ENV_CONFIGS),
     *(pytest.param(("id", env_id, ()), id=env_id) for env_id in COBEL_IDS),
+    # docs/extending.md's worked example: a user's env module + YAML gets the same suite
+    *(pytest.param(("yaml", str(p), ()), id=f"docs:{p.stem}") for p in sorted(EXAMPLES.glob("conf/env/*.yaml"))),
 ]  # fmt: skip
 
 
@@ -83,6 +79,10 @@ def make_env(source: tuple[str, str, tuple[str, ...]]) -> gym.Env:
     kind, name, extra = source
     if kind == "id":
         return gym.make(name)
+    if kind == "yaml":  # a user's env: its module sits next to its conf/ folder
+        if str(EXAMPLES) not in sys.path:
+            sys.path.insert(0, str(EXAMPLES))
+        return instantiate("env", OmegaConf.load(name))
     return instantiate("env", compose(f"env={name}", *extra).env)
 
 
@@ -246,14 +246,28 @@ def test_changes_take_effect_and_reset_world_restores(factory):
             pytest.fail("no seeded first step moved to another non-terminal state")
         base.apply_changes(starts=[s0])
         assert {env.reset(seed=k)[1]["state"] for k in range(5)} == {s0}
-        base.apply_changes(rewards={s: 7.25}, terminals={s: True})
-        arrivals = []  # (reward, terminated) of every action that leads from s0 to s
-        for action in range(env.action_space.n):
-            env.reset(seed=seed)
-            _, reward, term, _, info = env.step(action)
-            if info["state"] == s:
-                arrivals.append((reward, term))
-        assert arrivals and set(arrivals) == {(7.25, True)}
+
+        def arrivals() -> list[tuple[float, bool]]:
+            """(reward, terminated) of every action that leads from s0 to s."""
+            found = []
+            for action in range(env.action_space.n):
+                env.reset(seed=seed)
+                _, reward, term, _, info = env.step(action)
+                if info["state"] == s:
+                    found.append((reward, term))
+            return found
+
+        base.apply_changes(rewards={s: 7.25})
+        low = arrivals()
+        base.apply_changes(rewards={s: 9.25})
+        high = arrivals()
+        assert low and [r for r, _ in high] == [r + 2.0 for r, _ in low]  # arrival rewards moved
+        try:
+            base.apply_changes(terminals={s: True})
+        except (CobelError, ValueError):
+            pass  # an env may refuse a change it does not support, with an error
+        else:
+            assert all(term for _, term in arrivals())  # arriving at s now ends the trial
     else:  # no state to point at: a change that keeps the world as it is
         base.apply_changes(rewards=None, terminals=None, starts=None)
     base.reset_world()

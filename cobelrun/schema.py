@@ -22,7 +22,6 @@ so every error names the key, the bad value and what is allowed.
 
 from __future__ import annotations
 
-import math
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -62,6 +61,10 @@ PositiveInt = Annotated[int, Field(ge=1, le=INT32_MAX), Expect("an integer >= 1"
 Count = Annotated[int, Field(ge=0, le=INT32_MAX), Expect("an integer >= 0")]
 Seed = Annotated[int, Field(ge=0, le=INT64_MAX), Expect("an integer >= 0")]
 Flag = Annotated[bool, Expect("true or false")]
+#: a monitor's ``_target_`` node (its keys are checked by :func:`cobelrun.config.instantiate`)
+MonitorNode = Annotated[
+    dict[str, Any], Expect("a monitor config (a mapping with a _target_) or null")
+]
 #: a state: an index, a place name of the environment or ``[row, col]``; the env resolves it
 State = Any
 
@@ -143,7 +146,7 @@ class TaskSpec(Spec):
     protocol: ProtocolSpec | None = None
     #: ``_target_`` nodes, checked by :func:`cobelrun.config.instantiate`; null switches one off
     monitors: Annotated[
-        dict[str, dict[str, Any] | None] | None, Expect("a mapping name -> monitor config")
+        dict[str, MonitorNode | None] | None, Expect("a mapping name -> monitor")
     ] = None
     record: RecordSpec = RecordSpec()
     #: runs whose trained agents go into ``agents.zip``: all (true), last, none (false, null)
@@ -243,6 +246,22 @@ def _expect(field: Any) -> str | None:
     return None
 
 
+def _item_expect(field: Any, key: Any, data: Any, loc: Sequence[Any]) -> str | None:
+    """The :class:`Expect` phrase of the items of a ``dict[str, X]`` field, where ``key`` is one
+    of the field's keys in ``data`` (so that a message can name the item)."""
+    found, value = _value_at(data, loc)
+    if not (found and isinstance(value, Mapping) and key in value):
+        return None
+    for arg in typing.get_args(field.annotation) or (field.annotation,):
+        if typing.get_origin(arg) is dict:
+            items = typing.get_args(arg)[1]
+            for option in typing.get_args(items) or (items,):
+                for meta in getattr(option, "__metadata__", ()):
+                    if isinstance(meta, Expect):
+                        return meta.text
+    return None
+
+
 def _value_at(data: Any, loc: Sequence[Any]) -> tuple[bool, Any]:
     for key in loc:
         if isinstance(data, Mapping) and key in data:
@@ -255,8 +274,10 @@ def _value_at(data: Any, loc: Sequence[Any]) -> tuple[bool, Any]:
     return True, data
 
 
-def _number(value: Any) -> str:
-    return f"{value:g}" if isinstance(value, float) and math.isfinite(value) else repr(value)
+def _shown(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, shortened to ``limit`` characters (a whole config node can be long)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def to_config_error(
@@ -272,7 +293,7 @@ def to_config_error(
     err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
     kind, loc = err["type"], list(err["loc"])
     current: type[BaseModel] | None = model
-    path, field, consumed = root, None, 0
+    path, field, consumed, item = root, None, 0, None
     for key in loc:
         if current is not None and isinstance(key, str) and key in current.model_fields:
             field = current.model_fields[key]
@@ -282,6 +303,13 @@ def to_config_error(
         elif current is not None and isinstance(key, int) and field is not None:
             path = _join(path, key)  # an item of a list of models
             field = None
+        elif (
+            current is None and field is not None and _item_expect(field, key, data, loc[:consumed])
+        ):
+            path = _join(path, key)  # an item of a mapping whose items say what they allow
+            item = _item_expect(field, key, data, loc[:consumed])
+            consumed += 1
+            break
         else:
             break
         consumed += 1
@@ -299,14 +327,16 @@ def to_config_error(
         return ConfigError(f"{path} is missing")
     if value is None:
         return ConfigError(f"{path} must not be null")
-    if field is None:  # an item of a list of models that is not a mapping
+    if item is not None:
+        expect: str | None = item
+    elif field is None:  # an item of a list of models that is not a mapping
         expect = f"a mapping with keys {allowed_list(current.model_fields)}" if current else None
     else:
         expect = _expect(field)
     if kind in ("less_than_equal", "less_than") and consumed == len(loc):
         bound = err.get("ctx", {}).get("le", err.get("ctx", {}).get("lt"))
         noun = "an integer" if isinstance(value, int) else "a number"
-        return ConfigError(f"{path} must be {noun} <= {bound}, got {_number(value)}")
+        return ConfigError(f"{path} must be {noun} <= {bound}, got {_shown(value)}")
     if expect is None:
-        return ConfigError(f"{path}: {err['msg']}, got {value!r}")
-    return ConfigError(f"{path} must be {expect}, got {value!r}")
+        return ConfigError(f"{path}: {err['msg']}, got {_shown(value)}")
+    return ConfigError(f"{path} must be {expect}, got {_shown(value)}")

@@ -90,9 +90,14 @@ CASES = [
     ("task.save_agents", [0, 100], "task.save_agents must be all, last, none or a list of run indices in 0..99, got [0, 100]"),
     ("task.save_agents", [HUGE], "task.save_agents must be all, last, none or a list of run indices in 0..99"),
     # task.monitors (the nodes themselves are checked by config.instantiate)
-    ("task.monitors", 3, "task.monitors must be a mapping name -> monitor config, got 3"),
-    ("task.monitors", [], "task.monitors must be a mapping name -> monitor config, got []"),
-    ("task.monitors.reward", "on", "task.monitors must be a mapping name -> monitor config"),
+    ("task.monitors", 3, "task.monitors must be a mapping name -> monitor, got 3"),
+    ("task.monitors", [], "task.monitors must be a mapping name -> monitor, got []"),
+    (
+        "task.monitors.reward",
+        "on",
+        "task.monitors.reward must be a monitor config (a mapping with a _target_) or null, got 'on'",
+    ),
+    ("task.record", {"steps": "x" * 200}, "got 'xxxxxxx"),  # long values are shortened
     # task.job
     ("task.job", "run_me", "task.job must be a config node with a _target_, got 'run_me'"),
     # task.record.*
@@ -185,6 +190,7 @@ def test_bad_task_level_value_is_one_clear_line(base, path, value, message):
     text = str(info.value)
     assert message in text
     assert "\n" not in text and "pydantic" not in text and "For further information" not in text
+    assert len(text) < 300  # long values are shortened
 
 
 @pytest.mark.parametrize(

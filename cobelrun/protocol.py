@@ -85,10 +85,10 @@ class Protocol:
         """Apply a phase's changes to ``env`` (which must offer ``apply_changes``)."""
         if not (phase.rewards or phase.terminals or phase.starts is not None):
             return
-        from cobelrun.envs.base import Changeable
+        from cobelrun.envs.base import Changeable, supports
 
         base = env.unwrapped
-        if not isinstance(base, Changeable):
+        if not supports(base, Changeable):
             raise ConfigError(
                 f"phase {phase.name!r} changes the environment, but {type(base).__name__} "
                 "does not support changes (no 'changeable' contract)"

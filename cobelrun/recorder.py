@@ -26,6 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.errors import ConfigError
+from cobelrun.io.agents_archive import AgentArchive
 from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
@@ -304,6 +305,7 @@ class RunRecorder:
         guard: SignalGuard | None = None,
         background: bool = True,
         geometry: Any = None,
+        save_agents: bool = False,
     ) -> None:
         self.folder = folder
         self.env = env
@@ -330,9 +332,17 @@ class RunRecorder:
 
             self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns,
                                      metadata=dict(metadata or {}))  # fmt: skip
+        self._active: dict[bool, list[Monitor]] = {}
         self._clock = 0  # simulated ns since the start
         self._writer = WriterThread(enabled=background)
         self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
+        self.agents = (
+            AgentArchive(
+                folder.agents_archive, folder.agent_parts, flush_seconds=record.flush_seconds
+            )
+            if save_agents
+            else None
+        )
 
     def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
         tables: dict[str, tuple[str, list[pa.Field]]] = {}
@@ -374,6 +384,13 @@ class RunRecorder:
         for m in self.monitors:
             m.end_run(run, agent, last_trial)
 
+    def save_agent(self, run: int, agent: Any) -> None:
+        """Add run ``run``'s trained agent to the job's ``agents.npz`` (written in batches)."""
+        assert self.agents is not None, "the recorder was built without save_agents"
+        with self.guard.critical():
+            if self.agents.add(run, agent.get_state(), agent.saved_meta()):
+                self._writer.submit(self.agents.write_batch, self.agents.take())
+
     def _emit(self, table: str, columns: Mapping[str, Any]) -> None:
         if table not in self.tables:
             raise ConfigError(f"a monitor wrote to undeclared table '{table}'")
@@ -402,13 +419,31 @@ class RunRecorder:
         with self.guard.critical():
             self._record(run, phase, first_trial, batch)
 
+    def _batch_monitors(self, steps_recorded: bool) -> list[Monitor]:
+        """Monitors whose batch rows are written: a monitor that fills only per-step tables
+        is skipped when steps are not recorded (``record.steps=false`` or a run outside
+        ``record.runs``); monitors without trial/step tables (event tables, hooks) always run
+        (their ``on_batch`` may keep state)."""
+        key = steps_recorded
+        if key not in self._active:
+            active = []
+            for m in self.monitors:
+                kinds = {self.tables[t.name][0]: t.name for t in m.tables()}
+                rows = [name for per, name in kinds.items() if per in ("trial", "step")]
+                written = [name for name in rows if name in self._sinks
+                           and (steps_recorded or self.tables[name][0] != "step")]  # fmt: skip
+                if written or not rows:
+                    active.append(m)
+            self._active[key] = active
+        return self._active[key]
+
     def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
         n = batch.n_trials
         if n == 0:
             return
         info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
         merged: dict[str, dict[str, Any]] = {}
-        for m in self.monitors:
+        for m in self._batch_monitors(self.record_cfg.records_run(run)):
             for table, cols in m.on_batch(batch, info).items():
                 if table not in self.tables or self.tables[table][0] == "event":
                     raise ConfigError(
@@ -467,6 +502,8 @@ class RunRecorder:
         with self.guard.closing():
             steps = [*(functools.partial(self._flush, t) for t in self._sinks), self._writer.close,
                      *(sink.writer.close for sink in self._sinks.values())]  # fmt: skip
+            if self.agents is not None:
+                steps.append(self.agents.close)
             if self.mcap is not None:
                 steps.append(self.mcap.close)
             first: BaseException | None = None

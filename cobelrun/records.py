@@ -78,10 +78,10 @@ class TrialBatch:
         """This batch with ``start_pose``/``step_pose`` filled in from ``env``'s
         :class:`~cobelrun.envs.base.DiscreteStates` contract where they are missing (the
         batch is changed in place and returned). Envs without poses leave them None."""
-        from cobelrun.envs.base import DiscreteStates
+        from cobelrun.envs.base import DiscreteStates, supports
 
         base = getattr(env, "unwrapped", env)
-        if self.step_pose is None and isinstance(base, DiscreteStates):
+        if self.step_pose is None and supports(base, DiscreteStates):
             self.start_pose = base.poses_of(self.start_state)
             self.step_pose = base.poses_of(self.step_next_state, self.step_action)
         return self
@@ -98,6 +98,32 @@ class TrialBatch:
         out[is_start] = self.start_pose
         out[~is_start] = self.step_pose
         return out
+
+    @classmethod
+    def concat(cls, batches: list[TrialBatch]) -> TrialBatch:
+        """Consecutive batches as one (poses kept only if every batch has them)."""
+        if not batches:
+            return cls.from_trials([])
+        offsets = [np.zeros(1, np.int64)]
+        total = 0
+        for b in batches:
+            offsets.append(b.offsets[1:] + total)
+            total += b.n_steps
+
+        def cat(name: str) -> np.ndarray:
+            return np.concatenate([getattr(b, name) for b in batches])
+
+        poses = all(b.step_pose is not None for b in batches)
+        extra_keys = set(batches[0].extra).intersection(*(b.extra for b in batches[1:]))
+        return cls(
+            start_state=cat("start_state"), end_state=cat("end_state"), steps=cat("steps"),
+            reward=cat("reward"), terminated=cat("terminated"), offsets=np.concatenate(offsets),
+            step_state=cat("step_state"), step_action=cat("step_action"),
+            step_next_state=cat("step_next_state"), step_reward=cat("step_reward"),
+            extra={k: np.concatenate([b.extra[k] for b in batches]) for k in extra_keys},
+            start_pose=cat("start_pose") if poses else None,
+            step_pose=cat("step_pose") if poses else None,
+        )  # fmt: skip
 
     @classmethod
     def from_trials(cls, trials: list[dict[str, Any]]) -> TrialBatch:

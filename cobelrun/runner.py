@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import cobelrun
 from cobelrun.config import instantiate
-from cobelrun.envs.base import Changeable, HasGeometry
+from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.atomic import atomic_write_text, disk_error, is_disk_error
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
@@ -45,7 +45,8 @@ class Task:
     runs: int
     seed: int
     load_from: str | None = None
-    save_agents: bool = True
+    #: runs whose trained agents go into ``agents.npz``
+    save_agents: frozenset[int] = frozenset()
     #: A custom job (``task.job``) that replaces the protocol loop: ``job(config, run_dir,
     #: progress=...) -> dict | None`` (the dict goes into the manifest).
     job: Any = None
@@ -111,7 +112,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         runs=spec.task.runs,
         seed=spec.seed,
         load_from=None if load_from is None else str(load_from),
-        save_agents=spec.task.save_agents,
+        save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
     )
 
 
@@ -144,7 +145,7 @@ def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
     protocol = None if spec.task.protocol is None else Protocol.from_spec(spec.task.protocol)
     return Task(name=spec.task.name, env=None, make_agent=None, protocol=protocol,  # type: ignore[arg-type]
                 monitors={}, record=RecordConfig(), runs=1, seed=spec.seed,
-                save_agents=False, job=job, config=cfg)  # fmt: skip
+                save_agents=frozenset(), job=job, config=cfg)  # fmt: skip
 
 
 def run_seed(seed: int, run: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
@@ -161,21 +162,65 @@ def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.ran
     return [run_seed(seed, r) for r in range(runs)]
 
 
-def saved_agent_file(load_from: str, run: int) -> Path:
-    """The saved agent to continue run ``run`` from: ``load_from`` is a file (``{run}`` is
-    replaced by the run index) or a run folder holding ``agents/run_NNNN.npz``."""
+def load_saved_agent(agent: Any, load_from: str, run: int) -> None:
+    """Continue run ``run`` from a saved agent: ``load_from`` is a file (``{run}`` is replaced
+    by the run index) or a run folder (run ``run`` of its ``agents.npz``, or an older layout's
+    agent file). The state is checked against the agent's schema before anything changes."""
+    from cobelrun.io.agents_archive import read_agent
+
     path = Path(load_from.replace("{run}", str(run)))
     if path.is_dir():
-        found = RunFolder(path).find_agent(run)
-        if found is None:
+        folder = RunFolder(path)
+        if folder.agents_archive.is_file():
+            try:
+                found = read_agent(folder.agents_archive, run)
+            except Exception as exc:  # a damaged archive: zip, npy header, layout
+                raise ConfigError(
+                    f"cannot load agent from {folder.agents_archive}: {exc}"
+                ) from None
+            if found is not None:
+                agent.load_state(*found, source=f"{folder.agents_archive} (run {run})")
+                return
+        legacy = folder.legacy_agent(run)
+        if legacy is None:
             raise ConfigError(
                 f"agent.load_from: {path} has no saved agent for run {run} "
-                f"({RunFolder(path).agent(run).relative_to(path)})"
+                "(task.save_agents decides which runs are saved)"
             )
-        return found
-    if not path.is_file():
+        path = legacy
+    elif not path.is_file():
         raise ConfigError(f"agent.load_from: {path} does not exist")
-    return path
+    agent.load(path)
+
+
+def kept(task: Task) -> dict[str, Any]:
+    """What the run folder will hold, for the manifest: every trial row always; step rows,
+    MCAP poses/events and agents as ``task.record`` and ``task.save_agents`` say."""
+    rec = task.record
+    step_runs = (
+        list(range(task.runs)) if rec.runs == "all" else [r for r in rec.runs if r < task.runs]
+    )
+    mcap_runs = task.runs if rec.mcap_runs == "all" else min(int(rec.mcap_runs), task.runs)
+    return {
+        "trials": "all",
+        "steps": {"runs": len(step_runs) if rec.steps else 0, "trial_every": rec.trial_every},
+        "mcap": {"runs": mcap_runs if rec.mcap else 0, "images": rec.images},
+        "agents": sorted(task.save_agents)
+        if len(task.save_agents) <= 20
+        else f"{len(task.save_agents)} runs",
+    }
+
+
+def agents_to_save(spec: Any, runs: int) -> frozenset[int]:
+    """Runs whose agents ``task.save_agents`` keeps: ``all`` (or true), ``last``, ``none`` (or
+    false, or null) or a list of run indices (validated by :class:`cobelrun.schema.TaskSpec`)."""
+    if spec is True or spec == "all":
+        return frozenset(range(runs))
+    if spec is False or spec is None or spec == "none":
+        return frozenset()
+    if spec == "last":
+        return frozenset({runs - 1})
+    return frozenset(spec)
 
 
 def execute(
@@ -198,16 +243,17 @@ def execute(
         _write_json_atomic(folder.world, geometry.to_dict())
     monitors = [TrialKeysMonitor(), *task.monitors.values()]
     recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
-                           background=background_writes, geometry=geometry)  # fmt: skip
+                           background=background_writes, geometry=geometry,
+                           save_agents=bool(task.save_agents))  # fmt: skip
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
-            if isinstance(base, Changeable):
+            if supports(base, Changeable):
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
             if task.load_from is not None:
-                agent.load(saved_agent_file(task.load_from, run))
+                load_saved_agent(agent, task.load_from, run)
             recorder.start_run(run, agent)
             first = 1
             for phase in task.protocol.phases:
@@ -228,9 +274,8 @@ def execute(
                         run * per_run + first - 1, task.runs * per_run, run=run, runs=task.runs
                     )
             recorder.end_run(run, agent, first - 1)
-            if task.save_agents:
-                folder.agents.mkdir(exist_ok=True)
-                agent.save(folder.agent(run))
+            if run in task.save_agents:
+                recorder.save_agent(run, agent)
     finally:
         recorder.close()
 
@@ -254,7 +299,7 @@ def run(
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
-        else {"runs": task.runs, "trials": task.protocol.n_trials}
+        else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task)}
     )
     try:
         run_dir.mkdir(parents=True, exist_ok=True)

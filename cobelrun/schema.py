@@ -149,14 +149,23 @@ class TaskSpec(Spec):
         dict[str, MonitorNode | None] | None, Expect("a mapping name -> monitor")
     ] = None
     record: RecordSpec = RecordSpec()
-    save_agents: Flag = True
+    #: runs whose trained agents go into ``agents.zip``: all (true), last, none (false, null)
+    save_agents: Annotated[
+        Literal["all", "last", "none"] | bool | list[Annotated[int, Field(ge=0)]] | None,
+        Expect("all, last, none or a list of run indices"),
+    ] = "all"
     #: a custom job (``_target_`` node) that replaces the protocol loop
     job: Annotated[dict[str, Any] | None, Expect("a config node with a _target_")] = None
 
     @model_validator(mode="after")
-    def _needs_protocol(self) -> TaskSpec:
+    def _check_task(self) -> TaskSpec:
         if self.job is None and self.protocol is None:
             raise _error(f"task {self.name!r} has no protocol; pick one with protocol=NAME")
+        if isinstance(self.save_agents, list) and any(r >= self.runs for r in self.save_agents):
+            raise _error(
+                "{where}.save_agents must be all, last, none or a list of run indices in "
+                f"0..{self.runs - 1}, got {self.save_agents!r}"
+            )
         return self
 
 

@@ -15,6 +15,7 @@ import pandas as pd
 import pytest
 from gymnasium import spaces
 
+from cobelrun.io.agents_archive import runs_in
 from cobelrun.io.run_folder import RunFolder
 
 pytest.importorskip("torch")
@@ -366,7 +367,7 @@ def test_cli_two_afc_and_plot(cobel, tmp_path: Path) -> None:
     run_dir = Path(res.stdout.strip().splitlines()[-1])
     trials = pd.read_parquet(run_dir / "trials.parquet")
     assert len(trials) == 100 and set(trials["reward"]) <= {0.0, 1.0}
-    assert RunFolder(run_dir).agent(0).is_file() and RunFolder(run_dir).agent(1).is_file()
+    assert runs_in(RunFolder(run_dir).agents_archive) == [0, 1]
     plot = cobel("plot", str(run_dir))
     assert plot.returncode == 0, plot.stderr
 
@@ -384,7 +385,7 @@ def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -
     assert sorted(activity["trial"].unique()) == [0, 2, 4, 5]
     assert set(activity["layer"]) == {"sr/output"}
     assert len(activity) == 4 * 40 * 160  # snapshots x probes x units
-    assert RunFolder(run_dir).agent(0).is_file()
+    assert 0 in runs_in(RunFolder(run_dir).agents_archive)
     assert cobel("plot", str(run_dir)).returncode == 0
     # continue from the saved agent; the direct protocol is one rewarded phase
     more = cobel("run", "task=latent_learning", "protocol=direct", "task.runs=1",

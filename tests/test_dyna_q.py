@@ -210,3 +210,36 @@ def test_building_an_agent_does_not_load_numba():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_trial_end_callbacks_keep_the_compiled_path_with_identical_results():
+    """Monitors that only look at trial ends (activity snapshots, greedy probes) no longer
+    push Dyna-Q onto the Python loop: it runs each trial compiled and calls the hook between
+    trials, with the same draws as the Python engine."""
+    from cobelrun.agents.base import TrialCallback
+    from cobelrun.envs import GridWorldEnv, tmaze_paper
+
+    class Ends(TrialCallback):
+        def __init__(self):
+            self.ends = []
+
+        def _on_trial_end(self, agent, trial, record):
+            self.ends.append((trial, len(record["actions"]), agent.Q.sum()))
+
+    out = {}
+    for engine in ("auto", "python"):
+        env = GridWorldEnv(tmaze_paper())
+        env.unwrapped.np_random = np.random.default_rng(1)
+        env.unwrapped.apply_changes(rewards={"right_arm": 1.0})
+        agent = DynaQ(env, epsilon=0.1, engine=engine, seed=3)
+        cb = Ends()
+        batch = agent.train(60, 35, [cb])
+        out[engine] = (batch, agent.Q.copy(), cb.ends)
+    assert Ends.trial_end_only()
+    (b1, q1, e1), (b2, q2, e2) = out["auto"], out["python"]
+    np.testing.assert_array_equal(b1.step_action, b2.step_action)
+    np.testing.assert_array_equal(q1, q2)
+    assert [e[:2] for e in e1] == [e[:2] for e in e2] and np.allclose(
+        [e[2] for e in e1], [e[2] for e in e2]
+    )
+    assert [e[1] for e in e1] == b1.steps.tolist()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from cobelrun.envs import GridWorldEnv, tmaze_paper
 from cobelrun.errors import ConfigError
+from cobelrun.io.agents_archive import runs_in
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, RewardMonitor, Table, TrialKeysMonitor
 from cobelrun.recorder import RecordConfig, RunRecorder
@@ -116,3 +118,66 @@ def test_camera_frames_of_a_3d_maze_go_to_the_mcap(cobel, tmp_path):
                 f"hydra.run.dir={tmp_path / 'bad'}")  # fmt: skip
     assert bad.returncode == 2 and "render_mode rgb_array" in bad.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_agents_of_a_job_go_into_one_archive(cobel, tmp_path):
+    out = tmp_path / "run"
+    proc = cobel("run", "task=tmaze_extinction", "task.runs=12", "task.save_agents=[0,5,11]",
+                 f"hydra.run.dir={out}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    folder = RunFolder(out)
+    assert runs_in(folder.agents_archive) == [0, 5, 11]
+    kept = json.loads(folder.manifest.read_text())["kept"]
+    assert kept == {"trials": "all", "steps": {"runs": 12, "trial_every": 1},
+                    "mcap": {"runs": 10, "images": False}, "agents": [0, 5, 11]}  # fmt: skip
+    assert not folder.agents.exists() and not folder.agent_parts.exists()
+    # +agent.load_from picks run r's member and checks it against the agent's schema
+    cont = cobel("run", "task=tmaze_extinction", "task.runs=1", f"+agent.load_from={out}",
+                 f"hydra.run.dir={tmp_path / 'continued'}")  # fmt: skip
+    assert cont.returncode == 0, cont.stderr
+    missing = cobel("run", "task=tmaze_extinction", "task.runs=2", f"+agent.load_from={out}",
+                    f"hydra.run.dir={tmp_path / 'missing'}")  # fmt: skip
+    assert missing.returncode != 0 and "no saved agent for run 1" in missing.stderr
+    bad = cobel("run", "task=tmaze_extinction", "task.save_agents=sometimes")
+    assert bad.returncode == 2 and "all, last, none or a list" in bad.stderr
+
+
+def test_archive_round_trip_and_corrupt_state_is_a_clear_error(tmp_path):
+    from cobelrun.agents import MFEC, DynaQ
+    from cobelrun.io.agents_archive import AgentArchive, read_agent
+    from cobelrun.runner import load_saved_agent
+
+    env = GridWorldEnv(tmaze_paper())
+    folder = RunFolder(tmp_path)
+    archive = AgentArchive(folder.agents_archive, folder.agent_parts, flush_seconds=1e9,
+                           max_bytes=1)  # one part per agent  # fmt: skip
+    agents = [DynaQ(env, seed=s) for s in range(3)]
+    for run, agent in enumerate(agents):
+        agent.train(5, 35)
+        assert archive.add(run, agent.get_state(), agent.saved_meta())
+        archive.write_batch(archive.take())
+    archive.close()
+    assert runs_in(folder.agents_archive) == [0, 1, 2] and not folder.agent_parts.exists()
+    for run, agent in enumerate(agents):
+        fresh = DynaQ(env, seed=99)
+        load_saved_agent(fresh, str(tmp_path), run)
+        np.testing.assert_array_equal(fresh.Q, agent.Q)
+    # a tampered state is refused with the archive and run named
+    arrays, meta = read_agent(folder.agents_archive, 1)
+    arrays["Q"] = np.full_like(arrays["Q"], np.nan)
+    with pytest.raises(ConfigError, match=r"agents.npz \(run 1\).*'Q'"):
+        DynaQ(env).load_state(arrays, meta, source=f"{folder.agents_archive} (run 1)")
+    # agents whose arrays differ in size between runs (MFEC buffers) fit the run axis
+    m_env = GridWorldEnv(tmaze_paper())
+    mfec = [MFEC(m_env, seed=s) for s in range(2)]
+    mfec[0].train(3, 35)
+    arch = AgentArchive(tmp_path / "m.npz", tmp_path / "mparts")
+    for run, agent in enumerate(mfec):
+        arch.add(run, agent.get_state(), agent.saved_meta())
+    arch.close()
+    a0, _ = read_agent(tmp_path / "m.npz", 0)
+    a1, _ = read_agent(tmp_path / "m.npz", 1)
+    assert (
+        a0["a0.values"].shape != a1["a0.values"].shape
+        or a0["a1.values"].shape != a1["a1.values"].shape
+    )

@@ -84,9 +84,11 @@ CASES = [
     ("task.runs", -3, "task.runs must be an integer >= 1, got -3"),
     ("task.runs", HUGE, f"task.runs must be an integer <= {INT32_MAX}, got {HUGE}"),
     # task.save_agents
-    ("task.save_agents", None, "task.save_agents must not be null"),
-    ("task.save_agents", 1, "task.save_agents must be true or false, got 1"),
-    ("task.save_agents", "yes", "task.save_agents must be true or false, got 'yes'"),
+    ("task.save_agents", 1, "task.save_agents must be all, last, none or a list of run indices, got 1"),
+    ("task.save_agents", "yes", "task.save_agents must be all, last, none or a list of run indices"),
+    ("task.save_agents", [0, -1], "task.save_agents must be all, last, none or a list of run indices"),
+    ("task.save_agents", [0, 100], "task.save_agents must be all, last, none or a list of run indices in 0..99, got [0, 100]"),
+    ("task.save_agents", [HUGE], "task.save_agents must be all, last, none or a list of run indices in 0..99"),
     # task.monitors (the nodes themselves are checked by config.instantiate)
     ("task.monitors", 3, "task.monitors must be a mapping name -> monitor, got 3"),
     ("task.monitors", [], "task.monitors must be a mapping name -> monitor, got []"),
@@ -207,6 +209,10 @@ def test_bad_task_level_value_is_one_clear_line(base, path, value, message):
         (f"{P0}.starts", [[1, 3], "right_arm", 5]),  # cells, places, indices
         (f"{P0}.rewards", {7: 1, "left_arm": 0.5}),  # integer states, integer rewards
         ("seed", INT64_MAX),
+        ("task.save_agents", None),  # null: none
+        ("task.save_agents", False),
+        ("task.save_agents", "last"),
+        ("task.save_agents", [0, 99]),
         ("hydra", {"run": {"dir": "x"}}),  # Hydra's own node is not the schema's business
     ],
 )

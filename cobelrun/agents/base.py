@@ -26,7 +26,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, BinaryIO, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -144,6 +144,14 @@ class TrialCallback:
 
     def _on_trial_end(self, agent: Agent, trial: int, record: dict[str, Any]) -> None:
         """Called at trial end with ``states, actions, rewards, terminated`` (and ``poses``)."""
+
+    @classmethod
+    def trial_end_only(cls) -> bool:
+        """True if only the trial-end hook is overridden: compiled agents may then run each
+        trial in compiled code and call the hook between trials (same results)."""
+        base = TrialCallback
+        return all(getattr(cls, name) is getattr(base, name) for name in
+                   ("on_trial_start", "on_step", "_on_trial_start", "_on_step"))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -359,30 +367,42 @@ class Agent(abc.ABC):
         """The name a saved file records: ``module.Class``."""
         return f"{cls.__module__}.{cls.__qualname__}"
 
-    def save(self, path: str | Path) -> Path:
-        """Write the learned state to ``PATH.npz`` (no pickle) and return the file written.
+    def dump(self, fh: BinaryIO, *, compress: bool = False) -> None:
+        """Write the learned state as an npz archive to an open binary file: the arrays of
+        :meth:`get_state` and ``__meta__`` (JSON with the agent class, schema version,
+        hyperparameters and :meth:`state_meta`). No pickle."""
+        meta = self.saved_meta()
+        arrays = self.get_state()
+        if META_KEY in arrays:
+            raise ValueError(f"state key {META_KEY!r} is reserved")
+        write = np.savez_compressed if compress else np.savez
+        write(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
 
-        The archive holds the arrays of :meth:`get_state` and ``__meta__``: JSON with the agent
-        class, schema version, hyperparameters and :meth:`state_meta`. Written to a temporary
-        file first, then renamed, so a crash never leaves a half-written agent.
+    def saved_meta(self) -> dict[str, Any]:
+        """The JSON metadata saved with the state: file format, agent class, schema version,
+        hyperparameters and :meth:`state_meta`."""
+        return {"format": FILE_FORMAT, "agent": self.agent_name(),
+                "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
+                "state": self.state_meta()}  # fmt: skip
+
+    def save(self, path: str | Path) -> Path:
+        """Write the learned state to ``PATH.npz`` (see :meth:`dump`) and return the file.
+
+        Written to a temporary file first, then renamed, so a crash never leaves a
+        half-written agent.
         """
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
-        meta = {"format": FILE_FORMAT, "agent": self.agent_name(),
-                "schema_version": self.state_version, "hyperparameters": self.hyperparameters(),
-                "state": self.state_meta()}  # fmt: skip
-        arrays = self.get_state()
-        if META_KEY in arrays:
-            raise ValueError(f"state key {META_KEY!r} is reserved")
         tmp = path.with_name(path.name + ".tmp")
         with open(tmp, "wb") as fh:
-            np.savez(fh, **{META_KEY: np.array(json.dumps(meta))}, **arrays)
+            self.dump(fh)
         os.replace(tmp, path)
         return path
 
-    def load(self, path: str | Path) -> None:
-        """Restore a state written by :meth:`save`, after checking the whole file.
+    def load(self, path: str | Path | BinaryIO, *, source: str | None = None) -> None:
+        """Restore a state written by :meth:`save` (a path, or an open binary file such as a
+        member of an agents archive, named ``source`` in errors), after checking it whole.
 
         Raises a one-line :class:`~cobelrun.errors.ConfigError` naming the file, the key and
         what was expected if the file is not an npz (or needs pickle), was written by another
@@ -390,12 +410,17 @@ class Agent(abc.ABC):
         shape, dtype kind, an index out of range or a non-finite value. Nothing is changed
         unless every check passes.
         """
-        arrays, _meta = self._read_checked(Path(path))
+        target = path if hasattr(path, "read") else Path(path)  # type: ignore[arg-type]
+        arrays, _meta = self._read_checked(target, source)  # type: ignore[arg-type]
         self.set_state(arrays)
 
-    def _read_checked(self, path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def _read_checked(
+        self, path: Path | BinaryIO, source: str | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        name = source or path
+
         def fail(what: str) -> ConfigError:
-            return ConfigError(f"cannot load agent from {path}: {what}")
+            return ConfigError(f"cannot load agent from {name}: {what}")
 
         try:
             with np.load(path, allow_pickle=False) as data:
@@ -419,6 +444,23 @@ class Agent(abc.ABC):
                 raise ValueError
         except ValueError:
             raise fail(f"{META_KEY!r} is not a JSON object") from None
+        self._check_loaded(raw, meta, fail)
+        return raw, meta
+
+    def load_state(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any],
+                   source: str) -> None:  # fmt: skip
+        """Restore a state from arrays and metadata read elsewhere (a job's agents archive),
+        with the same checks as :meth:`load`; errors name ``source``."""
+
+        def fail(what: str) -> ConfigError:
+            return ConfigError(f"cannot load agent from {source}: {what}")
+
+        raw = dict(arrays)
+        self._check_loaded(raw, dict(meta), fail)
+        self.set_state(raw)
+
+    def _check_loaded(self, raw: dict[str, np.ndarray], meta: dict[str, Any], fail: Any) -> None:
+        """Every check of a saved state; raises ``fail(what)`` (a ConfigError)."""
         if meta.get("agent") != self.agent_name():
             raise fail(f"it holds agent {meta.get('agent')!r}, expected {self.agent_name()!r}")
         if meta.get("schema_version") != self.state_version:
@@ -441,4 +483,3 @@ class Agent(abc.ABC):
             self.set_state_meta(meta.get("state") or {})
         except ValueError as exc:
             raise fail(str(exc)) from None
-        return raw, meta

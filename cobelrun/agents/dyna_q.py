@@ -151,7 +151,7 @@ class DynaQ(Agent):
     def _use_compiled(self, callbacks: Sequence[TrialCallback]) -> bool:
         if self.engine == "python":
             return False
-        if callbacks:
+        if callbacks and not all(cb.trial_end_only() for cb in callbacks):
             if self.engine == "compiled":
                 raise ConfigError("agent.engine 'compiled' cannot run per-step callbacks")
             return False
@@ -162,7 +162,20 @@ class DynaQ(Agent):
         self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
         if self._use_compiled(callbacks):
-            return self._run_compiled(n_trials, max_steps, learn)
+            if not callbacks:
+                return self._run_compiled(n_trials, max_steps, learn)
+            # trial-end hooks only (activity snapshots, greedy probes): compiled trial by
+            # trial, the hooks between trials; the same draws as one call, so the same results
+            batches = []
+            for trial in range(n_trials):
+                b = self._run_compiled(1, max_steps, learn)
+                record = {"states": [int(b.start_state[0]), *b.step_next_state.tolist()],
+                          "actions": b.step_action.tolist(), "rewards": b.step_reward.tolist(),
+                          "terminated": bool(b.terminated[0])}  # fmt: skip
+                for cb in callbacks:
+                    cb.on_trial_end(self, trial, record)
+                batches.append(b)
+            return TrialBatch.concat(batches)
         # the Python engine: the base step loop with the same compiled building blocks, called
         # in the same order as run_trials, so both engines give identical results
         import cobelrun.agents.kernels as kernels

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import operator
+import weakref
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -53,6 +54,7 @@ __all__ = [
     "capabilities",
     "check_action",
     "require",
+    "supports",
 ]
 
 
@@ -142,6 +144,22 @@ CONTRACTS: dict[str, type] = {
     "geometry": HasGeometry,
     "render_at_pose": RendersAtPose,
 }
+
+
+_SUPPORTS: weakref.WeakKeyDictionary[Any, dict[type, bool]] = weakref.WeakKeyDictionary()
+
+
+def supports(env: Any, contract: type) -> bool:
+    """``isinstance(env.unwrapped, contract)``, remembered per env (a runtime protocol check
+    costs ~70 us; hot paths ask once per batch of trials)."""
+    base = getattr(env, "unwrapped", env)
+    try:
+        known = _SUPPORTS.setdefault(base, {})
+    except TypeError:  # not weak-referenceable
+        return isinstance(base, contract)
+    if contract not in known:
+        known[contract] = isinstance(base, contract)
+    return known[contract]
 
 
 def capabilities(env: Any) -> list[str]:

@@ -14,6 +14,7 @@ rows written with the default row groups.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 from collections.abc import Mapping
@@ -247,10 +248,10 @@ class ParquetStreamWriter:
         return f"ParquetStreamWriter({str(self.path)!r}, rows={self.rows_written}, {state})"
 
 
-#: parts are Arrow IPC files (LZ4): cheap to write, complete after every rename; the Parquet
-#: encoding (the expensive part) runs once, when the parts are merged
+#: parts are Arrow IPC files (zstd): complete after every rename, cheaper to write than Parquet;
+#: they insure the rows against a kill until the Parquet file has its footer
 PART_SUFFIX = ".arrow"
-_IPC_OPTIONS = pa.ipc.IpcWriteOptions(compression="lz4")
+_IPC_OPTIONS = pa.ipc.IpcWriteOptions(compression="zstd")
 
 
 def _write_part(table: pa.Table, path: Path) -> None:
@@ -268,13 +269,16 @@ def _write_part(table: pa.Table, path: Path) -> None:
 
 
 class PartedTableWriter:
-    """A table written in complete parts while a run goes, merged into one Parquet file at the end.
+    """A table streamed into one Parquet file, insured against a kill by complete parts.
 
-    Every :meth:`write_part` call writes one part (an Arrow IPC file; temporary name + rename), so whatever
-    was handed over survives a killed process and stays readable; :meth:`close` merges the
-    parts in order into ``path`` (row groups of ``row_group_rows``) and removes them. A run
-    killed with SIGKILL leaves its parts behind; :func:`merge_parts` (``cobel status`` /
-    ``cobel collect`` call it through :func:`cobelrun.io.repair.repair_run`) merges them later.
+    Every :meth:`write_part` call (on the recorder's writer thread, overlapping the simulation)
+    writes the rows twice: as one part (an Arrow IPC file; temporary name + rename) that
+    survives a killed process, and into the Parquet file being written under a temporary
+    name (row groups of ``row_group_rows``). :meth:`close` writes the footer, renames the file
+    to ``path`` and removes the parts; nothing is re-encoded at the end. A run killed with
+    SIGKILL leaves its parts behind and a Parquet file without footer; :func:`merge_parts`
+    (``cobel status`` / ``cobel collect`` call it through
+    :func:`cobelrun.io.repair.repair_run`) builds the table from the parts.
 
     Parameters
     ----------
@@ -309,6 +313,10 @@ class PartedTableWriter:
         self._n_parts = 0
         self.rows_written = 0
         self._closed = False
+        self._tmp = self.path.with_name(f".{self.path.name}.tmp")
+        self._pq: pq.ParquetWriter | None = None
+        self._pending: list[pa.Table] = []
+        self._n_pending = 0
 
     def to_table(self, columns: Mapping[str, Any]) -> pa.Table:
         """Columns (exactly the schema's, equal lengths) as an Arrow table."""
@@ -350,14 +358,40 @@ class PartedTableWriter:
         _write_part(table, self.parts_dir / f"part-{self._n_parts:06d}{PART_SUFFIX}")
         self._n_parts += 1
         self.rows_written += table.num_rows
+        self._pending.append(table)
+        self._n_pending += table.num_rows
+        if self._n_pending >= self.row_group_rows:
+            self._write_row_groups()
+
+    def _write_row_groups(self) -> None:
+        if self._pq is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._pq = pq.ParquetWriter(str(self._tmp), self.schema, compression=self.compression)
+        if self._pending:
+            table = pa.concat_tables(self._pending)
+            self._pq.write_table(table, row_group_size=self.row_group_rows)
+        self._pending, self._n_pending = [], 0
 
     def close(self) -> None:
-        """Merge the parts into the final file and remove them; safe to call more than once."""
+        """Finish the Parquet file, put it in place and remove the parts; safe to call more
+        than once. If finishing fails (a full disk), the parts stay for :func:`merge_parts`."""
         if self._closed:
             return
         self._closed = True
-        merge_parts(self.parts_dir, self.path, self.schema, compression=self.compression,
-                    row_group_rows=self.row_group_rows)  # fmt: skip
+        try:
+            self._write_row_groups()
+            assert self._pq is not None
+            self._pq.close()
+            os.replace(self._tmp, self.path)
+        except BaseException:
+            # the parts hold every row: drop the unfinished file (it takes the space a repair
+            # needs) and keep the parts for merge_parts (`cobel status RUN_DIR`)
+            with contextlib.suppress(Exception):
+                if self._pq is not None:
+                    self._pq.close()
+            self._tmp.unlink(missing_ok=True)
+            raise
+        _remove_parts(self.parts_dir)
 
 
 def merge_parts(
@@ -407,9 +441,14 @@ def merge_parts(
     finally:  # a failed merge (full disk) keeps the parts and leaves no temporary file
         if tmp.exists():
             tmp.unlink()
+    _remove_parts(parts_dir)
+    return rows
+
+
+def _remove_parts(parts_dir: Path) -> None:
+    """Remove a table's parts folder (and ``.parts`` once it is empty)."""
     if parts_dir.is_dir():
         shutil.rmtree(parts_dir)
-        root = parts_dir.parent
-        if root.is_dir() and not any(root.iterdir()):
-            root.rmdir()
-    return rows
+    root = parts_dir.parent
+    if root.is_dir() and not any(root.iterdir()):
+        root.rmdir()

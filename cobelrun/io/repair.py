@@ -65,6 +65,10 @@ def repair_run(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
     tables = {t: merge_parts(folder.parts(t), folder.table(t)) for t in folder.unfinished_tables()}
     if tables:
         done["tables"] = tables
+    if folder.agent_parts.is_dir():
+        from cobelrun.io.agents_archive import merge_agent_parts
+
+        done["agents"] = merge_agent_parts(folder.agent_parts, folder.agents_archive)
     if folder.mcap.is_file():
         from cobelrun.io.mcap import repair_mcap
 

@@ -8,10 +8,12 @@
       world.json           the environment's geometry (plots, viewers, exports read it)
       <table>.parquet      one file per table a monitor declares (trials, steps, activity, ...)
       run.mcap             pose stream, trial events and maze scene (Foxglove)
-      agents/run_0007.npz  each run's trained agent
+      agents.npz           every saved run's trained agent, with a run axis
+                           (:mod:`cobelrun.io.agents_archive`)
       job.json             sweep bookkeeping (sweeps only)
       .parts/<table>/      table parts while a run is going (merged into <table>.parquet at
-                           the end; left behind only by a killed run, see :func:`repair`)
+                           the end; left behind only by a killed run, see :mod:`cobelrun.io.repair`)
+      .parts-agents/       batches of agents while a run is going (merged into agents.npz)
       .done                written last, only when the run completed
 
 Readers and writers ask :class:`RunFolder` for paths; no other module spells a file name.
@@ -44,7 +46,9 @@ class RunFolder:
     WORLD = "world.json"
     MCAP = "run.mcap"
     AGENTS = "agents"
+    AGENTS_ARCHIVE = "agents.npz"
     PARTS = ".parts"
+    AGENT_PARTS = ".parts-agents"
     JOB = "job.json"
     DONE = DONE_MARKER
     TABLE_SUFFIX = ".parquet"
@@ -89,6 +93,15 @@ class RunFolder:
     def agents(self) -> Path:
         return self.path / self.AGENTS
 
+    @property
+    def agents_archive(self) -> Path:
+        """All saved agents of the job in one file, with a run axis."""
+        return self.path / self.AGENTS_ARCHIVE
+
+    @property
+    def agent_parts(self) -> Path:
+        return self.path / self.AGENT_PARTS
+
     def table(self, name: str) -> Path:
         """The Parquet file of table ``name`` (``trials``, ``steps``, ``activity``, ...)."""
         return self.path / f"{name}{self.TABLE_SUFFIX}"
@@ -98,17 +111,14 @@ class RunFolder:
         return self.path / self.PARTS / name
 
     def agent(self, run: int) -> Path:
-        """Run ``run``'s saved agent: ``agents/run_0007.npz``."""
+        """A single saved agent file of run ``run`` (``agents/run_0007.npz``; older layout)."""
         return self.agents / f"run_{int(run):04d}.npz"
 
-    def find_agent(self, run: int) -> Path | None:
-        """Run ``run``'s saved agent, in this layout or the older ``agent_run{N}.*``."""
-        path = self.agent(run)
-        if path.is_file():
-            return path
-        found = sorted(self.agents.glob(f"{path.stem}.*")) + sorted(
-            self.path.glob(f"agent_run{int(run)}.*")
-        )
+    def legacy_agent(self, run: int) -> Path | None:
+        """Run ``run``'s agent file in an older layout (``agents/run_0007.npz``,
+        ``agent_run7.npz``), if there is one."""
+        found = [self.agent(run)] if self.agent(run).is_file() else []
+        found += sorted(self.path.glob(f"agent_run{int(run)}.*"))
         return found[0] if found else None
 
     # -- what is there -----------------------------------------------------------------------
@@ -127,10 +137,12 @@ class RunFolder:
         """Every file or folder a run writes that exists now (``job.json`` excluded: it belongs
         to the sweep). A rerun removes exactly these."""
         fixed = [self.config, self.manifest, self.world, self.mcap, self.agents, self.done,
-                 self.path / self.PARTS, *(self.path / p for p in self.PLOTS)]  # fmt: skip
+                 self.agents_archive, self.agent_parts, self.path / self.PARTS,
+                 *(self.path / p for p in self.PLOTS)]  # fmt: skip
         seen = set()
         for p in [*fixed, *(self.table(t) for t in self.tables()),
-                  *self.path.glob("agent_run*.*"), *self.path.glob(f".{self.MCAP}.*")]:  # fmt: skip
+                  *self.path.glob("agent_run*.*"), *self.path.glob(f".{self.MCAP}.*"),
+                  *self.path.glob(f".*{self.TABLE_SUFFIX}.tmp")]:  # fmt: skip
             if p not in seen and (p.exists() or p.is_symlink()):
                 seen.add(p)
                 yield p

@@ -30,3 +30,15 @@ def suggest(name: str, allowed: Iterable[str]) -> str:
 def allowed_list(allowed: Iterable[object]) -> str:
     """Format allowed values for an error message."""
     return ", ".join(repr(a) if isinstance(a, str) else str(a) for a in allowed)
+
+
+def check_choice(kind: str, value: object, allowed: Iterable[str]) -> str:
+    """Return ``value`` if it is one of ``allowed``, else raise a one-line ConfigError naming
+    ``kind`` (e.g. ``agent.policy``), the closest match and what is allowed."""
+    allowed = list(allowed)
+    if value not in allowed:
+        raise ConfigError(
+            f"{kind} {value!r} is not known{suggest(str(value), allowed)}; "
+            f"allowed: {allowed_list(allowed)}"
+        )
+    return str(value)

@@ -12,12 +12,9 @@ drops rows that were already taken from a buffer.
 from __future__ import annotations
 
 import collections
-import contextlib
 import functools
-import signal
-import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -31,6 +28,9 @@ from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
+from cobelrun.signals import Interrupted, SignalGuard
+
+__all__ = ["Interrupted", "RecordConfig", "RunRecorder", "SignalGuard"]
 from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
@@ -99,82 +99,6 @@ class RecordConfig:
         return self.mcap_runs == "all" or run < int(self.mcap_runs)
 
 
-class SignalGuard:
-    """Ctrl-C and SIGTERM as :class:`KeyboardInterrupt`, but never inside a critical section
-    and never while files are being closed.
-
-    A signal inside :meth:`critical` is held and raised when the section ends; during
-    :meth:`closing` (the files are being finished) further signals are ignored with one
-    notice, so a second Ctrl-C cannot cut the shutdown short. Outside the main thread the
-    guard installs nothing (signals go to the main thread anyway).
-    """
-
-    def __init__(self) -> None:
-        self._depth = 0
-        self._pending: int | None = None
-        self._closing = False
-        self._noticed = False
-        self._previous: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self._closing:
-            if not self._noticed:
-                self._noticed = True
-                print("cobel: finishing the run's files, please wait", file=sys.stderr)
-            return
-        if self._depth:
-            self._pending = signum
-            return
-        self._closing = True  # the run is stopping: later signals must not cut the shutdown
-        raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[SignalGuard]:
-        try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handler)
-        except ValueError:  # not the main thread
-            self._previous.clear()
-        try:
-            yield self
-        finally:
-            for sig, prev in self._previous.items():
-                signal.signal(sig, prev)
-            self._previous.clear()
-
-    @contextlib.contextmanager
-    def critical(self) -> Iterator[None]:
-        self._depth += 1
-        try:
-            yield
-        finally:
-            self._depth -= 1
-        if not self._depth and self._pending is not None and not self._closing:
-            signum, self._pending = self._pending, None
-            self._closing = True
-            raise Interrupted(signum)
-
-    @contextlib.contextmanager
-    def closing(self) -> Iterator[None]:
-        """Files are being finished: signals are ignored (with one notice) until the end."""
-        was, self._closing = self._closing, True
-        try:
-            yield
-        finally:
-            self._closing = was
-        if self._pending is not None and not was:
-            signum, self._pending = self._pending, None
-            raise Interrupted(signum)
-
-
-class Interrupted(KeyboardInterrupt):
-    """The run was stopped by SIGINT or SIGTERM."""
-
-    def __init__(self, signum: int = signal.SIGINT) -> None:
-        super().__init__(f"received signal {signum}")
-        self.signum = signum
-
-
 class WriterThread:
     """Runs write calls in submission order on one background thread.
 
@@ -228,17 +152,14 @@ class _TableSink:
             self._pending and time.monotonic() - self._last >= self._seconds
         )
 
-    def take(self) -> pa.Table | None:
-        """The buffered rows as one Arrow table (the buffer is emptied only after the table
-        exists, inside the caller's critical section)."""
+    def take(self) -> list[Mapping[str, Any]] | None:
+        """The buffered column batches (emptied inside the caller's critical section; joined
+        and converted to Arrow on the writer thread)."""
         self._last = time.monotonic()
         if not self._parts:
             return None
-        names = self._parts[0].keys()
-        joined = {k: np.concatenate([np.asarray(p[k]) for p in self._parts]) for k in names}
-        table = self.writer.to_table(joined)
-        self._parts, self._pending = [], 0
-        return table
+        parts, self._parts, self._pending = self._parts, [], 0
+        return parts
 
 
 class _FrameGrabber:
@@ -267,6 +188,12 @@ class _FrameGrabber:
     def take(self, n: int) -> list[np.ndarray]:
         frames, self.frames = self.frames[:n], self.frames[n:]
         return frames
+
+
+def _write_columns(writer: PartedTableWriter, parts: list[Mapping[str, Any]]) -> None:
+    """Join column batches and write them as one part (runs on the writer thread)."""
+    names = parts[0].keys()
+    writer.write_part({k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in names})
 
 
 class RunRecorder:
@@ -406,9 +333,9 @@ class RunRecorder:
 
     def _flush(self, table: str) -> None:
         sink = self._sinks[table]
-        part = sink.take()
-        if part is not None:
-            self._writer.submit(sink.writer.write_part, part)
+        parts = sink.take()
+        if parts is not None:
+            self._writer.submit(_write_columns, sink.writer, parts)
 
     # -- batches -------------------------------------------------------------------------------
     def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
@@ -466,7 +393,9 @@ class RunRecorder:
             else:
                 rows = n
             self._add(table, cols, rows)
-        self._write_mcap(run, phase, trial, batch, merged.get("trials", {}))
+        per_trial = {k: v for name, cols in merged.items() if self.tables[name][0] == "trial"
+                     for k, v in cols.items()}  # fmt: skip
+        self._write_mcap(run, phase, trial, batch, per_trial)
 
     def _write_mcap(
         self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict

@@ -216,12 +216,12 @@ def test_interrupted_run_leaves_readable_files(tmp_path, sig):
         [*cobel_exe(), "run", "task=tmaze_extinction", "task.runs=200000", f"hydra.run.dir={out}"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        if (out / "manifest.json").is_file() and (out / "world.json").is_file():
+    deadline = time.time() + 120
+    while time.time() < deadline:  # until the first rows were handed to disk
+        if (out / ".parts" / "trials").is_dir():
             break
-        time.sleep(0.1)
-    time.sleep(1.5)  # let some runs finish
+        time.sleep(0.05)
+    time.sleep(0.5)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

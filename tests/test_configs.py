@@ -59,12 +59,15 @@ def test_every_env_instantiates_and_passes_check_env(env: str):
     check_env(instance.unwrapped, skip_render_check=True)
 
 
-def _env_for(agent_cls):
-    """An environment from conf/env whose spaces the agent supports."""
+def _env_for(agent_cls, agent_cfg=None):
+    """An environment from conf/env whose spaces the agent supports (and, given the agent's
+    config, that the agent can be built on: some agents need a tabular world)."""
     for env in sorted(group_options("env")):
         instance = instantiate("env", _compose(f"env={env}").env)
         try:
             agent_cls.check_spaces(instance)
+            if agent_cfg is not None:
+                instantiate("agent", agent_cfg, env=instance, seed=0)
             return instance
         except Exception:
             continue
@@ -79,7 +82,7 @@ def test_every_agent_instantiates(agent: str):
     cfg = _compose("task=gridworld", f"agent={agent}")
     module, _, name = cfg.agent._target_.rpartition(".")
     agent_cls = getattr(importlib.import_module(module), name)
-    env = _env_for(agent_cls)
+    env = _env_for(agent_cls, cfg.agent)
     if env is None:  # agents for special envs are covered by the task that uses them
         tasks = [
             t

@@ -13,6 +13,8 @@ from cobelrun.errors import ConfigError, LayoutError
 
 COBEL_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("cobel/"))
 NON_SPATIAL = {"cobel/TwoAFC-v0"}
+#: envs that take no gridworld ``world``: built with their defaults in the seeded-rollout test
+NO_WORLD = NON_SPATIAL | {"cobel/Continuous2D-v0"}
 
 
 def test_registry_has_cobel_envs() -> None:
@@ -43,8 +45,8 @@ def rollout(env: gym.Env, seed: int, n: int = 200) -> list:
 @pytest.mark.parametrize("slip", [0.0, 0.3])
 def test_same_seed_same_rollout(env_id: str, slip: float) -> None:
     world = from_layout("S...\n.#..\nS..G", slip=slip)
-    # non-spatial envs (no world) are built with their defaults
-    kwargs = {} if env_id in NON_SPATIAL else {"world": world, "max_steps": 15}
+    # envs without a gridworld are built with their defaults
+    kwargs = {} if env_id in NO_WORLD else {"world": world, "max_steps": 15}
     a = gym.make(env_id, **kwargs)
     b = gym.make(env_id, **kwargs)
     assert rollout(a, 7) == rollout(b, 7)

@@ -6,6 +6,9 @@ from typing import Any
 from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
+from cobelrun.agents.pma import PMA
+from cobelrun.agents.sfma import SFMA
+from cobelrun.agents.successor import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
 from cobelrun.errors import CobelError
 
 #: deep and episodic agents, imported on first use (torch / stable-baselines3 / scipy stay lazy)
@@ -16,7 +19,22 @@ _LAZY = {
     "MFEC": "cobelrun.agents.mfec",
 }
 
-__all__ = ["Agent", "ArraySpec", "DynaQ", "TabularMemory", "Transition", "TrialCallback", *_LAZY]
+__all__ = [
+    "PMA",
+    "SFMA",
+    "SRMB",
+    "SRTD",
+    "SRDyna",
+    "SuccessorCore",
+    "ValueIteration",
+    "Agent",
+    "ArraySpec",
+    "DynaQ",
+    "TabularMemory",
+    "Transition",
+    "TrialCallback",
+    *_LAZY,
+]
 
 
 def __getattr__(name: str) -> Any:

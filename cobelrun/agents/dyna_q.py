@@ -32,6 +32,7 @@ from cobelrun.agents.memory import TabularMemory
 from cobelrun.envs.base import TabularModel, require
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
+from cobelrun.signals import critical
 
 ENGINES = ("auto", "compiled", "python")
 
@@ -202,16 +203,17 @@ class DynaQ(Agent):
         steps = np.zeros(n_trials, np.int64)
         term = np.zeros(n_trials, np.bool_)
         starts = np.zeros(n_trials, np.int64)
-        total = run_trials(
-            self.rng, base.np_random, self.Q, self._mask(), self.use_mask,
-            *self.memory.arrays(), self.memory.reward_rate,
-            deterministic, np.ascontiguousarray(next_state, np.int64), T_cum,
-            np.ascontiguousarray(world.rewards, np.float64),
-            np.ascontiguousarray(world.terminal, np.bool_),
-            np.ascontiguousarray(world.starts, np.int64),
-            *self._params(), n_trials, max_steps, learn,
-            out_state, out_action, out_next, out_reward, steps, term, starts,
-        )  # fmt: skip
+        with critical():  # a signal inside the kernel's generator access corrupts it
+            total = run_trials(
+                self.rng, base.np_random, self.Q, self._mask(), self.use_mask,
+                *self.memory.arrays(), self.memory.reward_rate,
+                deterministic, np.ascontiguousarray(next_state, np.int64), T_cum,
+                np.ascontiguousarray(world.rewards, np.float64),
+                np.ascontiguousarray(world.terminal, np.bool_),
+                np.ascontiguousarray(world.starts, np.int64),
+                *self._params(), n_trials, max_steps, learn,
+                out_state, out_action, out_next, out_reward, steps, term, starts,
+            )  # fmt: skip
         offsets = np.zeros(n_trials + 1, np.int64)
         np.cumsum(steps, out=offsets[1:])
         step_reward = out_reward[:total].copy()

@@ -1,10 +1,13 @@
 """Gymnasium environments and tabular worlds.
 
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
-``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0`` (string entry points, registered once).
+``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0``,
+``cobel/Continuous2D-v0`` (string entry points, registered once).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import gymnasium as gym
 
@@ -26,6 +29,7 @@ ENV_IDS: dict[str, str] = {
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
     "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
+    "cobel/Continuous2D-v0": "cobelrun.envs.continuous:Continuous2DEnv",
 }
 
 
@@ -38,8 +42,20 @@ def register_envs() -> None:
 
 register_envs()
 
+
+def __getattr__(name: str) -> Any:
+    # the continuous arena imports numba and shapely: loaded on first use, so that building a
+    # tabular agent (a sweep's launcher, config validation) stays free of the numba import
+    if name == "Continuous2DEnv":
+        from cobelrun.envs.continuous import Continuous2DEnv
+
+        return Continuous2DEnv
+    raise AttributeError(f"module 'cobelrun.envs' has no attribute {name!r}")
+
+
 __all__ = [
     "ENV_IDS",
+    "Continuous2DEnv",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
     "TopologyEnv",

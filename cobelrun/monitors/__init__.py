@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from cobelrun.envs.base import require
+from cobelrun.envs.base import DiscreteStates, require, supports
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 
@@ -287,14 +287,20 @@ class TrajectoryMonitor(Monitor):
 
     def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
         n = batch.n_trials
-        poses = batch.with_poses(info.env).poses()
-        if poses is None:
-            before = np.full((batch.n_steps, 3), np.nan)
-        else:  # the pose each action was taken in: drop each trial's last pose
-            last = batch.offsets[1:] + np.arange(n)
+        base = info.env.unwrapped
+        if batch.step_pose is None and supports(base, DiscreteStates):
+            # the pose each action was taken in: its state, reached by the previous action
+            prev = np.empty_like(batch.step_action)
+            prev[1:] = batch.step_action[:-1]
+            prev[batch.offsets[:-1][batch.steps > 0]] = -1
+            before = base.poses_of(batch.step_state, prev)
+        elif (poses := batch.with_poses(info.env).poses()) is not None:
+            last = batch.offsets[1:] + np.arange(n)  # drop each trial's final pose
             keep = np.ones(poses.shape[0], bool)
             keep[last] = False
             before = poses[keep]
+        else:
+            before = np.full((batch.n_steps, 3), np.nan)
         return {"steps": {
             "run": np.full(batch.n_steps, info.run, np.int32),
             "trial": np.repeat(info.trials(n), batch.steps),

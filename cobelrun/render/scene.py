@@ -194,12 +194,17 @@ class SceneSpec:
     margin : float
         Arena walls' distance from the outermost nodes (open arenas only).
     style : SceneStyle
+    segments : tuple of (x0, y0, x1, y1), or None
+        Walls of any orientation (a continuous arena's outline and obstacles, from its
+        :class:`~cobelrun.envs.base.Geometry`); given, they replace the walls around ``cells``
+        or ``bounds``, and the floor covers ``bounds``.
     """
 
     cells: tuple[tuple[float, float], ...] | None
     bounds: tuple[float, float, float, float]
     margin: float = 0.5
     style: SceneStyle = field(default_factory=SceneStyle)
+    segments: tuple[tuple[float, float, float, float], ...] | None = None
 
     @classmethod
     def from_topology(cls, topology: Any, style: SceneStyle | Mapping[str, Any] | None = None,
@@ -215,20 +220,40 @@ class SceneSpec:
             cells=cells, bounds=bounds, margin=float(margin), style=SceneStyle.from_config(style)
         )
 
+    @classmethod
+    def from_geometry(
+        cls, geometry: Any, style: SceneStyle | Mapping[str, Any] | None = None
+    ) -> SceneSpec:
+        """The scene of a continuous arena: its wall segments on a floor over its bounds."""
+        segs = tuple(tuple(round(float(v), 9) for v in w) for w in np.asarray(geometry.walls))
+        return cls(cells=None, bounds=tuple(float(b) for b in geometry.bounds), margin=0.0,  # type: ignore[arg-type]
+                   style=SceneStyle.from_config(style), segments=segs)  # fmt: skip
+
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "cells": None if self.cells is None else [list(c) for c in self.cells],
             "bounds": list(self.bounds),
             "margin": self.margin,
             "style": self.style.to_dict(),
         }
+        if self.segments is not None:  # absent otherwise: earlier cache keys stay valid
+            out["segments"] = [list(w) for w in self.segments]
+        return out
 
     def walls(self) -> list[tuple[float, float, float, float, int]]:
         """Wall segments ``(x0, y0, x1, y1, facing)``; ``facing`` 0..3 = east, north, west, south.
 
         Collinear neighbouring segments with the same facing are merged (fewer bodies, faster
-        rendering).
+        rendering). Free-form ``segments`` face the side left of their direction (inwards for an
+        outline listed counter-clockwise), coloured by the nearest compass facing.
         """
+        if self.segments is not None:
+            out = []
+            for x0, y0, x1, y1 in self.segments:
+                normal = np.arctan2(x1 - x0, -(y1 - y0))  # angle of (-dy, dx), the left normal
+                facing = round(normal / (np.pi / 2)) % 4  # 0 east, 1 north, 2 west, 3 south
+                out.append((x0, y0, x1, y1, int(facing)))
+            return out
         if self.cells is None:
             x0, y0, x1, y1 = self.bounds
             m = self.margin
@@ -471,12 +496,14 @@ class Scene:
 
     # ------------------------------------------------------------------ building
     def _box(self, half: Sequence[float], pos: Sequence[float], rgb: Sequence[float],
-             texture: int | None = None) -> int:  # fmt: skip
+             texture: int | None = None, yaw: float = 0.0) -> int:  # fmt: skip
         p, c = self.p, self.client
         vs = p.createVisualShape(
             p.GEOM_BOX, halfExtents=list(half), rgbaColor=[*rgb, 1.0], physicsClientId=c
         )
-        body = p.createMultiBody(0, -1, vs, basePosition=list(pos), physicsClientId=c)
+        orn = p.getQuaternionFromEuler([0.0, 0.0, float(yaw)])
+        body = p.createMultiBody(0, -1, vs, basePosition=list(pos), baseOrientation=orn,
+                                 physicsClientId=c)  # fmt: skip
         if texture is not None:
             p.changeVisualShape(
                 body, -1, textureUniqueId=texture, rgbaColor=[*rgb, 1.0], physicsClientId=c
@@ -496,7 +523,9 @@ class Scene:
         wall_tex = self._load_texture(st.texture) if st.texture else None
         floor_tex = self._load_texture("checker") if st.texture else None
         x0, y0, x1, y1 = s.bounds
-        pad = 0.5 if s.cells is not None else s.margin
+        pad = (
+            0.5 if s.cells is not None else (s.margin if s.segments is None else st.wall_thickness)
+        )
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
         hx, hy = (x1 - x0) / 2 + pad, (y1 - y0) / 2 + pad
         # floor: one slab under the maze (or one tile per cell for gridworld mazes)
@@ -507,7 +536,13 @@ class Scene:
                 self._box([0.5, 0.5, 0.01], [x, y, -0.01], st.floor_color, floor_tex)
         # walls
         h, t = st.wall_height, st.wall_thickness
-        for wx0, wy0, wx1, wy1, facing in s.walls():
+        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is not None else ():
+            # a free-form wall: a box along the segment, rotated to its direction
+            length = float(np.hypot(wx1 - wx0, wy1 - wy0)) + t
+            yaw = float(np.arctan2(wy1 - wy0, wx1 - wx0))
+            self._box([length / 2, t / 2, h / 2], [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2],
+                      st.wall_colors[facing], wall_tex, yaw=yaw)  # fmt: skip
+        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is None else ():
             length = max(abs(wx1 - wx0), abs(wy1 - wy0)) + t
             if facing in (0, 2):
                 half = [t / 2, length / 2, h / 2]

@@ -1,0 +1,404 @@
+"""Tabular successor-representation agents (Russek et al. 2017) and a value-iteration baseline.
+
+All SR agents value actions as ``Q(s, a) = M(s, a, :) . w`` with one shared core,
+:class:`SuccessorCore`:
+
+* ``w(s')`` predicts the reward received on arriving in ``s'``:
+  ``w(s') += lr_w (r - w(s'))``;
+* ``M(s, a, s')`` is the expected discounted number of future arrivals in ``s'`` after taking
+  ``a`` in ``s`` and then following the greedy policy:
+  ``M(s, a, :) = E[1_{s_1} + gamma 1_{s_2} + ...]``.
+
+They differ only in how ``M`` is learned:
+
+* :class:`SRTD` (SR-TD): temporal differences on experienced transitions,
+  ``M(s,a,:) += lr (1_{s'} + gamma M(s', a*, :) - M(s,a,:))`` with ``a* = argmax_b Q(s', b)``
+  (no bootstrap from terminal ``s'``);
+* :class:`SRDyna` (SR-Dyna): SR-TD plus, after every step, ``replay_batch`` TD updates on
+  experiences sampled uniformly from a model of experienced transitions (the last ``s'`` of
+  each experienced ``(s, a)``), with ``a*`` greedy under the current values;
+* :class:`SRMB` (SR-MB): computes ``M`` from a learned one-step model ``T(s, a, s')`` and a
+  cached policy ``pi(s)`` (the greedy action the last time the agent acted in ``s``):
+  ``M(s, a, :) = T(s, a, :) (I - gamma T_pi)^-1`` with terminal rows of ``T_pi`` zero.
+
+:class:`ValueIteration` learns the same one-step model and ``w`` and plans from scratch by value
+iteration before every action: fully model-based, it is the ceiling of the revaluation tasks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.policy import check_policy, select
+from cobelrun.errors import ConfigError
+
+
+class SuccessorCore:
+    """The state shared by every SR agent: ``M`` (S, A, S) and ``w`` (S,), plus the update rules.
+
+    Parameters
+    ----------
+    n_states, n_actions
+        Table sizes.
+    gamma
+        Discount of the SR.
+    learning_rate
+        Rate of the TD update of ``M``.
+    reward_rate
+        Rate of the reward weights ``w``.
+    """
+
+    def __init__(
+        self, n_states: int, n_actions: int, gamma: float, learning_rate: float, reward_rate: float
+    ) -> None:
+        self.gamma, self.learning_rate, self.reward_rate = gamma, learning_rate, reward_rate
+        self.M = np.zeros((n_states, n_actions, n_states))
+        self.w = np.zeros(n_states)
+
+    def q(self, s: int) -> np.ndarray:
+        """Action values of state ``s``: ``M(s, :, :) @ w``."""
+        return self.M[s] @ self.w
+
+    def q_table(self) -> np.ndarray:
+        """(S, A) action values of every state."""
+        return self.M @ self.w
+
+    def greedy(self, rng: np.random.Generator, s: int) -> int:
+        """``argmax_b Q(s, b)`` with random tie-break."""
+        q = self.q(s)
+        best = np.flatnonzero(q == q.max())
+        return int(best[0] if best.size == 1 else best[rng.integers(best.size)])
+
+    def learn_reward(self, s2: int, r: float) -> None:
+        """``w(s') += lr_w (r - w(s'))``."""
+        self.w[s2] += self.reward_rate * (r - self.w[s2])
+
+    def td(self, s: int, a: int, s2: int, terminal: bool, a2: int) -> None:
+        """``M(s,a,:) += lr (1_{s'} + gamma M(s', a2, :) - M(s,a,:))`` (no bootstrap if terminal)."""
+        target = np.zeros(self.M.shape[2])
+        target[s2] = 1.0
+        if not terminal:
+            target += self.gamma * self.M[s2, a2]
+        self.M[s, a] += self.learning_rate * (target - self.M[s, a])
+
+    def from_model(self, T: np.ndarray, policy: np.ndarray, terminal: np.ndarray) -> None:
+        """``M(s, a, :) = T(s, a, :) (I - gamma T_pi)^-1``, ``T_pi(s) = T(s, pi(s))``."""
+        n = T.shape[0]
+        T_pi = T[np.arange(n), policy].copy()
+        T_pi[terminal] = 0.0
+        N = np.linalg.inv(np.eye(n) - self.gamma * T_pi)
+        self.M[...] = T @ N
+
+
+def _check_rate(name: str, value: object, hi: float = 1.0) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= hi:
+        raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
+    return float(value)
+
+
+class TabularModelAgent(Agent):
+    """Trial loop shared by the SR agents and value iteration: act, step, learn, callbacks.
+
+    Subclasses implement :meth:`q_values` (action values of a state) and :meth:`learn` (one
+    experienced transition), and list their learned arrays in :meth:`get_state` and
+    :meth:`state_schema`; the base class runs the step loop and saves and loads the arrays.
+
+    Parameters
+    ----------
+    env
+        A tabular gridworld (``GridWorldEnv``; the ``TabularModel`` contract).
+    policy
+        ``epsilon_greedy`` (default, random tie-break) or ``softmax``.
+    epsilon
+        Exploration rate of epsilon-greedy (0.1).
+    beta
+        Softmax inverse temperature (5).
+    gamma
+        Discount factor (0.9).
+    seed
+        Seed of the agent's draws.
+    """
+
+    observation_spaces = (gym.spaces.Discrete,)
+    action_spaces = (gym.spaces.Discrete,)
+    requires = ("tabular_model",)
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        policy: str = "epsilon_greedy",
+        epsilon: float = 0.1,
+        beta: float = 5.0,
+        gamma: float = 0.9,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, seed=seed)
+        self.policy = check_policy(policy)
+        self.epsilon = _check_rate("epsilon", epsilon)
+        self.beta = float(beta)
+        self.gamma = _check_rate("gamma", gamma, 0.999999)
+        self.n_states = int(env.observation_space.n)
+        self.n_actions = int(env.action_space.n)
+
+    # -- subclass hooks --------------------------------------------------------------------
+    def q_values(self, s: int) -> np.ndarray:
+        """Action values of state ``s``."""
+        raise NotImplementedError
+
+    def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        """Learn from one experienced transition."""
+        raise NotImplementedError
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The learned arrays, saved and loaded by name (see :meth:`state_schema`)."""
+        raise NotImplementedError
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for key, arr in self.get_state().items():
+            arr[...] = arrays[key]
+
+    def hyperparameters(self) -> dict:
+        return {"policy": self.policy, "epsilon": self.epsilon, "beta": self.beta,
+                "gamma": self.gamma}  # fmt: skip
+
+    # -- acting and learning: the base class's step loop calls these -------------------------
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Behaviour policy over :meth:`q_values` (``cobelrun.agents.policy``)."""
+        return select(self.rng, self.q_values(int(obs)), self.policy, self.epsilon, self.beta)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        if learn:
+            self.learn(transition.state, transition.action, transition.reward,
+                       transition.next_state, transition.terminated)  # fmt: skip
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        obs = np.asarray(observations, dtype=np.int64).reshape(-1)
+        if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
+            raise ValueError(f"observations must be state indices in [0, {self.n_states})")
+        return np.array([self.q_values(int(s)) for s in obs]).reshape(-1, self.n_actions)
+
+
+class SRTD(TabularModelAgent):
+    """SR-TD (Russek et al. 2017): ``M`` and ``w`` learned by TD from experience only.
+
+    Parameters
+    ----------
+    learning_rate
+        Rate of the TD update of ``M`` (0.3).
+    reward_rate
+        Rate of the reward weights ``w`` (0.9).
+    **kwargs
+        ``policy``, ``epsilon``, ``beta``, ``gamma``, ``seed`` (see :class:`TabularModelAgent`).
+    """
+
+    def __init__(
+        self, env: gym.Env, *, learning_rate: float = 0.3, reward_rate: float = 0.9, **kwargs
+    ) -> None:
+        super().__init__(env, **kwargs)
+        self.core = SuccessorCore(
+            self.n_states, self.n_actions, self.gamma,
+            _check_rate("learning_rate", learning_rate), _check_rate("reward_rate", reward_rate),
+        )  # fmt: skip
+
+    def q_values(self, s: int) -> np.ndarray:
+        return self.core.q(s)
+
+    def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        self.core.learn_reward(s2, r)
+        self.core.td(s, a, s2, terminal, self.core.greedy(self.rng, s2))
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"M": self.core.M, "w": self.core.w}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"M": ArraySpec((S, A, S)), "w": ArraySpec((S,))}
+
+    def hyperparameters(self) -> dict:
+        return {**super().hyperparameters(), "learning_rate": self.core.learning_rate,
+                "reward_rate": self.core.reward_rate}  # fmt: skip
+
+
+class SRDyna(SRTD):
+    """SR-Dyna (Russek et al. 2017): SR-TD plus replayed TD updates of ``M`` after every step.
+
+    Parameters
+    ----------
+    replay_batch
+        Experiences replayed after every step (10), sampled uniformly (with replacement) from
+        the experienced state-action pairs; each replays the last outcome seen for its pair.
+    **kwargs
+        See :class:`SRTD`.
+    """
+
+    def __init__(self, env: gym.Env, *, replay_batch: int = 10, **kwargs) -> None:
+        super().__init__(env, **kwargs)
+        if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
+            raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
+        self.replay_batch = replay_batch
+        self.model_next = np.full((self.n_states, self.n_actions), -1, np.int64)
+
+    def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        super().learn(s, a, r, s2, terminal)
+        self.model_next[s, a] = s2
+        pairs = np.flatnonzero(self.model_next.reshape(-1) >= 0)
+        for i in self.rng.integers(pairs.size, size=self.replay_batch):
+            ps, pa = divmod(int(pairs[i]), self.n_actions)
+            ps2 = int(self.model_next[ps, pa])
+            done = bool(self.env.unwrapped.world.terminal[ps2])
+            self.core.td(ps, pa, ps2, done, self.core.greedy(self.rng, ps2))
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {**super().get_state(), "model_next": self.model_next}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {**super().state_schema(), "model_next": ArraySpec((S, A), "i", low=-1, high=S)}
+
+    def hyperparameters(self) -> dict:
+        return {**super().hyperparameters(), "replay_batch": self.replay_batch}
+
+
+class _OneStepModel:
+    """A learned one-step model ``T(s, a, s')`` (delta rule) with unvisited pairs staying put."""
+
+    def __init__(self, n_states: int, n_actions: int, rate: float) -> None:
+        self.rate = rate
+        self.T = np.zeros((n_states, n_actions, n_states))
+        self.T[np.arange(n_states), :, np.arange(n_states)] = 1.0  # unknown: no move
+
+    def learn(self, s: int, a: int, s2: int) -> None:
+        row = self.T[s, a]
+        row *= 1.0 - self.rate
+        row[s2] += self.rate
+
+
+class SRMB(TabularModelAgent):
+    """SR-MB (Russek et al. 2017): ``M`` computed from a learned model and a cached policy.
+
+    Parameters
+    ----------
+    transition_rate
+        Rate of the one-step model ``T`` (1.0: the last outcome).
+    reward_rate
+        Rate of the reward weights ``w`` (0.9).
+    **kwargs
+        ``policy``, ``epsilon``, ``beta``, ``gamma``, ``seed`` (see :class:`TabularModelAgent`).
+    """
+
+    def __init__(
+        self, env: gym.Env, *, transition_rate: float = 1.0, reward_rate: float = 0.9, **kwargs
+    ) -> None:
+        super().__init__(env, **kwargs)
+        self.core = SuccessorCore(self.n_states, self.n_actions, self.gamma, 0.0,
+                                  _check_rate("reward_rate", reward_rate))  # fmt: skip
+        self.model = _OneStepModel(self.n_states, self.n_actions,
+                                   _check_rate("transition_rate", transition_rate))  # fmt: skip
+        self.cached_policy = np.zeros(self.n_states, np.int64)
+        self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
+        self._refresh()
+
+    def _refresh(self) -> None:
+        self.core.from_model(self.model.T, self.cached_policy, self.terminal)
+
+    def q_values(self, s: int) -> np.ndarray:
+        return self.core.q(s)
+
+    def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        self.core.learn_reward(s2, r)
+        self.model.learn(s, a, s2)
+        if terminal:
+            self.terminal[s2] = True
+        self._refresh()
+        self.cached_policy[s] = self.core.greedy(self.rng, s)  # the policy where it acted
+        self._refresh()
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"M": self.core.M, "w": self.core.w, "T": self.model.T,
+                "cached_policy": self.cached_policy, "terminal": self.terminal}  # fmt: skip
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"M": ArraySpec((S, A, S)), "w": ArraySpec((S,)),
+                "T": ArraySpec((S, A, S), low=0.0, high=1.0 + 1e-9),
+                "cached_policy": ArraySpec((S,), "i", low=0, high=A),
+                "terminal": ArraySpec((S,), "b")}  # fmt: skip
+
+    def hyperparameters(self) -> dict:
+        return {**super().hyperparameters(), "transition_rate": self.model.rate,
+                "reward_rate": self.core.reward_rate}  # fmt: skip
+
+
+class ValueIteration(TabularModelAgent):
+    """Model-based planning: learned ``T`` and ``w``, value iteration before every action.
+
+    Parameters
+    ----------
+    transition_rate
+        Rate of the one-step model ``T`` (1.0: the last outcome).
+    reward_rate
+        Rate of the arrival rewards ``w`` (0.9).
+    tolerance
+        Value iteration stops when no value changes by more than this (1e-8).
+    **kwargs
+        ``policy``, ``epsilon``, ``beta``, ``gamma``, ``seed`` (see :class:`TabularModelAgent`).
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        transition_rate: float = 1.0,
+        reward_rate: float = 0.9,
+        tolerance: float = 1e-8,
+        **kwargs,
+    ) -> None:
+        super().__init__(env, **kwargs)
+        self.model = _OneStepModel(self.n_states, self.n_actions,
+                                   _check_rate("transition_rate", transition_rate))  # fmt: skip
+        self.reward_rate = _check_rate("reward_rate", reward_rate)
+        if not isinstance(tolerance, int | float) or tolerance <= 0:
+            raise ConfigError(f"agent.tolerance must be a number > 0, got {tolerance!r}")
+        self.tolerance = float(tolerance)
+        self.w = np.zeros(self.n_states)
+        self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
+        self.Q = np.zeros((self.n_states, self.n_actions))
+
+    def plan(self) -> None:
+        """``Q(s,a) = sum_s' T(s,a,s') (w(s') + gamma V(s'))``, ``V = max_a Q`` (0 if terminal)."""
+        V = np.zeros(self.n_states)
+        for _ in range(10_000):
+            self.Q = self.model.T @ (self.w + self.gamma * V)
+            V_new = np.where(self.terminal, 0.0, self.Q.max(axis=1))
+            if np.max(np.abs(V_new - V)) < self.tolerance:
+                break
+            V = V_new
+
+    def q_values(self, s: int) -> np.ndarray:
+        return self.Q[s]
+
+    def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
+        self.w[s2] += self.reward_rate * (r - self.w[s2])
+        self.model.learn(s, a, s2)
+        if terminal:
+            self.terminal[s2] = True
+        self.plan()
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"Q": self.Q, "w": self.w, "T": self.model.T, "terminal": self.terminal}
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        S, A = self.n_states, self.n_actions
+        return {"Q": ArraySpec((S, A)), "w": ArraySpec((S,)),
+                "T": ArraySpec((S, A, S), low=0.0, high=1.0 + 1e-9),
+                "terminal": ArraySpec((S,), "b")}  # fmt: skip
+
+    def hyperparameters(self) -> dict:
+        return {**super().hyperparameters(), "transition_rate": self.model.rate,
+                "reward_rate": self.reward_rate, "tolerance": self.tolerance}  # fmt: skip

@@ -1,0 +1,107 @@
+"""Stopping a run cleanly: SIGINT and SIGTERM become :class:`Interrupted`, but never inside a
+critical section and never while files are being finished.
+
+The runner installs a :class:`SignalGuard` for the run. Code whose interruption would leave
+state half-changed wraps it in :func:`critical`: the recorder when it moves rows between
+buffers, compiled agents around a kernel call (a signal landing inside numpy's generator
+``ctypes`` accessors used to print a PCG64 error and corrupt the draw). A signal inside a
+critical section is raised when the section ends.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+__all__ = ["Interrupted", "SignalGuard", "critical"]
+
+_ACTIVE: SignalGuard | None = None
+
+
+def critical() -> contextlib.AbstractContextManager[None]:
+    """A critical section of the active guard (none installed: a no-op)."""
+    return _ACTIVE.critical() if _ACTIVE is not None else contextlib.nullcontext()
+
+
+class SignalGuard:
+    """Ctrl-C and SIGTERM as :class:`KeyboardInterrupt`, but never inside a critical section
+    and never while files are being closed.
+
+    A signal inside :meth:`critical` is held and raised when the section ends; during
+    :meth:`closing` (the files are being finished) further signals are ignored with one
+    notice, so a second Ctrl-C cannot cut the shutdown short. Outside the main thread the
+    guard installs nothing (signals go to the main thread anyway).
+    """
+
+    def __init__(self) -> None:
+        self._depth = 0
+        self._pending: int | None = None
+        self._closing = False
+        self._noticed = False
+        self._previous: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self._closing:
+            if not self._noticed:
+                self._noticed = True
+                print("cobel: finishing the run's files, please wait", file=sys.stderr)
+            return
+        if self._depth:
+            self._pending = signum
+            return
+        self._closing = True  # the run is stopping: later signals must not cut the shutdown
+        raise Interrupted(signum)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[SignalGuard]:
+        """Handle SIGINT/SIGTERM with this guard (main thread only) and make it the guard of
+        :func:`critical` for the duration."""
+        global _ACTIVE
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handler)
+        except ValueError:  # not the main thread
+            self._previous.clear()
+        outer, _ACTIVE = _ACTIVE, self
+        try:
+            yield self
+        finally:
+            _ACTIVE = outer
+            for sig, prev in self._previous.items():
+                signal.signal(sig, prev)
+            self._previous.clear()
+
+    @contextlib.contextmanager
+    def critical(self) -> Iterator[None]:
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+        if not self._depth and self._pending is not None and not self._closing:
+            signum, self._pending = self._pending, None
+            self._closing = True
+            raise Interrupted(signum)
+
+    @contextlib.contextmanager
+    def closing(self) -> Iterator[None]:
+        """Files are being finished: signals are ignored (with one notice) until the end."""
+        was, self._closing = self._closing, True
+        try:
+            yield
+        finally:
+            self._closing = was
+        if self._pending is not None and not was:
+            signum, self._pending = self._pending, None
+            raise Interrupted(signum)
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by SIGINT or SIGTERM."""
+
+    def __init__(self, signum: int = signal.SIGINT) -> None:
+        super().__init__(f"received signal {signum}")
+        self.signum = signum

@@ -1,0 +1,150 @@
+"""Successor-representation agents, value iteration and the revaluation tasks (Russek et al. 2017)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cobelrun.agents import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
+from cobelrun.analysis.revaluation import revaluation_scores
+from cobelrun.envs import GridWorldEnv, open_field
+from cobelrun.errors import ConfigError
+from cobelrun.revaluation import RevaluationJob, revaluation_world, transitions
+from tests.test_configs import _compose
+
+
+def test_core_from_model_is_the_fixed_point_of_its_td_rule():
+    rng = np.random.default_rng(0)
+    T = transitions()
+    terminal = revaluation_world().terminal
+    policy = np.array([0, 1, 1, 0, 0, 1, 0])
+    core = SuccessorCore(7, 4, 0.9, 1.0, 1.0)
+    core.from_model(T, policy, terminal)
+    # M(s,a) = 1_{s'} + gamma M(s', pi(s')) for every (s, a) with a deterministic successor s'
+    for s in range(7):
+        for a in range(4):
+            s2 = int(T[s, a].argmax())
+            expect = np.eye(7)[s2] + (0 if terminal[s2] else 0.9 * core.M[s2, policy[s2]])
+            np.testing.assert_allclose(core.M[s, a], expect, atol=1e-12)
+    core.w[:] = rng.random(7)
+    np.testing.assert_allclose(core.q(0), core.M[0] @ core.w)
+
+
+def test_value_iteration_plans_the_optimal_values():
+    env = GridWorldEnv(open_field(4, 4, starts=[0], goal=15))
+    env.unwrapped.np_random = np.random.default_rng(0)
+    agent = ValueIteration(env, seed=0, epsilon=0.3)
+    batch = agent.train(60, 50)
+    # the goal is 6 steps away and pays 1 on arrival: V(start) = gamma^5
+    assert agent.predict(np.array([0]))[0].max() == pytest.approx(0.9**5)
+    assert np.median(batch.steps[-10:]) <= 8
+
+
+@pytest.mark.parametrize("cls", [SRTD, SRDyna, SRMB, ValueIteration])
+def test_seeded_runs_repeat_and_save_load_round_trip(cls, tmp_path):
+    def trained(seed):
+        env = GridWorldEnv(open_field(4, 4, starts=[0], goal=15))
+        env.unwrapped.np_random = np.random.default_rng(1)
+        agent = cls(env, seed=seed)
+        return agent, agent.train(15, 50)
+
+    a, batch_a = trained(3)
+    _, batch_b = trained(3)
+    np.testing.assert_array_equal(batch_a.steps, batch_b.steps)
+    assert batch_a.steps[-5:].mean() < 15  # learns the 6-step path (from up to 50)
+    path = a.save(tmp_path / "agent")
+    c, _ = trained(4)
+    c.load(path)
+    for key, arr in a.get_state().items():
+        np.testing.assert_array_equal(c.get_state()[key], arr)
+    np.testing.assert_allclose(c.predict(np.arange(16)), a.predict(np.arange(16)))
+
+
+@pytest.mark.parametrize(
+    ("cls", "kw", "match"),
+    [
+        (SRTD, dict(learning_rate=2.0), r"agent.learning_rate must be a number in \[0, 1.0\]"),
+        (SRDyna, dict(replay_batch=-1), "agent.replay_batch must be an integer >= 0"),
+        (
+            SRMB,
+            dict(policy="greed"),
+            "agent.policy 'greed' is not known; allowed: 'epsilon_greedy'",
+        ),
+        (ValueIteration, dict(tolerance=0), "agent.tolerance must be a number > 0"),
+    ],
+)
+def test_bad_parameters_one_line_config_error(cls, kw, match):
+    with pytest.raises(ConfigError, match=match):
+        cls(GridWorldEnv(revaluation_world()), **kw)
+
+
+def _job(design, runs=6):
+    cfg = _compose("task=reward_revaluation")
+    agents = {k: v for k, v in cfg.task.job.agents.items()
+              if k in ("q_learning", "dyna_q", "sr_td", "sr_mb", "sr_dyna")}  # fmt: skip
+    return RevaluationJob(design=design, agents=agents, runs=runs, training_trials=200,
+                          revaluation_trials=20, replay_budgets=[10])  # fmt: skip
+
+
+def test_russek_revaluation_pattern():
+    """SR-TD: reward only; SR-MB: reward and transition; SR-Dyna and Dyna-Q with replay: all
+    three; Q-learning: none (6 seeded runs per agent, scores in [-1, 1])."""
+    tables = [_job(d).table(seed=0) for d in ("reward", "transition", "policy")]
+    scores = revaluation_scores(pd.concat(tables)).set_index(["design", "agent"])["score"]
+    solves = {
+        "q_learning": (False, False, False),
+        "sr_td": (True, False, False),
+        "sr_mb": (True, True, False),
+        "sr_dyna": (True, True, True),
+        "dyna_q": (True, True, True),
+    }
+    for agent, expected in solves.items():
+        for design, ok in zip(("reward", "transition", "policy"), expected, strict=True):
+            score = scores[(design, agent)]
+            assert (score >= 0.8) if ok else (score <= 0.2), (design, agent, score)
+
+
+def test_revaluation_job_config_errors():
+    cfg = _compose("task=reward_revaluation")
+    with pytest.raises(ConfigError, match=r"task.job.design 'rewards' is not known"):
+        RevaluationJob(design="rewards", agents=cfg.task.job.agents)
+    with pytest.raises(ConfigError, match=r"task.job.replay_budgets must be integers >= 0"):
+        RevaluationJob(design="reward", agents=cfg.task.job.agents, replay_budgets=[-1])
+    with pytest.raises(ConfigError, match=r"task.job.agents is empty"):
+        RevaluationJob(design="reward", agents={})
+
+
+def test_cli_revaluation_writes_scores(cobel, tmp_path):
+    out = tmp_path / "run"
+    proc = cobel("run", "task=policy_revaluation", "task.job.runs=2", "task.job.training_trials=50",
+                 "task.job.revaluation_trials=5", "task.job.replay_budgets=[0]",
+                 f"hydra.run.dir={out}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    scores = pd.read_csv(out / "revaluation_scores.csv")
+    assert set(scores["agent"]) == {"q_learning", "dyna_q", "sr_td", "sr_mb", "sr_dyna",
+                                    "value_iteration"}  # fmt: skip
+    assert scores["score"].between(-1, 1).all() and (scores["runs"] == 2).all()
+
+
+@pytest.mark.slow
+def test_revaluation_pattern_with_20_runs_and_replay_budgets():
+    """The acceptance setting (20 runs) and how the pattern changes with the replay budget."""
+    cfg = _compose("task=reward_revaluation")
+    scores = {}
+    for design in ("reward", "transition", "policy"):
+        job = RevaluationJob(design=design, agents=cfg.task.job.agents, runs=20,
+                             replay_budgets=[1, 10, 50])  # fmt: skip
+        table = revaluation_scores(job.table(seed=0))
+        for row in table.itertuples():
+            scores[(design, row.agent, row.replay_budget)] = row.score
+    for design in ("reward", "transition", "policy"):
+        assert scores[(design, "q_learning", -1)] == 0.0
+        assert scores[(design, "value_iteration", -1)] >= 0.9
+        for agent in ("dyna_q", "sr_dyna"):
+            assert scores[(design, agent, 50)] >= 0.9, (design, agent)
+    # little replay: SR-Dyna still revalues rewards; policy revaluation needs more replay
+    assert scores[("reward", "sr_dyna", 1)] >= 0.9
+    assert scores[("policy", "sr_dyna", 1)] <= 0.3 and scores[("policy", "dyna_q", 1)] <= 0.3
+    assert scores[("reward", "sr_td", -1)] >= 0.9 and scores[("transition", "sr_td", -1)] <= 0.1
+    assert scores[("transition", "sr_mb", -1)] >= 0.9 and scores[("policy", "sr_mb", -1)] <= 0.1

@@ -53,7 +53,7 @@ def test_null_values_are_one_line(override, message):
 
 
 def test_null_in_a_sweep_is_one_line():
-    with pytest.raises(ConfigError, match="unknown agent 'null'; allowed: 'dqn'"):
+    with pytest.raises(ConfigError, match="unknown agent 'null'; allowed: 'actor_critic', 'dqn'"):
         validate([*TINY, "agent=dyna_q,null"], multirun=True)
 
 

@@ -42,6 +42,11 @@ BASES = (
     ("task=gridworld", "env=gridworld_layout"),
     ("task=gridworld", "env=tmaze"),
     ("task=render_benchmark",),
+    ("task=dyna_maze",),
+    ("task=morris_water_maze",),
+    ("task=reward_revaluation",),
+    ("task=transition_revaluation",),
+    ("task=policy_revaluation",),
 )
 #: small budgets, so that a value that is accepted builds quickly
 SMALL = ("task.runs=1", "task.save_agents=false")

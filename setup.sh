@@ -6,7 +6,7 @@ cd "$(dirname "$0")"
 
 PYTHON="${PYTHON:-python3}"
 VENV="${COBEL_VENV:-.venv}"
-EXTRAS="${COBEL_EXTRAS:-all,dev}"
+EXTRAS="${COBEL_EXTRAS:-all,dev,docs}"
 
 if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV"

@@ -1,12 +1,12 @@
-"""Fig. 4: mean frame time of online vs offline rendering (and the render-cache build time).
+"""Fig. 4: frame time of online vs offline rendering and without rendering (median, IQR).
 
 A thin wrapper around the ``task=render_benchmark`` job (:mod:`cobelrun.render.benchmark`, which
 ``cobel run task=render_benchmark`` runs): composes that task with the options below, runs the
-job and copies its table, summary and plot to
-``benchmarks/results/render_frame_times.{csv,json,png}`` (``--out`` to change).
+job and copies its tables, summary and plot to
+``benchmarks/results/render_frame_times{,_summary}.csv``, ``.json``, ``.png`` (``--out``).
 
-    python benchmarks/bench_render.py                                # CPU-sized: 2 trials x 200 steps
-    python benchmarks/bench_render.py --trials 5 --max-steps 400     # the paper's budget
+    python benchmarks/bench_render.py                                # 5 reps x 1 trial x 200 steps
+    python benchmarks/bench_render.py --trials 5 --max-steps 400     # the paper's budget per rep
     python benchmarks/bench_render.py --agents mfec,random --sizes 20x80,75x300
 """
 
@@ -25,8 +25,12 @@ KNOWN_AGENTS = ("mfec", "dqn", "random")
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--agents", default="mfec,dqn,random", help="random: environment cost only")
-    ap.add_argument("--sizes", default="20x80,30x120,45x180,60x240,75x300")
-    ap.add_argument("--trials", type=int, default=2)
+    ap.add_argument(
+        "--sizes", default="20x80,30x120,45x180,60x240,75x300,16x16,32x32,64x64,128x128,256x256"
+    )
+    ap.add_argument("--modes", default="online,offline,none")
+    ap.add_argument("--repeats", type=int, default=5, help="interleaved repetitions per point")
+    ap.add_argument("--trials", type=int, default=1)
     ap.add_argument("--max-steps", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=None, help="cache-building processes")
@@ -46,6 +50,8 @@ def main() -> int:
         f"seed={args.seed}",
         f"task.job.sizes={json.dumps(sizes).replace(' ', '')}",
         f"task.job.trials={args.trials}",
+        f"task.job.modes=[{args.modes}]",
+        f"task.job.repeats={args.repeats}",
         f"task.job.steps={args.max_steps}",
         *(["task.job.agents.mfec=null"] if "mfec" not in agents else []),
         *(["task.job.agents.dqn=null"] if "dqn" not in agents else []),
@@ -57,12 +63,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         run(cfg, Path(tmp))
         args.out.mkdir(parents=True, exist_ok=True)
-        for suffix in ("csv", "json", "png"):
-            shutil.copy(
-                Path(tmp) / f"frame_times.{suffix}", args.out / f"render_frame_times.{suffix}"
-            )
+        for name in ("frame_times.csv", "frame_times_summary.csv", "frame_times.json",
+                     "frame_times.png"):  # fmt: skip
+            shutil.copy(Path(tmp) / name, args.out / f"render_{name}")
     summary = json.loads((args.out / "render_frame_times.json").read_text())
-    print(json.dumps({k: summary[k] for k in ("offline_over_online", "cache_build_s")}, indent=1))
+    keys = ("offline_over_online", "offline_over_none", "cache_build_s")
+    print(json.dumps({k: summary[k] for k in keys}, indent=1))
     return 0
 
 

@@ -73,6 +73,9 @@ Add --debug for a full traceback on errors. `cobel list` shows tasks, envs and a
 def run_cmd(
     ctx: typer.Context,
     debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks.")] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", help="No end-of-run summary (the folder is still printed).")
+    ] = False,
 ) -> None:
     if debug:
         os.environ["COBEL_DEBUG"] = "1"
@@ -80,7 +83,7 @@ def run_cmd(
     from cobelrun.hydra_app import launch
 
     try:
-        code = launch(list(ctx.args))
+        code = launch(list(ctx.args), quiet=quiet)
     except CobelError as exc:
         fail(str(exc))
     except KeyboardInterrupt:
@@ -120,7 +123,8 @@ def plot_cmd(
     run_dirs: Annotated[
         list[Path],
         typer.Argument(
-            help="Run folder(s) written by `cobel run`; Fig. 7 takes a latent and a direct one.",
+            help="Run folder(s) written by `cobel run` (Fig. 7 takes a latent and a direct "
+            "one), or a sweep folder (`cobel run -m`).",
             show_default=False,
             metavar="RUN_DIR",
         ),
@@ -129,16 +133,78 @@ def plot_cmd(
         Path | None,
         typer.Option("--out", "-o", help="Output PNG (default: FIRST_RUN_DIR/plot.png)."),
     ] = None,
+    kind: Annotated[
+        str | None,
+        typer.Option(
+            "--kind",
+            "-k",
+            help="occupancy, trajectories (on the saved world.json), latency, response or "
+            "reward (curves with a 95% band) instead of the task's figure.",
+        ),
+    ] = None,
+    hue: Annotated[
+        str | None,
+        typer.Option("--hue", help="Sweeps: one curve per value of this swept key."),
+    ] = None,
+    y: Annotated[
+        str | None,
+        typer.Option("--y", help="Sweeps: latency, response, reward or a trials column."),
+    ] = None,
 ) -> None:
     """Plot a run: the task's own figure (Fig. 7, Fig. 9) or Fig. 6B-style response/latency.
 
     Several folders are drawn together where the task's figure compares groups, e.g.
-    `cobel plot LATENT_DIR DIRECT_DIR` for Fig. 7B.
+    `cobel plot LATENT_DIR DIRECT_DIR` for Fig. 7B. A sweep folder gives one curve per value
+    of `--hue KEY` (n = jobs x runs per curve, 95% confidence band); `--kind` draws
+    occupancy, trajectories or one curve of any run.
     """
     from cobelrun.figures import plot_run
 
+    first = run_dirs[0]
     try:
-        path = plot_run(run_dirs[0], out, *run_dirs[1:])
+        if (first / "sweep.json").is_file():
+            if kind is not None or len(run_dirs) > 1:
+                fail("a sweep folder takes --hue/--y, not --kind or more folders")
+            from cobelrun.figures.runs import plot_sweep_file
+
+            path = plot_sweep_file(first, hue, y, out)
+        elif hue is not None:
+            fail(f"--hue needs a sweep folder (cobel run -m); {first} is not one")
+        elif kind is not None:
+            from cobelrun.figures.runs import plot_kind
+
+            if len(run_dirs) > 1:
+                fail("--kind draws one run; use `cobel compare` for several")
+            path = plot_kind(first, kind, out)
+        else:
+            path = plot_run(first, out, *run_dirs[1:])
+    except CobelError as exc:
+        fail(str(exc))
+    typer.echo(str(path))
+
+
+@app.command("compare")
+def compare_cmd(
+    run_dirs: Annotated[
+        list[Path], typer.Argument(help="Two or more run folders.", show_default=False)
+    ],
+    y: Annotated[
+        str | None,
+        typer.Option("--y", help="latency, response, reward or a trials column."),
+    ] = None,
+    labels: Annotated[
+        str | None, typer.Option("--labels", help="Comma-separated curve labels.")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Output PNG (default: FIRST_RUN_DIR/compare.png)."),
+    ] = None,
+) -> None:
+    """Overlay runs: one curve per run folder (mean and 95% band over its runs, n in the legend)."""
+    from cobelrun.figures.runs import compare_file
+
+    try:
+        path = compare_file(run_dirs, y, out, labels.split(",") if labels else None)
     except CobelError as exc:
         fail(str(exc))
     typer.echo(str(path))
@@ -147,6 +213,22 @@ def plot_cmd(
 from cobelrun.commands.render_cache import register as _register_render_cache  # noqa: E402
 
 _register_render_cache(app)
+
+from cobelrun.commands.export import register as _register_export  # noqa: E402
+
+_register_export(app)
+
+from cobelrun.commands.rerun import register as _register_rerun  # noqa: E402
+
+_register_rerun(app)
+
+from cobelrun.commands.show import register as _register_show  # noqa: E402
+
+_register_show(app)
+
+from cobelrun.commands.fit import register as _register_fit  # noqa: E402
+
+_register_fit(app)
 
 
 STATUS_STYLE = {
@@ -193,7 +275,7 @@ def status_cmd(
     for key in sweep["swept"]:
         table.add_column(key, style="cyan")
     table.add_column("status")
-    table.add_column("time [s]", justify="right")
+    table.add_column("time \\[s]", justify="right")
     table.add_column("error", overflow="fold")
     for r in rows:
         if problems and r["status"] == "done":
@@ -324,10 +406,31 @@ def figure_cmd(
         fail("interrupted", EXIT_INTERRUPTED)
 
 
+def _shell_completion_args(argv: list[str]) -> list[str] | None:
+    """``cobel -sc ...`` (what Hydra's completion script calls) as ``cobel run -sc ...``.
+
+    Hydra's bash/zsh/fish completion scripts call the program named in the completed line
+    with ``-sc query=SHELL``; the line's ``run`` word is dropped so that Hydra sees only the
+    overrides.
+    """
+    if not argv or argv[0] not in ("-sc", "--shell-completion"):
+        return None
+    line = os.environ.get("COMP_LINE")
+    if line is not None:
+        words = line.split(" ")
+        if len(words) > 1 and words[1] == "run":
+            os.environ["COMP_LINE"] = " ".join([words[0], *words[2:]])
+            point = os.environ.get("COMP_POINT")
+            if point is not None and point.isdigit():
+                os.environ["COMP_POINT"] = str(max(0, int(point) - len("run ")))
+    return ["run", *argv]
+
+
 def main() -> None:
     """Console-script entry point."""
     try:
-        app()
+        forwarded = _shell_completion_args(sys.argv[1:])
+        app(args=forwarded) if forwarded is not None else app()
     except CobelError as exc:  # errors raised outside a command body
         if debug_enabled():
             raise

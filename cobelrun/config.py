@@ -40,9 +40,17 @@ def search_dirs() -> list[Path]:
     return ([user] if user else []) + [builtin_conf_dir()]
 
 
-def group_options(group: str) -> dict[str, Path]:
-    """Available options of a config group, name -> file (the first in search order wins)."""
+def group_options(group: str, first: Path | None = None) -> dict[str, Path]:
+    """Available options of a config group, name -> file (the first in search order wins).
+
+    ``first`` is a user's config folder (``cobel run -cd DIR``) searched before the others.
+    """
     found: dict[str, Path] = {}
+    for root in [first] if first is not None else []:
+        folder = root / group
+        if folder.is_dir():
+            for f in sorted(folder.rglob("*.yaml")):
+                found.setdefault(f.relative_to(folder).with_suffix("").as_posix(), f)
     for root in search_dirs():
         folder = root / group
         if folder.is_dir():

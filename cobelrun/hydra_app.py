@@ -13,6 +13,7 @@ import logging
 import os
 import re
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -24,14 +25,14 @@ from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 from cobelrun.safety import check_inside, results_root
 
 
-def _check_choices(parsed: list[Any]) -> None:
+def _check_choices(parsed: list[Any], config_dir: Path | None = None) -> None:
     from cobelrun.config import group_options
 
     for o in parsed:
         key = o.key_or_group
         if key not in GROUPS or o.package:
             continue
-        options = group_options(key)
+        options = group_options(key, config_dir)
         values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
         for value in values:
             if value is None:
@@ -123,24 +124,57 @@ def _parse(overrides: list[str]) -> list[Any]:
         raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
 
 
+def search_path(config_dir: Path | None = None) -> Any:
+    """The config search path of ``cobel run`` (Hydra's ``ConfigSearchPath``).
+
+    Without ``config_dir``: the built-in configs (``./conf`` first, through
+    ``hydra_plugins/cobel_searchpath``). With a user's ``config_dir`` (``-cd``/``-cp``): that
+    folder is the primary one (its ``config.yaml`` wins) and the built-in configs come after
+    it, so its configs can still pick built-in envs, agents and tasks.
+    """
+    from hydra._internal.utils import create_config_search_path
+    from hydra.core.config_search_path import SearchPathQuery
+
+    if config_dir is None:
+        return create_config_search_path(str(builtin_conf_dir()))
+    sp = create_config_search_path(str(config_dir))
+    sp.prepend(provider="cobel", path=f"file://{builtin_conf_dir()}",
+               anchor=SearchPathQuery(provider="schema"))  # fmt: skip
+    return sp
+
+
+def user_config_dir(value: str | None) -> Path | None:
+    """A ``-cd``/``-cp`` folder as an absolute path (relative to the working directory)."""
+    if value is None:
+        return None
+    path = Path(value.removeprefix("file://")).expanduser().absolute()
+    if not path.is_dir():
+        raise ConfigError(f"config folder {value} does not exist (given with -cd/-cp)")
+    return path
+
+
 @contextlib.contextmanager
-def composer() -> Iterator[Callable[..., DictConfig]]:
+def composer(
+    config_dir: Path | None = None, config_name: str = "config"
+) -> Iterator[Callable[..., DictConfig]]:
     """Compose configs as ``cobel run`` does, with errors as one-line ConfigErrors.
 
     Yields ``compose(overrides, return_hydra_config=False)``: built-in configs (``./conf``
-    searched first through ``hydra_plugins/cobel_searchpath``), overrides parsed, chosen
-    task/env/agent/protocol names checked with close-match suggestions, typos in keys
-    explained. Used by ``cobel run``'s up-front validation, ``cobel render-cache`` and
-    ``cobel figure``.
+    searched first through ``hydra_plugins/cobel_searchpath``; a user's ``config_dir`` first
+    when given, see :func:`search_path`), overrides parsed, chosen task/env/agent/protocol
+    names checked with close-match suggestions, typos in keys explained. Used by ``cobel
+    run``'s up-front validation, the Python API, ``cobel render-cache`` and ``cobel figure``.
     """
-    from hydra import compose, initialize_config_dir
+    from hydra import compose
+    from hydra._internal.hydra import Hydra
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException, MissingConfigException
 
     def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
-        _check_choices(_parse(overrides))
+        _check_choices(_parse(overrides), config_dir)
         try:
-            return compose("config", overrides=overrides, return_hydra_config=return_hydra_config)
+            return compose(config_name, overrides=overrides,
+                           return_hydra_config=return_hydra_config)  # fmt: skip
         except MissingConfigException as exc:
             raise ConfigError(str(exc).strip().splitlines()[0]) from None
         except HydraException as exc:
@@ -150,7 +184,7 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
             base_cfg = None
             try:  # the config without the bad override, to list the keys that are allowed
                 plain = [o for o in overrides if o.split("=", 1)[0] in GROUPS]
-                base_cfg = compose("config", overrides=plain)
+                base_cfg = compose(config_name, overrides=plain)
             except HydraException:
                 pass
             raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
@@ -161,15 +195,23 @@ def composer() -> Iterator[Callable[..., DictConfig]]:
                 msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
             raise ConfigError(msg) from None
 
+    from hydra import version
+
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(builtin_conf_dir()), version_base="1.3"):
-            yield _compose
+        version.setbase("1.3")
+        Hydra.create_main_hydra2(task_name="cobel", config_search_path=search_path(config_dir))
+        yield _compose
     finally:
         GlobalHydra.instance().clear()
 
 
-def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dict]]:
+def validate(
+    overrides: list[str],
+    multirun: bool,
+    config_dir: Path | None = None,
+    config_name: str = "config",
+) -> tuple[DictConfig, list[dict]]:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
     Returns the composed config of the first combination, ``hydra`` node included, and for a
@@ -179,11 +221,17 @@ def validate(overrides: list[str], multirun: bool) -> tuple[DictConfig, list[dic
     from cobelrun.sweep import plan
 
     first, jobs = overrides, []
-    if multirun:
-        _check_choices(_parse(overrides))  # every swept value, not only the first combination's
+    if multirun and foreign_sweeper(overrides):
+        # another sweeper (Optuna, ...) expands its own search space: check one job's config
+        # with the swept keys left at their defaults
+        first = [o.input_line for o in _parse(overrides) if not o.is_sweep_override()]
+    elif multirun:
+        _check_choices(
+            _parse(overrides), config_dir
+        )  # every swept value, not only the first combination's
         _, jobs = plan(overrides)
         first = jobs[0]["overrides"] if jobs else overrides
-    with composer() as compose:
+    with composer(config_dir, config_name) as compose:
         cfg = compose(first, return_hydra_config=True)
     if not multirun:
         try:
@@ -215,19 +263,66 @@ def job(cfg: DictConfig) -> str:
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
+    log_start(cfg, run_dir, list(hc.overrides.task))
     if str(hc.mode) == "RunMode.MULTIRUN":
-        return sweep_job(cfg, hc, run_dir)
+        result = sweep_job(cfg, hc, run_dir)
+        log_end(run_dir)
+        return result
     try:
         with run_progress(f"{cfg.task.name}") as progress:
             run(cfg, run_dir, progress=progress)
     except CobelError as exc:
+        LOG.info("failed: %s", exc)
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
+        LOG.info("interrupted")
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)
         sys.exit(130)
+    log_end(run_dir)
+    if SUMMARY:
+        from cobelrun.commands.summary import print_run_summary
+
+        print_run_summary(run_dir)
     print(run_dir)
     return str(run_dir)
+
+
+#: print the end-of-run summary (``cobel run --quiet`` sets it to False)
+SUMMARY = True
+
+#: the job's log lines (Hydra's job logging writes them to RUN_DIR/cobel.log)
+LOG = logging.getLogger("cobel")
+
+
+def log_start(cfg: DictConfig, run_dir: Path, overrides: list[str]) -> None:
+    """Log what the job runs: task, seed, overrides, folder."""
+    LOG.info("task %s, seed %s, folder %s", cfg.task.name, cfg.seed, run_dir)
+    LOG.info("overrides: %s", " ".join(overrides) or "(none)")
+
+
+def log_end(run_dir: Path) -> None:
+    """Log how the job ended and each phase's summary row (from the run folder)."""
+    import json
+
+    from cobelrun.io.run_folder import RunFolder
+
+    folder = RunFolder(run_dir)
+    if not folder.manifest.is_file():
+        return
+    manifest = json.loads(folder.manifest.read_text())
+    LOG.info("status %s, wall time %s s%s", manifest.get("status"), manifest.get("wall_time_s"),
+             f", error {manifest['error']}" if manifest.get("error") else "")  # fmt: skip
+    if "objective" in manifest:
+        LOG.info("objective (%s) = %s", manifest.get("objective_name"), manifest["objective"])
+    if folder.table("trials").is_file() and manifest.get("status") == "completed":
+        import pandas as pd
+
+        from cobelrun.api import summary
+
+        for row in summary(pd.read_parquet(folder.table("trials"))).to_dict("records"):
+            LOG.info("phase %s: %s", row.pop("phase"),
+                     ", ".join(f"{k} {v:.4g}" for k, v in row.items()))  # fmt: skip
 
 
 def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
@@ -248,14 +343,15 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     num = int(subdir) if subdir.isdigit() else int(hc.job.num)
     fields = {"job": num, "overrides": list(hc.overrides.task)}
     sweep_dir = Path(str(hc.sweep.dir))
+    wants_number = cfg.task.get("objective") is not None  # optimising sweepers need a float
     try:
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
-            return str(run_dir)
+            return job_result(run_dir, wants_number)
         if sweep.stop_requested(sweep_dir):  # the sweep is stopping: do not start
             status(run_dir, "interrupted", error="the sweep was stopped before this job started",
                    **fields)  # fmt: skip
-            return "interrupted"
+            return float("nan") if wants_number else "interrupted"
         clear_outputs(run_dir)
         status(run_dir, "running", config_hash=chash, **fields)
         run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
@@ -266,13 +362,26 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
         sweep.request_stop(sweep_dir, "a job was interrupted")
         if sweep._PARENT_PID is not None and os.getppid() != sweep._PARENT_PID:
             os._exit(130)  # the launcher is gone: this worker must not linger
-        return "interrupted"
+        return float("nan") if wants_number else "interrupted"
     except Exception as exc:
         status(run_dir, "failed", error=one_line(exc), traceback=traceback.format_exc(), **fields)
         print(f"cobel: job {num} failed: {one_line(exc)}", file=sys.stderr)
-        return "failed"
+        return float("nan") if wants_number else "failed"
     status(run_dir, "completed", **fields)
-    return str(run_dir)
+    return job_result(run_dir, wants_number)
+
+
+def job_result(run_dir: Path, objective: bool) -> Any:
+    """What a sweep job returns: the task's objective (a float) when it declares one, so that
+    optimising sweepers (Optuna) can use it, else the run folder."""
+    if not objective:
+        return str(run_dir)
+    import json
+
+    from cobelrun.io.run_folder import RunFolder
+
+    value = json.loads(RunFolder(run_dir).manifest.read_text()).get("objective")
+    return float("nan") if value is None else float(value)
 
 
 def _quote(value: str) -> str:
@@ -352,22 +461,61 @@ def report_sweep(sweep_dir: Path) -> int:
         print(f"cobel: error: {what}; see cobel status {sweep_dir}", file=sys.stderr)
         return 1
     note = f" (launch {launched})" if launched > 1 else ""
+    if SUMMARY:
+        from cobelrun.commands.summary import print_sweep_summary
+
+        print_sweep_summary(sweep_dir)
     print(f"cobel: {total} of {total} jobs done{note}", file=sys.stderr)
     print(sweep_dir)
     return 0
 
 
-def launch(args: list[str]) -> int:
-    """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code."""
+def foreign_sweeper(overrides: list[str]) -> str | None:
+    """The sweeper chosen with ``hydra/sweeper=NAME`` when it is not cobel's own."""
+    for o in overrides:
+        key, _, value = o.partition("=")
+        if key.lstrip("+~") == "hydra/sweeper" and value not in ("", "cobel"):
+            return value
+    return None
+
+
+def report_foreign_sweep(sweep_dir: Path) -> int:
+    """Print what a sweeper other than cobel's left (Optuna's best parameters and value)."""
+    results = sweep_dir / "optimization_results.yaml"
+    if SUMMARY and results.is_file():
+        print(results.read_text().rstrip(), file=sys.stderr)
+    print(sweep_dir)
+    return 0
+
+
+def launch(args: list[str], *, quiet: bool = False) -> int:
+    """Run Hydra on ``args`` (what follows ``cobel run``); return the exit code.
+
+    ``quiet`` leaves out the end-of-run summary.
+    """
     import shlex
 
+    global SUMMARY
+    SUMMARY = not quiet
+
+    import hydra._internal.utils as hydra_utils
     from hydra._internal.utils import _run_hydra, get_args_parser
 
+    # Hydra's help prints the command that installs shell completion from this; `cobel -sc`
+    # is forwarded to `cobel run -sc` (cli._shell_completion_args)
+    hydra_utils._get_exec_command = lambda: "cobel"  # type: ignore[attr-defined]
     parser = get_args_parser()
     parser.prog = "cobel run"
     parsed = parser.parse_args(args)
-    # ./conf is put first on the search path by hydra_plugins/cobel_searchpath
-    config_dir, overrides = builtin_conf_dir(), list(parsed.overrides)
+    # ./conf is put first on the search path by hydra_plugins/cobel_searchpath. A user's
+    # -cd/-cp folder becomes the primary config folder (so -cd RUN/.hydra -cn config runs the
+    # saved config), with the built-in configs searched after it.
+    user_dir = user_config_dir(parsed.config_dir or parsed.config_path)
+    config_name = parsed.config_name or "config"
+    config_dir, overrides = user_dir or builtin_conf_dir(), list(parsed.overrides)
+    if user_dir is not None:
+        parsed.config_path = None
+        parsed.config_dir = str(builtin_conf_dir())  # searched after the user's folder
     informational = (
         parsed.help or parsed.hydra_help or parsed.cfg or parsed.info or parsed.shell_completion
     )
@@ -378,7 +526,20 @@ def launch(args: list[str]) -> int:
         parsed.overrides = overrides
     if not informational:
         results_root()  # COBEL_RESULTS="" is refused before anything is composed
-        cfg, jobs = validate(overrides, multirun)
+        cfg, jobs = validate(overrides, multirun, user_dir, config_name)
+        if multirun and foreign_sweeper(overrides):
+            keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+            if "hydra.sweep.dir" not in keys:
+                root = results_root()
+                name = f"{foreign_sweeper(overrides)}_{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+                sweep_dir = (root / str(cfg.task.name) / "sweeps" / name).absolute()
+                parsed.overrides = [*overrides, f"hydra.sweep.dir={_quote(str(sweep_dir))}"]
+            else:
+                sweep_dir = Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
+            _writable_root(sweep_dir)
+            _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
+            return report_foreign_sweep(sweep_dir)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
             _writable_root(sweep_dir)
@@ -389,7 +550,7 @@ def launch(args: list[str]) -> int:
             parsed.overrides = [*overrides, *extra]
     if sweep_dir is None:
         _run_hydra(args=parsed, args_parser=parser, task_function=job,
-                   config_path=str(config_dir), config_name="config")  # fmt: skip
+                   config_path=str(config_dir), config_name=config_name)  # fmt: skip
         return 0
     from cobelrun.sweep import SweepLock, clear_stop
 
@@ -397,7 +558,7 @@ def launch(args: list[str]) -> int:
         clear_stop(sweep_dir)
         try:
             _run_hydra(args=parsed, args_parser=parser, task_function=job,
-                       config_path=str(config_dir), config_name="config")  # fmt: skip
+                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
         except KeyboardInterrupt:
             if stopper.signum is None:
                 raise

@@ -63,6 +63,10 @@ class RecordConfig:
         Also write the env's camera frames (``env.render()``, ``rgb_array``) of the MCAP runs
         as ``foxglove.RawImage`` (``/run_0007/camera``); per-step hooks make compiled agents
         take their Python path.
+    training_log
+        Deep (SB3) agents log their training curves (loss, max Q at the current observation,
+        epsilon, mean trial return) through SB3's logger as CSV, and TensorBoard when installed,
+        into ``training/run_NNNN/``.
     """
 
     steps: bool = True
@@ -72,6 +76,7 @@ class RecordConfig:
     mcap_runs: int | str = 10
     flush_seconds: float = 2.0
     images: bool = False
+    training_log: bool = False
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "task.record") -> RecordConfig:
@@ -90,6 +95,7 @@ class RecordConfig:
             mcap_runs=spec.mcap_runs,
             flush_seconds=float(spec.flush_seconds),
             images=spec.images,
+            training_log=spec.training_log,
         )
 
     def records_run(self, run: int) -> bool:

@@ -51,6 +51,8 @@ class Task:
     #: progress=...) -> dict | None`` (the dict goes into the manifest).
     job: Any = None
     config: Any = None
+    #: ``task.objective``: ``objective(trials) -> float``, stored in the manifest
+    objective: Any = None
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -64,6 +66,11 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     check_name("task.name", spec.task.name)  # it names the output folder
     if spec.task.protocol is not None:
         check_memory(spec.task.protocol)
+    objective = None
+    if cfg.task.get("objective") is not None:
+        objective = instantiate("task.objective", cfg.task.objective)
+        if not callable(objective):
+            raise ConfigError("task.objective must build a callable objective(trials) -> float")
     if spec.task.job is not None:
         return build_job(cfg, spec)
     assert spec.task.protocol is not None  # TaskSpec requires one unless there is a job
@@ -87,16 +94,21 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
             raise ConfigError(f"task.monitors.{name} does not build a Monitor")
         monitor.setup(env)
         monitors[str(name)] = monitor
-    if probe_agent:  # constructor errors surface before any output
-        try:
-            make_agent(seed=run_seed(spec.seed, 0)[0])
+    record = RecordConfig.from_spec(spec.task.record)
+    if probe_agent or record.training_log:
+        try:  # constructor errors surface here, before any output
+            probe = make_agent(seed=run_seed(spec.seed, 0)[0])
         except CobelError:
             raise
         except Exception as exc:  # a value the agent's own checks did not anticipate
             raise ConfigError(
                 f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
             ) from exc
-    record = RecordConfig.from_spec(spec.task.record)
+        if record.training_log and not callable(getattr(probe, "log_training", None)):
+            raise ConfigError(
+                f"task.record.training_log needs a deep (SB3) agent such as agent=dqn; "
+                f"{type(probe).__name__} has no training curves"
+            )
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(
             "task.record.images needs an env that renders camera images (render_mode "
@@ -113,6 +125,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         seed=spec.seed,
         load_from=None if load_from is None else str(load_from),
         save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
+        objective=objective,
     )
 
 
@@ -231,8 +244,13 @@ def execute(
     background_writes: bool = True,
     guard: SignalGuard | None = None,
     metadata: Mapping[str, str] | None = None,
+    phase_times: dict[str, float] | None = None,
 ) -> Any:
-    """Run every (run, phase) of ``task`` and stream the records into ``run_dir``."""
+    """Run every (run, phase) of ``task`` and stream the records into ``run_dir``.
+
+    ``phase_times``, when given, is filled with each phase's wall time in seconds (summed over
+    runs; recording included).
+    """
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
     folder = RunFolder(run_dir)
@@ -252,6 +270,8 @@ def execute(
                 base.reset_world()
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
+            if task.record.training_log:
+                agent.log_training(folder.training_log(run))
             if task.load_from is not None:
                 load_saved_agent(agent, task.load_from, run)
             recorder.start_run(run, agent)
@@ -261,12 +281,17 @@ def execute(
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
                 callbacks = recorder.phase_callbacks(first, run)
+                t_phase = time.perf_counter()
                 batch = (
                     go(phase.trials, max_steps, callbacks)
                     if callbacks
                     else go(phase.trials, max_steps)
                 )
                 recorder.record(run, phase.name, first, batch)
+                if phase_times is not None:
+                    phase_times[phase.name] = (
+                        phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
+                    )
                 first += phase.trials
                 if progress is not None:  # trials over all runs; phases are the finest grain
                     per_run = task.protocol.n_trials
@@ -311,10 +336,11 @@ def run(
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
     guard = SignalGuard()
+    phase_times: dict[str, float] = {}
     with guard.installed():
         try:
             result = execute(task, run_dir, progress=progress, background_writes=background_writes,
-                             guard=guard, metadata=metadata)  # fmt: skip
+                             guard=guard, metadata=metadata, phase_times=phase_times)  # fmt: skip
         except KeyboardInterrupt:
             with guard.closing():
                 manifest.finish("interrupted")
@@ -330,8 +356,18 @@ def run(
         try:
             with guard.closing():
                 summary = {"job_result": result} if isinstance(result, Mapping) else {}
-                manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3),
-                                **summary)  # fmt: skip
+                if phase_times:
+                    summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
+                if task.objective is not None:
+                    import pandas as pd
+
+                    summary["objective"] = float(
+                        task.objective(pd.read_parquet(folder.table("trials")))
+                    )
+                    summary["objective_name"] = str(getattr(task.objective, "name", "objective"))
+                manifest.finish(
+                    "completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary
+                )
                 folder.done.write_text("completed\n")
         except OSError as exc:
             error = disk_error(exc, run_dir)

@@ -135,6 +135,7 @@ class RecordSpec(Spec):
     ] = 10
     flush_seconds: Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a number > 0")] = 2.0
     images: Flag = False
+    training_log: Flag = False
 
 
 class TaskSpec(Spec):
@@ -156,6 +157,8 @@ class TaskSpec(Spec):
     ] = "all"
     #: a custom job (``_target_`` node) that replaces the protocol loop
     job: Annotated[dict[str, Any] | None, Expect("a config node with a _target_")] = None
+    #: the run's objective (``_target_`` node, see :mod:`cobelrun.objectives`), in the manifest
+    objective: Annotated[dict[str, Any] | None, Expect("a config node with a _target_")] = None
 
     @model_validator(mode="after")
     def _check_task(self) -> TaskSpec:

@@ -1,5 +1,9 @@
 """Fig. 9C: two-alternative forced choice with DQN (100 agents x 50 one-step trials).
 
+``task=two_afc`` runs ``agent=dqn_paper``: the original's learning dynamics (keras-rl's DQN as
+CoBeL-RL v2 set it up: squared TD error, soft target updates 0.01, Adam 1e-3, a gradient step
+from the first step on and one more at every trial end, no gradient clipping).
+
 Mean training reward per trial over agents (band: standard error) with the chance level 0.5.
 With training epsilon 0.3 and two actions the expected training reward is capped at
 1 - 0.3 / 2 = 0.85, so the figure also draws that ceiling and the greedy probe
@@ -19,12 +23,13 @@ def draw(data: FigureData):
 
     trials = data.trials("dqn")
     eps = epsilon_of(data.run_dirs("dqn")[0])
-    fig, ax = plt.subplots(figsize=(4.6, 3.2), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(5.2, 3.4), constrained_layout=True)
     table = plot_mean_reward(trials, ax, epsilon=eps)
-    late = trials[trials["trial"].between(41, 50)]
-    note = f"trials 41-50: reward {late['reward'].mean():.3f}"
+    early, late = trials[trials["trial"].between(6, 10)], trials[trials["trial"].between(41, 50)]
+    note = f"reward: trials 6-10 {early['reward'].mean():.3f}, 41-50 {late['reward'].mean():.3f}"
     if "greedy_correct" in late:
-        note += f", greedy {late['greedy_correct'].mean():.3f}"
+        note += (f"; greedy: {early['greedy_correct'].mean():.2f}, "
+                 f"{late['greedy_correct'].mean():.2f}")  # fmt: skip
     ax.set_title(f"Fig. 9C: two-alternative forced choice (DQN)\n{note}", fontsize=9)
     ax.spines[["top", "right"]].set_visible(False)
     return fig, table

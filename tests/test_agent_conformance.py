@@ -52,18 +52,42 @@ def build(name: str, seed: int = 3, env_seed: int = 0) -> tuple[gym.Env, Agent]:
     assert isinstance(node, dict)
     node.update({k: v for k, v in FAST.items() if k in node})
     error: ConfigError | None = None
-    for env_cls in (GridWorldEnv, DiscreteGridWorldEnv):
-        env = small_env(env_cls, env_seed)
+    for make in (
+        lambda: small_env(GridWorldEnv, env_seed),
+        lambda: small_env(DiscreteGridWorldEnv, env_seed),
+        lambda: ImageObservations(small_env(GridWorldEnv, env_seed)),
+    ):
+        env = make()
         try:
             return env, instantiate(f"agent {name}", node, env=env, seed=seed)
         except ConfigError as exc:
-            if "does not support observation space" not in str(exc):
+            if not any(
+                m in str(exc)
+                for m in ("does not support observation space", "needs image observations")
+            ):
                 raise
             error = exc
     raise AssertionError(f"no small env fits agent {name}: {error}")
 
 
+class ImageObservations(gym.ObservationWrapper):
+    """The small gridworld seen as a fixed random 12 x 48 RGB image per state (for CNN agents,
+    e.g. agent=dqn_fig8, without a renderer)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        n = env.unwrapped.world.n_states
+        self.observation_space = spaces.Box(0, 255, (3, 12, 48), np.uint8)
+        self.images = np.random.default_rng(7).integers(0, 256, (n, 3, 12, 48), dtype=np.uint8)
+        self.probe_observations = self.images
+
+    def observation(self, observation: Any) -> np.ndarray:
+        return self.images[int(observation)].copy()
+
+
 def probes(env: gym.Env) -> np.ndarray:
+    if hasattr(env, "probe_observations"):
+        return env.probe_observations
     obs = getattr(env.unwrapped, "observations", None)
     return np.asarray(obs) if isinstance(env.observation_space, spaces.Box) else np.arange(16)
 

@@ -2,7 +2,7 @@
 
 The critic estimates the value of the current position as a weighted sum of place-cell
 activities, the actor keeps one weight vector per action (swim direction), and both learn from
-the temporal-difference error (FACTS.md, "Water maze")::
+the temporal-difference error (docs/paper-settings.md, "Water maze")::
 
     C(p)   = w . f(p)                           critic (value)
     a_j(p) = z_j . f(p)                         actor preference of action j

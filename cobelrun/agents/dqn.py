@@ -31,14 +31,16 @@ Importing this module imports torch and stable-baselines3 (the ``deep`` extra).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
+import torch.nn.functional as F
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.preprocessing import is_image_space
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback
@@ -57,14 +59,64 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
     "linear": torch.nn.Identity,
 }
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
+#: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
+LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
+#: SB3's NatureCNN (used for image inputs of a Dict observation by MultiInputPolicy)
+NATURE_CONVS = ((32, 8, 4), (64, 4, 2), (64, 3, 1))
+#: Layer name aliases of the CNN network: ``analysis`` is the dense ReLU layer after the
+#: convolutions (Fig. 8's "analysis" layer, recorded for place-cell maps).
+CNN_LAYER_ALIASES = {"analysis": "features_extractor.linear.1"}
+
+
+def conv_output_hw(
+    height: int, width: int, convs: Sequence[Sequence[int]]
+) -> list[tuple[int, int]]:
+    """Feature-map size ``(h, w)`` after each ``[channels, kernel, stride]`` layer (no padding)."""
+    out = []
+    h, w = int(height), int(width)
+    for _, kernel, stride in convs:
+        h = (h - int(kernel)) // int(stride) + 1
+        w = (w - int(kernel)) // int(stride) + 1
+        out.append((h, w))
+    return out
+
+
+def check_image_fits(
+    shape: Sequence[int], convs: Sequence[Sequence[int]], what: str = "agent.convs"
+) -> None:
+    """One-line ConfigError if a channel-first image ``shape`` is too small for ``convs``."""
+    c, h, w = (int(v) for v in shape)
+    inputs = [(h, w), *conv_output_hw(h, w, convs)]
+    for i, (ih, iw) in enumerate(inputs[:-1]):
+        kernel = int(convs[i][1])
+        if ih < kernel or iw < kernel:
+            layers = " -> ".join(f"{int(n)}@{int(k)}x{int(k)}/{int(st)}" for n, k, st in convs)
+            raise ConfigError(
+                f"image observation {h}x{w}x{c} (HxWxC) is too small for the CNN {what} "
+                f"[{layers}]: conv layer {i + 1} gets a {max(ih, 0)}x{max(iw, 0)} input for its "
+                f"{kernel}x{kernel} kernel; use larger images (env.observation.height/width) or "
+                "smaller kernels"
+            )
+
+
+def _channel_first(space: gym.spaces.Space) -> tuple[int, int, int]:
+    """(C, H, W) of an image space as SB3 sees it (it transposes H x W x C images itself)."""
+    c, h, w = (int(v) for v in space.shape)
+    if is_image_space_channels_first(space):  # type: ignore[arg-type]
+        return c, h, w
+    return w, c, h
 
 
 class ConvFeatures(BaseFeaturesExtractor):
     """Convolutions ``[channels, kernel, stride]`` (ReLU), flattened, then a dense ReLU layer.
 
-    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (FACTS.md).
+    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md). ``padding``:
+    ``"valid"`` (none, default) or ``"same"`` (Keras': zero padding so that a layer's output is
+    ``ceil(input / stride)``; the original's Fig. 4 network, which also takes 16 x 16 images).
+    ``dropout > 0`` adds dropout after the dense layer (Fig. 8: dense 50 ReLU -> dropout 0.35);
+    the dense ReLU output is the ``analysis`` layer of :meth:`DQNAgent.activations`.
     """
 
     def __init__(
@@ -72,21 +124,31 @@ class ConvFeatures(BaseFeaturesExtractor):
         observation_space: gym.spaces.Box,
         convs: Sequence[Sequence[int]] = DEFAULT_CONVS,
         features_dim: int = 256,
+        padding: str = "valid",
+        dropout: float = 0.0,
     ) -> None:
         super().__init__(observation_space, features_dim)
         layers: list[torch.nn.Module] = []
-        channels = observation_space.shape[0]
+        channels, h, w = observation_space.shape
         for out, kernel, stride in convs:
-            layers += [
-                torch.nn.Conv2d(channels, int(out), int(kernel), int(stride)),
-                torch.nn.ReLU(),
-            ]
+            k, st = int(kernel), int(stride)
+            if padding == "same":  # Keras/TensorFlow "same": extra padding goes right/bottom
+                ph = max((-(-h // st) - 1) * st + k - h, 0)
+                pw = max((-(-w // st) - 1) * st + k - w, 0)
+                layers.append(torch.nn.ZeroPad2d((pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)))
+                h, w = -(-h // st), -(-w // st)
+            else:
+                h, w = (h - k) // st + 1, (w - k) // st + 1
+            layers += [torch.nn.Conv2d(channels, int(out), k, st), torch.nn.ReLU()]
             channels = int(out)
         layers.append(torch.nn.Flatten())
         self.cnn = torch.nn.Sequential(*layers)
         with torch.no_grad():
             n_flat = self.cnn(torch.zeros(1, *observation_space.shape)).shape[1]
-        self.linear = torch.nn.Sequential(torch.nn.Linear(n_flat, features_dim), torch.nn.ReLU())
+        dense: list[torch.nn.Module] = [torch.nn.Linear(n_flat, features_dim), torch.nn.ReLU()]
+        if dropout > 0:
+            dense.append(torch.nn.Dropout(float(dropout)))
+        self.linear = torch.nn.Sequential(*dense)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         return self.linear(self.cnn(observations))
@@ -95,7 +157,7 @@ class ConvFeatures(BaseFeaturesExtractor):
 class DQNAgent(Agent):
     """DQN (Mnih et al. 2015) through stable-baselines3, trained in trials.
 
-    Defaults are CoBeL-RL's DQN defaults (FACTS.md): 4 x dense 64 tanh, epsilon 0.3,
+    Defaults are CoBeL-RL's DQN defaults (docs/paper-settings.md): 4 x dense 64 tanh, epsilon 0.3,
     gamma 0.8, batch 32, Adam 1e-3, soft target update 0.01, warm-up 100 steps.
 
     Parameters
@@ -119,12 +181,18 @@ class DQNAgent(Agent):
         Steps of random actions before learning starts (0: learn from the first step).
     train_freq, gradient_steps
         Gradient steps every ``train_freq`` environment steps (default 1 and 1: keras-rl's).
+    trial_end_updates
+        Extra gradient steps when a trial ends (default 0, SB3's schedule; CoBeL-RL's keras-rl
+        DQN makes 1: its fit loop calls ``backward`` once more on the terminal observation).
     tau, target_update_interval
         Target network update ``target <- tau * online + (1 - tau) * target`` every
         ``target_update_interval`` steps: soft (0.01 every step, default) or hard
         (``tau=1``, interval N).
+    loss
+        TD loss: ``"huber"`` (SB3's smooth L1, default) or ``"mse"`` (squared error, keras-rl's
+        and so CoBeL-RL's: its ``delta_clip`` is infinite by default).
     max_grad_norm
-        Gradient-norm clipping (SB3's default 10).
+        Gradient-norm clipping (SB3's default 10; ``None``: no clipping, as keras-rl).
     policy
         ``"auto"`` (``MultiInputPolicy`` for Dict, ``CnnPolicy`` for images, else
         ``MlpPolicy``) or one of those names.
@@ -134,7 +202,13 @@ class DQNAgent(Agent):
         Hidden-layer activation: tanh (default), relu, elu, sigmoid, linear.
     convs, features_dim
         CNN layers ``[[channels, kernel, stride], ...]`` and the dense features after them
-        (Fig. 6A's by default); used with ``CnnPolicy``.
+        (Fig. 6A's by default); used with ``CnnPolicy``. An image too small for the kernels is
+        a ConfigError naming both shapes.
+    conv_padding
+        ``"valid"`` (default) or ``"same"`` (Keras' zero padding; any image size fits).
+    dropout
+        Dropout rate after the CNN's dense layer (default 0; Fig. 8: 0.35). Active while
+        learning only; acting, testing and :meth:`activations` run the network in eval mode.
     prioritized
         Use proportional prioritized experience replay (:mod:`cobelrun.agents.per`).
     per_alpha, per_beta, per_beta_steps, per_epsilon
@@ -164,14 +238,18 @@ class DQNAgent(Agent):
         learning_starts: int = 100,
         train_freq: int = 1,
         gradient_steps: int = 1,
+        trial_end_updates: int = 0,
         tau: float = 0.01,
         target_update_interval: int = 1,
-        max_grad_norm: float = 10.0,
+        loss: str = "huber",
+        max_grad_norm: float | None = 10.0,
         policy: str = "auto",
         net_arch: Sequence[int] | None = None,
         activation: str = "tanh",
         convs: Sequence[Sequence[int]] | None = None,
         features_dim: int = 256,
+        conv_padding: str = "valid",
+        dropout: float = 0.0,
         prioritized: bool = False,
         per_alpha: float = 0.6,
         per_beta: float = 0.4,
@@ -189,6 +267,7 @@ class DQNAgent(Agent):
             ("tau", tau, 0.0, 1.0),
             ("per_alpha", per_alpha, 0.0, 1.0),
             ("per_beta", per_beta, 0.0, 1.0),
+            ("dropout", dropout, 0.0, 0.99),
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
@@ -198,6 +277,7 @@ class DQNAgent(Agent):
             ("learning_starts", learning_starts, 0),
             ("train_freq", train_freq, 1),
             ("gradient_steps", gradient_steps, 1),
+            ("trial_end_updates", trial_end_updates, 0),
             ("target_update_interval", target_update_interval, 1),
             ("per_beta_steps", per_beta_steps, 1),
         ):
@@ -205,6 +285,17 @@ class DQNAgent(Agent):
                 raise ConfigError(f"agent.{name} must be an integer >= {lo}, got {value!r}")
         if learning_rate <= 0:
             raise ConfigError(f"agent.learning_rate must be > 0, got {learning_rate}")
+        if conv_padding not in ("valid", "same"):
+            raise ConfigError(
+                f"agent.conv_padding {conv_padding!r} is not known; allowed: 'valid', 'same'"
+            )
+        if max_grad_norm is not None and not max_grad_norm > 0:
+            raise ConfigError(f"agent.max_grad_norm must be > 0 or null, got {max_grad_norm}")
+        if loss not in LOSSES:
+            raise ConfigError(
+                f"agent.loss {loss!r} is not known{suggest(loss, list(LOSSES))}; "
+                f"allowed: {allowed_list(list(LOSSES))}"
+            )
         if activation not in ACTIVATIONS:
             raise ConfigError(
                 f"agent.activation {activation!r} is not known{suggest(activation, list(ACTIVATIONS))}; "
@@ -242,18 +333,35 @@ class DQNAgent(Agent):
             "activation_fn": ACTIVATIONS[activation],
         }
         if policy == "CnnPolicy":
+            conv_layers = [list(map(int, c)) for c in (convs or DEFAULT_CONVS)]
+            if not conv_layers or any(len(c) != 3 or min(c) < 1 for c in conv_layers):
+                raise ConfigError(
+                    f"agent.convs must be a non-empty list of [channels, kernel, stride] with "
+                    f"positive integers, got {convs!r}"
+                )
+            if conv_padding == "valid":  # "same" padding fits any image size
+                check_image_fits(_channel_first(obs_space), conv_layers)
             policy_kwargs["features_extractor_class"] = ConvFeatures
             policy_kwargs["features_extractor_kwargs"] = {
-                "convs": [list(map(int, c)) for c in (convs or DEFAULT_CONVS)],
+                "convs": conv_layers,
                 "features_dim": int(features_dim),
+                "padding": conv_padding,
+                "dropout": float(dropout),
             }
+        elif policy == "MultiInputPolicy" and isinstance(obs_space, gym.spaces.Dict):
+            for key, sub in obs_space.spaces.items():
+                if is_image_space(sub):
+                    check_image_fits(
+                        _channel_first(sub), NATURE_CONVS, f"(SB3 NatureCNN for input {key!r})"
+                    )
         self.hyper = {
             "epsilon": self.epsilon, "test_epsilon": self.test_epsilon, "gamma": gamma,
             "learning_rate": learning_rate, "batch_size": batch_size, "buffer_size": buffer_size,
             "learning_starts": learning_starts, "tau": tau,
             "target_update_interval": target_update_interval, "policy": policy,
             "net_arch": policy_kwargs["net_arch"], "activation": activation,
-            "prioritized": self.prioritized,
+            "prioritized": self.prioritized, "loss": loss, "max_grad_norm": max_grad_norm,
+            "trial_end_updates": trial_end_updates, "dropout": dropout,
         }  # fmt: skip
 
         np_seed, torch_seed, space_seed, per_seed = self.seed_sequence.generate_state(4)
@@ -293,6 +401,8 @@ class DQNAgent(Agent):
                 seed=None,  # seeded through _rng_scope; SB3's seed= would also reseed the env
                 **kwargs,
             )
+        self.model.td_loss = LOSSES[loss]
+        self.model.trial_end_updates = int(trial_end_updates)
         # a private action space: its sampler is the agent's, not the environment's
         self.model.action_space = gym.spaces.Discrete(int(env.action_space.n))
         self.model.action_space.seed(int(space_seed))
@@ -347,10 +457,25 @@ class DQNAgent(Agent):
             m._last_obs = m.env.reset()
             m._last_episode_starts = np.ones((1,), dtype=bool)
             m.learn(total_timesteps=n_trials * max_steps, reset_num_timesteps=False,
-                    log_interval=None)  # fmt: skip
+                    log_interval=1 if m.log_q else None)  # fmt: skip
         m.stop_when = None
         rec.finished = rec.finished[:n_trials]
         return rec.batch()
+
+    def log_training(self, folder: str | Path) -> None:
+        """Log training curves through SB3's logger into ``folder`` (``progress.csv``, and
+        TensorBoard event files when ``tensorboard`` is installed), one row per trial:
+        ``train/loss``, ``train/q_max`` (max Q at the current observation),
+        ``rollout/exploration_rate`` (epsilon), ``rollout/ep_rew_mean`` (mean trial return,
+        SB3's window of 100 trials)."""
+        import importlib.util
+
+        from stable_baselines3.common.logger import configure
+
+        formats = ["csv"] + (["tensorboard"] if importlib.util.find_spec("tensorboard") else [])
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        self.model.set_logger(configure(str(folder), formats))
+        self.model.log_q = True
 
     # -- inference ---------------------------------------------------------------------------
     def _obs_tensor(self, observations: Any) -> torch.Tensor:
@@ -366,19 +491,39 @@ class DQNAgent(Agent):
         return tensor
 
     def predict(self, observations: np.ndarray) -> np.ndarray:
-        """Q values, shape (n, n_actions), of a batch of observations."""
-        with torch.no_grad():
-            return self.model.q_net(self._obs_tensor(observations)).cpu().numpy()
+        """Q values, shape (n, n_actions), of a batch of observations (eval mode: no dropout)."""
+        net = self.model.q_net
+        was_training = net.training
+        net.train(False)
+        try:
+            with torch.no_grad():
+                return net(self._obs_tensor(observations)).cpu().numpy()
+        finally:
+            net.train(was_training)
+
+    def _aliases(self) -> dict[str, str]:
+        modules = dict(self.model.q_net.named_modules())
+        if not isinstance(modules.get("features_extractor"), ConvFeatures):
+            return {}
+        return {k: v for k, v in CNN_LAYER_ALIASES.items() if v in modules}
 
     def layer_names(self) -> list[str]:
-        """Names of the Q network's layers usable with :meth:`activations` (plus ``"q"``)."""
+        """Names of the Q network's layers usable with :meth:`activations` (plus ``"q"``).
+
+        A CNN network also has ``analysis``: its dense ReLU layer (Fig. 8's analysis layer).
+        """
         names = [n for n, mod in self.model.q_net.named_modules() if n and not list(mod.children())]
-        return [*names, "q"]
+        return [*self._aliases(), *names, "q"]
 
     def activations(self, observations: np.ndarray, layers: Sequence[str]) -> dict[str, np.ndarray]:
-        """Outputs of the named layers of the online Q network for a batch of observations."""
+        """Outputs of the named layers of the online Q network for a batch of observations.
+
+        The network runs in eval mode (no dropout); its training mode is restored afterwards.
+        """
         net = self.model.q_net
         modules = dict(net.named_modules())
+        for alias, target in self._aliases().items():
+            modules[alias] = modules[target]
         unknown = [name for name in layers if name != "q" and name not in modules]
         if unknown:
             raise ConfigError(
@@ -394,10 +539,13 @@ class DQNAgent(Agent):
                 out[name] = output.detach().reshape(output.shape[0], -1).cpu().numpy()
 
             hooks.append(modules[name].register_forward_hook(hook))
+        was_training = net.training
+        net.train(False)
         try:
             with torch.no_grad():
                 q = net(self._obs_tensor(observations)).cpu().numpy()
         finally:
+            net.train(was_training)
             for h in hooks:
                 h.remove()
         if "q" in layers:

@@ -15,7 +15,7 @@ bootstrap term when ``s'`` is terminal, unless ``always_bootstrap``), and ``M . 
 the action value. Replay, exploration, action mask and soft target updates are those of
 :class:`~cobelrun.agents.dyna_dqn.DynaDeepAgent`.
 
-Fig. 7 settings (FACTS.md): epsilon 0.3, beta 5, gamma 0.9, action mask on, replay batch 100
+Fig. 7 settings (docs/paper-settings.md): epsilon 0.3, beta 5, gamma 0.9, action mask on, replay batch 100
 per step, target rate 0.01, always bootstrap, dense 64 tanh -> 64 tanh -> linear, Adam, MSE.
 """
 

@@ -1,4 +1,4 @@
-"""Model-free episodic control (Blundell et al. 2016), as CoBeL-RL's MFEC agent (FACTS.md).
+"""Model-free episodic control (Blundell et al. 2016), as CoBeL-RL's MFEC agent (docs/paper-settings.md).
 
 - Observations are flattened and projected to ``projection_dim`` dimensions with a fixed
   Gaussian random matrix (entries N(0, 1 / projection_dim)); ``projection: none`` keeps them.
@@ -19,7 +19,7 @@ Where this differs from a literal port, on purpose (documented, not copied):
   KD-tree is only used for the k-NN estimate and is rebuilt lazily, the first time a buffer is
   queried after it changed. A stale tree can therefore never produce duplicate keys.
 - Eviction is strictly first-in-first-out over insertion time; updating a key's value does not
-  make it "new". (Least-recently-used eviction is a variant of Blundell et al.; FACTS.md says
+  make it "new". (Least-recently-used eviction is a variant of Blundell et al.; docs/paper-settings.md says
   the oldest entry is evicted.)
 - A key that occurs twice within one trial is updated with the larger of its returns, in
   one pass, whatever the order.
@@ -141,7 +141,7 @@ class MFEC(Agent):
         Environment with ``Box`` (any shape, flattened) or ``Discrete`` (one-hot coded)
         observations and ``Discrete`` actions.
     epsilon
-        Exploration rate (FACTS.md: 0.1).
+        Exploration rate (docs/paper-settings.md: 0.1).
     gamma
         Discount factor of the returns (0.97).
     k

@@ -9,7 +9,7 @@
   priority, as in the paper and OpenAI baselines) and anneals ``beta`` linearly to 1.
   New transitions get the largest priority seen so far.
 - :class:`PrioritizedDQN`: :class:`~cobelrun.agents.sb3.TrialDQN` whose gradient step weights
-  each sample's Huber loss by ``w_i`` and sets ``p_i = |TD error_i| + epsilon``.
+  each sample's TD loss (Huber or squared error) by ``w_i`` and sets ``p_i = |TD error_i| + epsilon``.
 
 Draws come from the buffer's own ``numpy.random.Generator`` (seeded by the agent).
 """
@@ -20,7 +20,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
@@ -179,7 +178,7 @@ class PrioritizedDQN(TrialDQN):
     """DQN whose gradient step applies PER's importance weights and refreshes priorities.
 
     Reads top to bottom like SB3's ``DQN.train``; the differences are the per-sample weights on
-    the Huber loss and the priority update with ``|TD error|``.
+    the TD loss and the priority update with ``|TD error|``.
     """
 
     replay_buffer: PrioritizedReplayBuffer
@@ -196,11 +195,12 @@ class PrioritizedDQN(TrialDQN):
                 target = data.rewards + (1 - data.dones) * discounts * next_q.reshape(-1, 1)
             current = torch.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
             td = target - current
-            loss = (data.weights * F.smooth_l1_loss(current, target, reduction="none")).mean()
+            loss = (data.weights * self.td_loss(current, target, reduction="none")).mean()
             losses.append(loss.item())
             self.policy.optimizer.zero_grad()
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+            if self.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
             self.policy.optimizer.step()
             self.replay_buffer.update_priorities(data.indices, td.detach().cpu().numpy())
         self._n_updates += gradient_steps

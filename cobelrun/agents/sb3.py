@@ -12,6 +12,8 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
+import torch.nn.functional as F
 from stable_baselines3 import DQN
 from stable_baselines3.common.type_aliases import RolloutReturn
 
@@ -97,11 +99,53 @@ class TrialRecorder(gym.Wrapper):
 
 
 class TrialDQN(DQN):
-    """SB3 DQN that stops collecting once ``stop_when()`` is true (checked before each step)."""
+    """SB3 DQN that stops collecting once ``stop_when()`` is true (checked before each step).
+
+    Its gradient step is SB3's ``DQN.train`` with three settings: ``td_loss`` (SB3's Huber loss
+    by default; keras-rl's squared error for CoBeL-RL's DQN), ``max_grad_norm`` ``None`` for no
+    gradient clipping (keras-rl clips nothing by default) and ``trial_end_updates``.
+    """
 
     stop_when: Callable[[], bool] | None = None
+    #: training log on (``DQNAgent.log_training``): also log ``train/q_max``
+    log_q: bool = False
+
+    td_loss: Callable[..., torch.Tensor] = staticmethod(F.smooth_l1_loss)
+    #: extra gradient steps after the step that ends a trial (keras-rl's fit loop makes one more
+    #: backward call on the terminal observation, which trains once more)
+    trial_end_updates: int = 0
 
     def collect_rollouts(self, env, callback, train_freq, replay_buffer, *args, **kwargs):  # type: ignore[override]
         if self.stop_when is not None and self.stop_when():
             return RolloutReturn(0, 0, continue_training=False)
-        return super().collect_rollouts(env, callback, train_freq, replay_buffer, *args, **kwargs)
+        out = super().collect_rollouts(env, callback, train_freq, replay_buffer, *args, **kwargs)
+        self._trial_ended = out.n_episodes > 0
+        return out
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        if self.trial_end_updates and getattr(self, "_trial_ended", False):
+            gradient_steps += self.trial_end_updates
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        losses = []
+        for _ in range(gradient_steps):
+            data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            discounts = data.discounts if data.discounts is not None else self.gamma
+            with torch.no_grad():
+                next_q, _ = self.q_net_target(data.next_observations).max(dim=1)
+                target = data.rewards + (1 - data.dones) * discounts * next_q.reshape(-1, 1)
+            current = torch.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
+            loss = self.td_loss(current, target)
+            losses.append(loss.item())
+            self.policy.optimizer.zero_grad()
+            loss.backward()
+            if self.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+            self.policy.optimizer.step()
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/loss", np.mean(losses))
+        if self.log_q:  # training log on: max Q at the current observation (no RNG draws)
+            with torch.no_grad():
+                obs, _ = self.policy.obs_to_tensor(self._last_obs)
+                self.logger.record("train/q_max", float(self.q_net(obs).max()))

@@ -14,7 +14,7 @@ Definitions:
 - mean distance to the platform: the mean over the trial's positions of the distance to the
   platform centre (Gallagher, Burwell & Burchinal 1993's proximity measure, sampled every step);
 - quadrant occupancy: the fraction of positions in each of four 90-degree sectors around the
-  pool centre, the target sector centred on the platform; chance is 0.25 (FACTS.md);
+  pool centre, the target sector centred on the platform; chance is 0.25 (docs/paper-settings.md);
 - platform crossings: entries into the platform's area (a probe trial has no platform, so these
   are passes over where it was);
 - annulus crossings: the same count for the platform's site and its three rotations by 90

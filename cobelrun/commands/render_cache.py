@@ -3,6 +3,8 @@
 Composes the config exactly as ``cobel run`` would (same overrides), builds the environment
 without loading any cache, and renders each image module's (node, heading) views once, in
 parallel worker processes, into the content-addressed cache (:mod:`cobelrun.render.cache`).
+Monitors that look at poses off the graph (the activity-map monitor's probe grid) name their
+poses through ``cache_requests(env)``; those grids are rendered too.
 A run with ``env.observation.render=offline`` then reads the images and never imports pybullet.
 """
 
@@ -103,10 +105,14 @@ def render_cache_cmd(
             fail(f"env {type(env.unwrapped).__name__} has no image observation; nothing to render "
                  "(pick a task with images, e.g. task=tmaze_extinction_3d)")  # fmt: skip
         _silence_exit_banner()
-        for im in images:
-            req = im.cache_request()
+        requests = [("nodes", im.cache_request()) for im in images]
+        requests += [("probe positions", req) for req in _monitor_requests(cfg, env)]
+        for what_poses, req in requests:
             cam = req.camera
-            label = f"{req.n_nodes} nodes x {req.n_directions} headings, {cam.height}x{cam.width}"
+            label = (
+                f"{req.n_nodes} {what_poses} x {req.n_directions} headings, "
+                f"{cam.height}x{cam.width}"
+            )
             t0 = time.perf_counter()
             with _progress(f"render {label}") as progress:
                 path, built = cache.build(req, jobs=jobs, progress=progress, force=force)
@@ -126,6 +132,23 @@ def render_cache_cmd(
         env.close()
     except CobelError as exc:
         fail(str(exc))
+
+
+def _monitor_requests(cfg: Any, env: Any) -> list[Any]:
+    """Cache requests of the task's monitors that render views off the graph (activity maps)."""
+    from omegaconf import OmegaConf
+
+    from cobelrun.config import instantiate
+
+    out = []
+    monitors = cfg.task.get("monitors") if "task" in cfg else None
+    for name, node in (monitors or {}).items():
+        if node is None:
+            continue
+        monitor = instantiate(f"task.monitors.{name}", OmegaConf.to_container(node, resolve=True))
+        if hasattr(monitor, "cache_requests"):
+            out += monitor.cache_requests(env)
+    return out
 
 
 def register(app: typer.Typer) -> None:

@@ -3,6 +3,11 @@
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
 ``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0``,
 ``cobel/Continuous2D-v0`` (string entry points, registered once).
+Without importing anything first, ``gymnasium.make("cobelrun.envs:cobel/GridWorld-v0")``
+imports this package and makes the env (gymnasium >= 1.0 removed the ``gymnasium.envs``
+entry-point plugins, so a bare ``cobel/...`` id needs this import). A task's env with its
+``max_episode_steps`` from the config: ``cobelrun.api.make_env("tmaze_extinction")``.
+See docs/envs.md.
 """
 
 from __future__ import annotations

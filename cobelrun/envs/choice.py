@@ -19,7 +19,7 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
     Description
     -----------
     A set of stimuli (one-hot vectors by default) and a set of choice types, each a pair
-    ``(correct, incorrect)`` of stimulus indices (default ``[[0, 1], [2, 3]]``, FACTS.md Fig. 9).
+    ``(correct, incorrect)`` of stimulus indices (default ``[[0, 1], [2, 3]]``, docs/paper-settings.md Fig. 9).
     Each trial draws a choice type uniformly and shows its two stimuli side by side in random
     order; the agent picks a side. One step per trial.
 

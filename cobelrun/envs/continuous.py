@@ -71,7 +71,7 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
 
     Description
     -----------
-    The paper's 2D interface (FACTS.md): the agent has a continuous position and a heading in
+    The paper's 2D interface (docs/paper-settings.md): the agent has a continuous position and a heading in
     an arena whose outline is any polygon or circle, with internal walls/obstacles as polygons
     or circles (:class:`~cobelrun.envs.arena.Arena`). Moves that would cross a wall stop just
     before it (and can cost ``wall_penalty``). Goals are circular or polygonal regions.

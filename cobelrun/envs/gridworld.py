@@ -24,7 +24,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
 
     Description
     -----------
-    The agent moves between the cells of a :class:`World` (``paper/FACTS.md``, "Conventions":
+    The agent moves between the cells of a :class:`World` (``docs/paper-settings.md``, "Conventions":
     states numbered row-major from the top-left, ``state = row * width + col``). Moves into a
     wall cell, off the grid or through a wall leave the agent in place. Worlds built with
     ``slip > 0`` are stochastic.
@@ -229,7 +229,7 @@ class DiscreteGridWorldEnv(GridWorldEnv):
     Description
     -----------
     Same dynamics as :class:`GridWorldEnv`; the agent observes ``observations[s]`` instead of
-    the state index (e.g. for deep agents such as Dyna-DSR on one-hot inputs, FACTS.md Fig. 7).
+    the state index (e.g. for deep agents such as Dyna-DSR on one-hot inputs, docs/paper-settings.md Fig. 7).
 
     Action Space
     ------------

@@ -53,12 +53,47 @@ class ObservationModule(abc.ABC):
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> Any:
         """Observation at pose ``(node, heading index)``; ``rng`` draws any noise."""
 
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> Any:
+        """Observation at any pose ``(x, y, heading)`` in world units, also between nodes.
+
+        Used for spatial activity maps. ``rng`` draws any noise (default: a generator seeded
+        with 0, so the environment's own stream is never touched).
+        """
+        raise CobelError(f"{type(self).__name__} cannot observe poses between graph nodes")
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> Any:
+        """Observations at every ``positions x headings`` pose: ``(M, D, *obs_shape)``.
+
+        ``positions`` is ``(M, 2)`` world ``(x, y)``, ``headings_rad`` ``(D,)``. The default
+        calls :meth:`render_at_pose` per pose; image modules read a render cache when offline.
+        """
+        rng = rng if rng is not None else np.random.default_rng(0)
+        pos = np.asarray(positions, np.float64).reshape(-1, 2)
+        heads = np.asarray(headings_rad, np.float64).reshape(-1)
+        obs = [[self.render_at_pose(x, y, h, rng) for h in heads] for x, y in pos]
+        return _stack_grid(obs)
+
     def image_modules(self) -> list[ImageObservation]:
         """Image modules inside this module (for building render caches)."""
         return []
 
     def close(self) -> None:  # noqa: B027  (optional hook, nothing to release by default)
         """Release resources (renderers)."""
+
+
+def _stack_grid(obs: list[list[Any]]) -> Any:
+    """Nested lists ``[position][heading]`` of observations -> ``(M, D, ...)`` (dicts per key)."""
+    first = obs[0][0]
+    if isinstance(first, Mapping):
+        return {k: np.stack([np.stack([o[k] for o in row]) for row in obs]) for k in first}
+    return np.stack([np.stack(row) for row in obs])
 
 
 class PoseObservation(ObservationModule):
@@ -92,6 +127,14 @@ class PoseObservation(ObservationModule):
 
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
         return self._table[node, heading].copy()
+
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        xy = np.array([x, y], np.float64)
+        if self.normalize:
+            xy = (xy - self._lo) / self._span
+        return np.array([*xy, np.cos(heading_rad), np.sin(heading_rad)], np.float32)
 
 
 #: Sources of images.
@@ -194,6 +237,8 @@ class ImageObservation(ObservationModule):
         self._scene: Any = None
         self._images: np.ndarray | None = None  # offline: (N, D, H, W, 3) uint8
         self._obs_table: np.ndarray | None = None  # offline: processed observations
+        # offline views at poses off the graph (probe grids), by rounded (x, y, heading)
+        self._pose_views: dict[tuple[float, float, float], np.ndarray] = {}
 
     # ------------------------------------------------------------------ binding
     def bind(self, topology: Any) -> None:
@@ -214,8 +259,14 @@ class ImageObservation(ObservationModule):
         self._images = cache.load(self.cache_request())
         self._obs_table = self.process(self._images)
 
-    def cache_request(self) -> Any:
-        """The render-cache request (scene, camera, poses, renderer) of this module."""
+    def cache_request(
+        self, positions: np.ndarray | None = None, headings_rad: np.ndarray | None = None
+    ) -> Any:
+        """The render-cache request (scene, camera, poses, renderer) of this module.
+
+        Default poses: every (node, heading) of the bound topology; give ``positions`` (M, 2)
+        and ``headings_rad`` (D,) for another grid of poses (e.g. an activity-map probe grid).
+        """
         from cobelrun.render.cache import CacheRequest
 
         t = self.topology
@@ -224,8 +275,8 @@ class ImageObservation(ObservationModule):
         return CacheRequest(
             scene=self.scene_spec,
             camera=self.camera,
-            positions=np.asarray(t.positions),
-            directions=np.asarray(t.directions),
+            positions=np.asarray(t.positions if positions is None else positions, np.float64),
+            directions=np.asarray(t.directions if headings_rad is None else headings_rad),
             renderer=self.renderer,
             cache_dir=None if self.cache_dir is None else Path(self.cache_dir),
         )
@@ -257,12 +308,76 @@ class ImageObservation(ObservationModule):
 
     def render_raw(self, node: int, heading: int) -> np.ndarray:
         """Render pose ``(node, heading)`` online: ``(h, w, 3)`` uint8 at the camera size."""
+        x, y = self.topology.positions[node]
+        return self.render_raw_at(x, y, float(self.topology.directions[heading]))
+
+    def render_raw_at(self, x: float, y: float, heading_rad: float) -> np.ndarray:
+        """Render any pose online with pybullet: ``(h, w, 3)`` uint8 at the camera size."""
         if self._scene is None:
             from cobelrun.render.scene import Scene
 
             self._scene = Scene(self.scene_spec, renderer=self.renderer)
-        x, y = self.topology.positions[node]
-        return self._scene.render(x, y, float(self.topology.directions[heading]), self.camera)
+        return self._scene.render(float(x), float(y), float(heading_rad), self.camera)
+
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        """The observation at any pose: rendered online, or offline from a loaded cache.
+
+        Offline, the pose must be a graph pose (node position and heading) or part of a probe
+        grid loaded by :meth:`observe_grid`; anything else is an error naming the command that
+        renders it.
+        """
+        if self.render == "online":
+            return self.process(self.render_raw_at(x, y, heading_rad))
+        key = _pose_key(x, y, heading_rad)
+        if key not in self._pose_views:
+            t = self.topology
+            if self._obs_table is None:
+                self._load_offline()
+            assert self._obs_table is not None
+            hit_n = np.flatnonzero(np.all(np.isclose(t.positions, [x, y], atol=1e-6), axis=1))
+            diff = np.abs(np.angle(np.exp(1j * (np.asarray(t.directions) - heading_rad))))
+            hit_h = np.flatnonzero(diff < 1e-6)
+            if hit_n.size and hit_h.size:
+                return self._obs_table[hit_n[0], hit_h[0]].copy()
+            from cobelrun.render.cache import build_hint
+
+            raise CobelError(
+                f"pose (x {x:g}, y {y:g}, heading {np.rad2deg(heading_rad):g} deg) is not in the "
+                f"loaded render caches (offline rendering); build the probe grid with: {build_hint()}"
+            )
+        return self._pose_views[key].copy()
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        """Observations at every ``positions x headings`` pose, ``(M, D, *obs_shape)``.
+
+        Offline: read from the render cache of exactly this grid (``cobel render-cache``
+        builds it for tasks with an activity-map monitor); the views are also kept for
+        :meth:`render_at_pose`. Online: read from that cache too where it exists for the
+        installed pybullet (the same pixels, content-addressed), else rendered with pybullet.
+        """
+        from cobelrun.render import cache
+
+        pos = np.asarray(positions, np.float64).reshape(-1, 2)
+        heads = np.asarray(headings_rad, np.float64).reshape(-1)
+        request = self.cache_request(pos, heads)
+        if self.render == "online":
+            try:
+                return self.process(cache.load(request))
+            except CobelError:  # no cache (or a stale one): render
+                raw = np.stack([[self.render_raw_at(x, y, h) for h in heads] for x, y in pos])
+                return self.process(raw)
+        obs = self.process(cache.load(request))
+        for i, (x, y) in enumerate(pos):
+            for j, h in enumerate(heads):
+                self._pose_views[_pose_key(x, y, h)] = obs[i, j]
+        return obs
 
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
         if self._obs_table is not None:
@@ -285,6 +400,10 @@ class ImageObservation(ObservationModule):
         state = self.__dict__.copy()
         state["_scene"] = None  # a pybullet connection does not travel
         return state
+
+
+def _pose_key(x: float, y: float, heading_rad: float) -> tuple[float, float, float]:
+    return (round(float(x), 6), round(float(y), 6), round(float(heading_rad) % (2 * np.pi), 6))
 
 
 def _resize_area(img: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -359,7 +478,24 @@ class NoisyObservation(ObservationModule):
         return space
 
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
-        clean = self.base.observe(node, heading, rng)
+        return self._corrupt(self.base.observe(node, heading, rng), rng)
+
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        return self._corrupt(self.base.render_at_pose(x, y, heading_rad, rng), rng)
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        return self._corrupt(self.base.observe_grid(positions, headings_rad, rng), rng)
+
+    def _corrupt(self, clean: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         x = clean.astype(np.float32)
         if self.kind == "gaussian":
             x = x + rng.standard_normal(x.shape, dtype=np.float32) * (
@@ -408,6 +544,21 @@ class MultiSensoryObservation(ObservationModule):
 
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> dict[str, Any]:
         return {k: m.observe(node, heading, rng) for k, m in self.modules.items()}
+
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> dict[str, Any]:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        return {k: m.render_at_pose(x, y, heading_rad, rng) for k, m in self.modules.items()}
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> dict[str, Any]:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        return {k: m.observe_grid(positions, headings_rad, rng) for k, m in self.modules.items()}
 
     def image_modules(self) -> list[ImageObservation]:
         return [im for m in self.modules.values() for im in m.image_modules()]

@@ -324,7 +324,7 @@ def hexagonal(
 
     Rows alternate between ``width`` and ``width - 1`` nodes; the shorter rows are shifted by half
     a spacing, so every inner node has 6 neighbours at distance ``spacing``. The paper's 9 x 9
-    lattice gives 5 x 9 + 4 x 8 = 77 nodes with node 38 in the centre (Fig. 8, FACTS.md). Nodes are
+    lattice gives 5 x 9 + 4 x 8 = 77 nodes with node 38 in the centre (Fig. 8, docs/paper-settings.md). Nodes are
     numbered row by row from the top; the place ``centre`` names the middle node.
     """
     width, height = int(width), int(height)

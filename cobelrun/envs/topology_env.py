@@ -300,8 +300,31 @@ class TopologyEnv(ChangeableWorld, gym.Env):
                         nodes=top.positions, edges=edges, regions=self._place_regions())  # fmt: skip
 
     def observe_pose(self, node: int, heading: int) -> Any:
-        """The observation at any pose (e.g. for activity maps), noise drawn from ``np_random``."""
+        """The observation at any graph pose, noise drawn from ``np_random``."""
         return self.observation_module.observe(int(node), int(heading), self.np_random)
+
+    def render_at_pose(
+        self, x: float, y: float, heading_rad: float, rng: np.random.Generator | None = None
+    ) -> Any:
+        """The observation at an arbitrary pose in world units (also between nodes).
+
+        ``x``, ``y`` as :attr:`Topology.positions`, ``heading_rad`` counter-clockwise from +x.
+        Noise (if any) is drawn from ``rng`` (default: a generator seeded with 0), never from
+        the environment's ``np_random``, so probing does not change the run.
+        """
+        return self.observation_module.render_at_pose(float(x), float(y), float(heading_rad), rng)
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> Any:
+        """Observations at every ``positions (M, 2) x headings_rad (D,)`` pose: ``(M, D, ...)``.
+
+        Image observations read the render cache of the grid when ``render=offline``.
+        """
+        return self.observation_module.observe_grid(positions, headings_rad, rng)
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(

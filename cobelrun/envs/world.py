@@ -3,7 +3,7 @@
 A :class:`World` is the one description of a tabular maze that every environment, agent kernel
 and analysis reads. States are numbered row-major from the top-left corner
 (``state = row * width + col``, row 0 = top) and actions are 0 = left, 1 = up, 2 = right,
-3 = down, as in the original CoBeL-RL (``paper/FACTS.md``, "Conventions").
+3 = down, as in the original CoBeL-RL (``docs/paper-settings.md``, "Conventions").
 
 Builders (:func:`from_layout`, :func:`open_field`, :func:`t_maze`, :func:`tmaze_paper`,
 :func:`blodgett`) take plain keyword arguments so Hydra configs can point ``_target_`` at them.
@@ -689,7 +689,7 @@ def t_maze(
 
 
 def tmaze_paper() -> World:
-    """The 7 x 7 T-maze of the paper's Fig. 6B (``paper/FACTS.md``).
+    """The 7 x 7 T-maze of the paper's Fig. 6B (``docs/paper-settings.md``).
 
     49 states, 12 reachable. Start 38; stem 38, 31, 24, 17, 10 up to the junction 3; arms
     0..6 along the top row. States 0 and 6 are terminal; reward 1 at state 6 (acquisition).
@@ -711,7 +711,7 @@ def tmaze_paper() -> World:
     )
 
 
-#: Path of the Blodgett maze from start to goal (FACTS.md, Fig. 7).
+#: Path of the Blodgett maze from start to goal (docs/paper-settings.md, Fig. 7).
 BLODGETT_PATH: tuple[int, ...] = (24, 25, 17, 9, 10, 11, 19, 27, 28, 29, 21, 13, 14, 15)
 #: Blind alleys: one dead-end cell at each of the six choice points (cell, its path cell).
 BLODGETT_DEAD_ENDS: tuple[tuple[int, int], ...] = (
@@ -752,7 +752,7 @@ def _blodgett_walls() -> list[list[int]]:
 
 
 def blodgett(goal_reward: float = 0.0) -> World:
-    """The Blodgett maze of the paper's Fig. 7 (``paper/FACTS.md``).
+    """The Blodgett maze of the paper's Fig. 7 (``docs/paper-settings.md``).
 
     5 rows x 8 columns (40 states), start 24, goal 15 (terminal; reward ``goal_reward``,
     0 by default because the latent-learning protocol sets it). Six T-shaped units, each with

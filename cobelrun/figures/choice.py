@@ -50,8 +50,15 @@ def plot_mean_reward(
         ax.fill_between(x, mean - sem, mean + sem, color=color, alpha=0.25, lw=0)
     ax.axhline(chance, color="0.4", ls="--", lw=1, label="chance")
     if epsilon is not None and epsilon > 0:
-        ax.axhline(1 - epsilon / 2, color="tab:blue", ls=":", lw=1,
+        ceiling = 1 - epsilon / 2
+        ax.axhline(ceiling, color="tab:blue", ls=":", lw=1,
                    label=f"training ceiling 1 - ε/2 (ε = {epsilon:g})")  # fmt: skip
+        ax.annotate(
+            f"ceiling {ceiling:.2f}: a fraction ε = {epsilon:g} of training choices is random\n"
+            f"(right half the time), so even a perfect agent earns {1 - epsilon:g} + {epsilon:g}/2",
+            (0.25, 0.45), xycoords=("axes fraction", "data"), va="top", fontsize=6,
+            color="tab:blue",
+        )  # fmt: skip
     ax.set_ylim(0, 1.05)
     ax.set_xlabel("trial")
     ax.set_ylabel("reward / fraction correct")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
@@ -68,6 +69,42 @@ def plot_escape_latency(trials: pd.DataFrame, ax) -> None:
     _mark_phases(ax, trials)
     ax.set_xlabel("trial")
     ax.set_ylabel("escape latency [steps]")
+
+
+def trials_to_extinction(trials: pd.DataFrame, level: float = 0.5) -> float:
+    """Trials after the first phase change until the mean response rate first falls below
+    ``level`` (NaN if it never does)."""
+    bounds = phase_boundaries(trials)
+    if not bounds:
+        return float("nan")
+    switch = bounds[0][0] + 0.5  # first trial of the second phase
+    rate = trials.groupby("trial")["response"].mean()
+    below = rate[(rate.index >= switch) & (rate < level)]
+    return float(below.index[0] - switch + 1) if len(below) else float("nan")
+
+
+def plot_response_rate(trials: pd.DataFrame, ax, color: str = "tab:green") -> float:
+    """Mean right-arm response per trial (band: standard error) and per 10-trial block, the 0.5
+    level and the first trial after the switch below it. Returns that trial count (:func:`trials_to_extinction`)."""
+    s = summarize(trials, "response")
+    x = s.index.to_numpy()
+    ax.plot(x, s["mean"], color=color, lw=0.6, alpha=0.6, label="per trial")
+    ax.fill_between(x, s["mean"] - s["sem"], s["mean"] + s["sem"], color=color, alpha=0.2, lw=0)
+    blocks = s["mean"].groupby((s.index - s.index.min()) // 10).transform("mean")
+    ax.step(x, blocks, where="mid", color="k", lw=1, label="10-trial blocks")
+    ax.axhline(0.5, color="0.5", ls=":", lw=1)
+    for xb, _ in phase_boundaries(trials):
+        ax.axvline(xb, color="0.3", ls="--", lw=1)
+    n = trials_to_extinction(trials)
+    if np.isfinite(n):
+        switch = phase_boundaries(trials)[0][0] + 0.5
+        ax.axvline(switch + n - 1, color=color, lw=0.8)
+        ax.annotate(f"< 0.5 after {n:.0f} trials", (switch + n - 1, 0.9), xytext=(3, 0),
+                    textcoords="offset points", fontsize=7, color=color)  # fmt: skip
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("trial")
+    ax.set_ylabel("right-arm response rate")
+    return n
 
 
 def plot_extinction(trials: pd.DataFrame, title: str = ""):

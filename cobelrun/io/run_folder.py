@@ -13,6 +13,7 @@
       job.json             sweep bookkeeping (sweeps only)
       .parts/<table>/      table parts while a run is going (merged into <table>.parquet at
                            the end; left behind only by a killed run, see :mod:`cobelrun.io.repair`)
+      training/run_0007/   deep agents' training curves (record.training_log: SB3 CSV/TensorBoard)
       .parts-agents/       batches of agents while a run is going (merged into agents.npz)
       .done                written last, only when the run completed
 
@@ -46,6 +47,7 @@ class RunFolder:
     WORLD = "world.json"
     MCAP = "run.mcap"
     AGENTS = "agents"
+    TRAINING = "training"
     AGENTS_ARCHIVE = "agents.npz"
     PARTS = ".parts"
     AGENT_PARTS = ".parts-agents"
@@ -110,6 +112,14 @@ class RunFolder:
         """Folder of table ``name``'s parts while the run is going."""
         return self.path / self.PARTS / name
 
+    @property
+    def training(self) -> Path:
+        return self.path / self.TRAINING
+
+    def training_log(self, run: int) -> Path:
+        """Run ``run``'s training-curve folder: ``training/run_0007/`` (``progress.csv``)."""
+        return self.training / f"run_{int(run):04d}"
+
     def agent(self, run: int) -> Path:
         """A single saved agent file of run ``run`` (``agents/run_0007.npz``; older layout)."""
         return self.agents / f"run_{int(run):04d}.npz"
@@ -136,7 +146,7 @@ class RunFolder:
     def outputs(self) -> Iterator[Path]:
         """Every file or folder a run writes that exists now (``job.json`` excluded: it belongs
         to the sweep). A rerun removes exactly these."""
-        fixed = [self.config, self.manifest, self.world, self.mcap, self.agents, self.done,
+        fixed = [self.config, self.manifest, self.world, self.mcap, self.agents, self.training, self.done,
                  self.agents_archive, self.agent_parts, self.path / self.PARTS,
                  *(self.path / p for p in self.PLOTS)]  # fmt: skip
         seen = set()

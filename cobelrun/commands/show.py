@@ -1,0 +1,83 @@
+"""``cobel show env=NAME`` / ``task=NAME``: draw a world before anything runs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+HELP = """Draw an env's maze, arena or graph (PNG) and print it in the terminal; nothing runs.
+
+\b
+Examples:
+  cobel show env=tmaze_paper
+  cobel show task=latent_learning --out blodgett.png
+  cobel show env=gridworld_layout env.layout=...      # any `cobel run` overrides
+"""
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``cobel show`` to ``app``."""
+
+    @app.command(
+        "show",
+        help=HELP,
+        context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+    )
+    def show_cmd(
+        ctx: typer.Context,
+        out: Annotated[
+            Path | None,
+            typer.Option("--out", "-o", help="Output PNG (default ./show_<env>.png)."),
+        ] = None,
+        no_png: Annotated[
+            bool, typer.Option("--no-png", help="Only the terminal drawing.")
+        ] = False,
+    ) -> None:
+        from cobelrun.cli import fail
+        from cobelrun.errors import CobelError
+
+        try:
+            path, text = show(list(ctx.args), None if no_png else (out or True))
+        except CobelError as exc:
+            fail(str(exc))
+        typer.echo(text)
+        if path is not None:
+            typer.echo(str(path))
+
+
+def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, str]:
+    """Compose ``overrides`` as ``cobel run`` does, build the env only, draw its geometry.
+
+    ``out``: a PNG path, ``True`` for ``./show_<env>.png`` or ``None`` for no PNG. Returns the
+    PNG written (or ``None``) and the ASCII drawing.
+    """
+    import matplotlib.pyplot as plt
+
+    from cobelrun.config import instantiate, register_resolvers
+    from cobelrun.envs.base import HasGeometry
+    from cobelrun.errors import CobelError
+    from cobelrun.figures import save_figure
+    from cobelrun.figures.runs import ascii_geometry, draw_geometry
+    from cobelrun.hydra_app import composer
+
+    register_resolvers()
+    with composer() as compose:
+        cfg = compose(overrides)
+    env = instantiate("env", cfg.env)
+    base = env.unwrapped
+    choice = next((o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == "env"), None)
+    name = choice or str(cfg.task.name)
+    if not isinstance(base, HasGeometry):
+        raise CobelError(f"env {name!r} ({type(base).__name__}) has no geometry to draw")
+    geometry = base.geometry()
+    text = f"{name}: {geometry.kind}, bounds {tuple(round(b, 3) for b in geometry.bounds)}\n"
+    text += ascii_geometry(geometry)
+    if out is None:
+        return None, text
+    path = Path(f"show_{name}.png") if out is True else Path(out)
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    draw_geometry(geometry, ax)
+    ax.set_title(name)
+    return save_figure(fig, path), text

@@ -1,0 +1,137 @@
+"""End-of-run summaries that ``cobel run`` prints (to stderr; ``--quiet`` switches them off).
+
+A single run ends with a table per phase (runs, trials, mean reward, latency and response
+over the phase's last trials, wall time), the folder and the commands to look at it; a sweep
+ends with its job table (status, time, objective when the task declares one).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from cobelrun.api import LAST_TRIALS, summary
+from cobelrun.io.run_folder import RunFolder
+
+
+def _console() -> Any:
+    import sys
+
+    from rich.console import Console
+
+    # logs and pipes get whole lines, not rich's 80-column default
+    width = None if sys.stderr.isatty() else 200
+    return Console(stderr=True, highlight=False, width=width)
+
+
+def _num(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return f"{float(value):.{digits}g}" if abs(float(value)) < 1000 else f"{float(value):.0f}"
+
+
+def run_summary_table(run_dir: str | Path) -> Any:
+    """The rich table of a run folder's phases (``None`` when it has no trials table)."""
+    from rich.table import Table
+
+    folder = RunFolder(run_dir)
+    if not folder.table("trials").is_file():
+        return None
+    import pandas as pd
+
+    frame = summary(pd.read_parquet(folder.table("trials")))
+    manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
+    times = manifest.get("phase_wall_time_s") or {}
+    table = Table(
+        title=f"{manifest.get('task', 'run')}: last {LAST_TRIALS} trials of each phase",
+        title_justify="left",
+        box=None,
+    )
+    table.add_column("phase", style="bold cyan")
+    table.add_column("runs", justify="right")
+    table.add_column("trials", justify="right")
+    measures = [c for c in ("reward", "latency", "response") if c in frame]
+    for c in measures:
+        table.add_column(f"mean {c}" if c != "latency" else "latency \\[steps]", justify="right")
+    table.add_column("wall \\[s]", justify="right")
+    for row in frame.to_dict("records"):
+        table.add_row(
+            row["phase"],
+            str(row["runs"]),
+            str(row["trials"]),
+            *[_num(row.get(c)) for c in measures],
+            _num(times.get(row["phase"]), 2),
+        )
+    return table
+
+
+def print_run_summary(run_dir: str | Path) -> None:
+    """Print a run's phase table, its folder and the next commands (to stderr)."""
+    console = _console()
+    folder = RunFolder(run_dir)
+    table = run_summary_table(folder.path)
+    if table is not None:
+        console.print(table)
+    manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
+    wall = manifest.get("wall_time_s")
+    objective = manifest.get("objective")
+    line = f"[bold]done[/] in {wall:.1f} s" if isinstance(wall, int | float) else "[bold]done[/]"
+    if objective is not None:
+        line += f"; objective {manifest.get('objective_name', '')} = {_num(objective, 5)}"
+    console.print(line)
+    console.print(f"folder: {folder.path}")
+    console.print("next:")
+    for cmd, what in (
+        (f"cobel plot {folder.path}", "the task's figure"),
+        (f"cobel plot {folder.path} --kind occupancy", "where the agents went"),
+        (f"cobel rerun {folder.path} seed=1", "the same config, another seed"),
+        (f"cobel status {folder.path}", "status and tables"),
+    ):
+        console.print(f"  {cmd}    [dim]# {what}[/]")
+
+
+def print_sweep_summary(sweep_dir: str | Path) -> None:
+    """Print a sweep's job table: swept values, status, wall time and objective."""
+    from rich.table import Table
+
+    from cobelrun.cli import STATUS_STYLE
+    from cobelrun.sweep import job_rows, read_sweep
+
+    sweep_dir = Path(sweep_dir)
+    sweep = read_sweep(sweep_dir)
+    rows = job_rows(sweep_dir, write=False)
+    objectives = {}
+    for r in rows:
+        m = RunFolder(r["run_dir"]).manifest if r.get("run_dir") else None
+        if m is not None and m.is_file():
+            objectives[r["job"]] = json.loads(m.read_text()).get("objective")
+    has_objective = any(v is not None for v in objectives.values())
+    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
+    table.add_column("job", justify="right")
+    for key in sweep["swept"]:
+        table.add_column(key, style="cyan")
+    table.add_column("status")
+    table.add_column("time \\[s]", justify="right")
+    if has_objective:
+        table.add_column("objective", justify="right")
+    for r in rows:
+        dur = r["duration_s"]
+        cells = [
+            str(r["job"]),
+            *[str(r[k]) for k in sweep["swept"]],
+            f"[{STATUS_STYLE.get(r['status'], '')}]{r['status']}[/]",
+            "" if dur is None or dur != dur else f"{float(dur):.1f}",
+        ]
+        if has_objective:
+            cells.append(_num(objectives.get(r["job"]), 5))
+        table.add_row(*cells)
+    console = _console()
+    console.print(table)
+    console.print(f"folder: {sweep_dir}")
+    console.print("next:")
+    swept = sweep["swept"][0] if sweep["swept"] else None
+    hue = f" --hue {swept}" if swept else ""
+    console.print(f"  cobel plot {sweep_dir}{hue}    [dim]# one curve per {swept or 'sweep'}[/]")
+    console.print(f"  cobel collect {sweep_dir}    [dim]# one Parquet file per table[/]")

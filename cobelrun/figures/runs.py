@@ -1,0 +1,360 @@
+"""Plots for any run, sweep or set of runs, drawn from the saved tables and geometry.
+
+Learning curves (``plot_curves``: one curve per group, mean and 95% confidence band over
+independent runs, the n of each curve in its label), occupancy maps and trajectories on a
+run's saved ``world.json`` (never re-composing configs), and the maze/arena/graph itself
+(``draw_geometry``, ``ascii_geometry`` for ``cobel show``). Functions take data frames and an
+``ax``; the ``plot_*_file`` helpers read folders and write PNGs.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from cobelrun.errors import CobelError
+from cobelrun.io.run_folder import RunFolder
+
+#: ``cobel plot RUN --kind`` choices
+KINDS = ("occupancy", "trajectories", "latency", "response", "reward")
+
+#: kind -> (trials column, y label)
+CURVES = {
+    "latency": ("steps", "escape latency [steps]"),
+    "response": ("cumulative_response", "cumulative responses"),
+    "reward": ("reward", "reward"),
+}
+
+
+# -- learning curves -----------------------------------------------------------------------
+def curve_stats(trials: pd.DataFrame, column: str, units: Sequence[str] = ("run",)) -> pd.DataFrame:
+    """Per trial: mean, n and 95% confidence interval (t distribution) of ``column`` over the
+    independent units (``run``; ``job, run`` in a sweep).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index ``trial``; columns ``mean``, ``n``, ``lo``, ``hi``.
+    """
+    from scipy import stats
+
+    if column not in trials:
+        raise CobelError(f"the trials table has no {column!r} column; it has: "
+                         f"{', '.join(map(str, trials.columns))}")  # fmt: skip
+    per_unit = trials.groupby([*units, "trial"], sort=False)[column].mean().reset_index()
+    g = per_unit.groupby("trial")[column]
+    out = pd.DataFrame({"mean": g.mean(), "n": g.count(), "sem": g.sem(ddof=1)})
+    t = stats.t.ppf(0.975, np.maximum(out["n"] - 1, 1))
+    half = np.where(out["n"] > 1, t * out["sem"].fillna(0.0), 0.0)
+    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
+    return out.drop(columns="sem")
+
+
+def plot_curves(
+    trials: pd.DataFrame,
+    column: str,
+    ax: Any,
+    *,
+    hue: str | None = None,
+    units: Sequence[str] = ("run",),
+    label: str | None = None,
+    ylabel: str | None = None,
+) -> list[tuple[str, int]]:
+    """Mean ``column`` per trial with a 95% confidence band, one curve per ``hue`` value.
+
+    Parameters
+    ----------
+    trials
+        A trials table (a run, a sweep from ``cobelrun.load_sweep`` or several runs).
+    column
+        The column to draw (``reward``, ``steps``, ``cumulative_response``, ...).
+    ax
+        A matplotlib ``Axes``.
+    hue
+        A column whose values get their own curve (a swept key such as ``agent.epsilon``).
+    units
+        The columns that identify one independent sample (``run``; ``job, run`` for sweeps).
+    label, ylabel
+        Curve label (without hue) and y-axis label.
+
+    Returns
+    -------
+    list of (label, n)
+        Each curve's label and its number of independent units.
+    """
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures.extinction import _mark_phases
+
+    groups = [(None, trials)] if hue is None else list(trials.groupby(hue, sort=True))
+    colors = plt.get_cmap("viridis" if len(groups) > 3 else "tab10")
+    drawn = []
+    for i, (value, part) in enumerate(groups):
+        s = curve_stats(part, column, units)
+        n = int(s["n"].max())
+        name = label or column if hue is None else f"{hue}={value}"
+        color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
+        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n})")
+        ax.fill_between(s.index, s["lo"], s["hi"], color=color, alpha=0.25, lw=0)
+        drawn.append((str(name), n))
+    if "phase" in trials:
+        _mark_phases(ax, trials)
+    ax.set_xlabel("trial")
+    ax.set_ylabel(ylabel or column)
+    ax.legend(loc="best")
+    return drawn
+
+
+def _curve_column(trials: pd.DataFrame, y: str | None) -> tuple[str, str]:
+    if y is not None:
+        column, ylabel = CURVES.get(y, (y, y))
+        return column, ylabel
+    for kind in ("response", "latency", "reward"):
+        column, ylabel = CURVES[kind]
+        if column in trials:
+            return column, ylabel
+    raise CobelError("the trials table has none of the columns cumulative_response, steps, reward")
+
+
+def plot_sweep_file(
+    sweep_dir: str | Path,
+    hue: str | None = None,
+    y: str | None = None,
+    out: str | Path | None = None,
+) -> Path:
+    """``cobel plot SWEEP_DIR --hue KEY``: one curve per value of a swept key, n = jobs x runs."""
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures import save_figure
+    from cobelrun.results import load_sweep
+    from cobelrun.sweep import read_sweep
+
+    sweep_dir = Path(sweep_dir)
+    swept = read_sweep(sweep_dir)["swept"]
+    if hue is not None and hue not in swept:
+        from cobelrun.errors import allowed_list, suggest
+
+        raise CobelError(f"--hue {hue!r} is not a swept key{suggest(hue, swept)}; "
+                         f"swept: {allowed_list(swept) or 'none'}")  # fmt: skip
+    trials = load_sweep(sweep_dir)
+    column, ylabel = _curve_column(trials, y)
+    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    plot_curves(trials, column, ax, hue=hue, units=("job", "run"), ylabel=ylabel)
+    ax.set_title(f"{sweep_dir.name}" + (f" by {hue}" if hue else ""))
+    fig.tight_layout()
+    return save_figure(fig, Path(out) if out else sweep_dir / "plot.png")
+
+
+def compare_file(
+    run_dirs: Sequence[str | Path], y: str | None = None, out: str | Path | None = None,
+    labels: Sequence[str] | None = None,
+) -> Path:  # fmt: skip
+    """``cobel compare RUN_A RUN_B ...``: the runs' curves overlaid, one colour each."""
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures import save_figure
+    from cobelrun.results import load_trials
+
+    if len(run_dirs) < 2:
+        raise CobelError("cobel compare takes at least two run folders")
+    names = list(labels) if labels else [Path(d).name for d in run_dirs]
+    if len(names) != len(run_dirs):
+        raise CobelError(f"{len(names)} labels for {len(run_dirs)} run folders")
+    frames = [load_trials(d).assign(source=name) for d, name in zip(run_dirs, names, strict=True)]
+    trials = pd.concat(frames, ignore_index=True)
+    column, ylabel = _curve_column(trials, y)
+    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    plot_curves(trials, column, ax, hue="source", units=("source", "run"), ylabel=ylabel)
+    fig.tight_layout()
+    return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / "compare.png")
+
+
+# -- geometry ----------------------------------------------------------------------------------
+def load_geometry(run_dir: str | Path) -> Any:
+    """A run's saved geometry (``world.json``) as :class:`cobelrun.envs.base.Geometry`."""
+    from cobelrun.envs.base import Geometry
+
+    path = RunFolder(run_dir).world
+    if not path.is_file():
+        raise CobelError(f"{Path(run_dir)} has no {RunFolder.WORLD} (the env has no geometry)")
+    return Geometry.from_dict(json.loads(path.read_text()))
+
+
+def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
+    """Draw walls, free cells, graph nodes/edges, arena outline and named regions on ``ax``."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Polygon, Rectangle
+
+    cs = geometry.cell_size
+    for x, y in geometry.cells:
+        ax.add_patch(Rectangle((x - cs / 2, y - cs / 2), cs, cs, fc="0.95", ec="0.85", lw=0.5))
+    if len(geometry.outline):
+        ax.add_patch(Polygon(geometry.outline, closed=True, fill=False, ec="0.2", lw=1.2))
+    if len(geometry.walls):
+        segs = geometry.walls.reshape(-1, 2, 2)
+        ax.add_collection(LineCollection(segs, colors="0.15", linewidths=1.5))
+    if geometry.kind == "graph" and len(geometry.nodes):
+        if len(geometry.edges):
+            segs = geometry.nodes[geometry.edges]
+            ax.add_collection(LineCollection(segs, colors="0.6", linewidths=0.8))
+        ax.scatter(geometry.nodes[:, 0], geometry.nodes[:, 1], s=8, color="0.3", zorder=3)
+    for name, region in geometry.regions.items():
+        if region.get("shape") == "polygon":
+            ax.add_patch(Polygon(region["points"], closed=True, fc="tab:orange", alpha=0.2))
+            x, y = np.mean(np.asarray(region["points"], float), axis=0)
+        else:
+            x, y = region["x"], region["y"]
+            if region.get("shape") == "circle":
+                from matplotlib.patches import Circle
+
+                ax.add_patch(Circle((x, y), region["radius"], fc="tab:orange", alpha=0.25))
+            else:
+                ax.plot(x, y, "*", color="tab:orange", ms=8, zorder=4)
+        if labels:
+            ax.annotate(name, (x, y), xytext=(3, 3), textcoords="offset points", fontsize=7)
+    x0, y0, x1, y1 = geometry.bounds
+    pad = 0.05 * max(x1 - x0, y1 - y0, 1e-9)
+    ax.set_xlim(x0 - pad, x1 + pad)
+    ax.set_ylim(y0 - pad, y1 + pad)
+    ax.set_aspect("equal")
+
+
+def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.ndarray, ...]:
+    """Visits per spatial bin: grid cells for grids, ``bins`` x ``bins`` for arenas/graphs.
+
+    Returns
+    -------
+    (counts, xedges, yedges)
+        ``counts[i, j]`` visits with x in bin i and y in bin j.
+    """
+    x0, y0, x1, y1 = geometry.bounds
+    if geometry.kind == "grid" and len(geometry.cells):
+        cs = geometry.cell_size
+        cx, cy = np.unique(geometry.cells[:, 0]), np.unique(geometry.cells[:, 1])
+        xedges = np.arange(cx.min() - cs / 2, cx.max() + cs, cs)
+        yedges = np.arange(cy.min() - cs / 2, cy.max() + cs, cs)
+    else:
+        xedges, yedges = np.linspace(x0, x1, bins + 1), np.linspace(y0, y1, bins + 1)
+    counts, xe, ye = np.histogram2d(steps["x"], steps["y"], bins=(xedges, yedges))
+    return counts, xe, ye
+
+
+def plot_occupancy(steps: pd.DataFrame, geometry: Any, ax: Any) -> None:
+    """Share of recorded steps in each place, on the maze (log-free colour scale)."""
+    counts, xe, ye = occupancy(steps, geometry)
+    share = np.ma.masked_equal(counts / max(1.0, counts.sum()), 0.0)
+    draw_geometry(geometry, ax, labels=True)
+    mesh = ax.pcolormesh(xe, ye, share.T, cmap="magma_r", alpha=0.85, zorder=2)
+    ax.figure.colorbar(mesh, ax=ax, label="share of steps")
+    ax.set_title("occupancy")
+
+
+def plot_trajectories(
+    steps: pd.DataFrame, geometry: Any, ax: Any, *, run: int = 0, count: int = 8
+) -> None:
+    """``count`` trials of run ``run``, evenly spread over the run, coloured by trial."""
+    import matplotlib.pyplot as plt
+
+    part = steps[steps["run"] == run]
+    if part.empty:
+        raise CobelError(f"no recorded steps for run {run}")
+    trials = np.unique(part["trial"])
+    chosen = trials[np.linspace(0, len(trials) - 1, min(count, len(trials))).round().astype(int)]
+    draw_geometry(geometry, ax, labels=True)
+    cmap = plt.get_cmap("viridis")
+    for i, t in enumerate(np.unique(chosen)):
+        tr = part[part["trial"] == t].sort_values("step")
+        jitter = (i - len(chosen) / 2) * 0.02 * geometry.cell_size
+        ax.plot(tr["x"] + jitter, tr["y"] + jitter, color=cmap(i / max(1, len(chosen) - 1)),
+                lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")  # fmt: skip
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.set_title(f"trajectories, run {run}")
+
+
+def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> Path:
+    """``cobel plot RUN --kind KIND``: occupancy, trajectories or a learning curve."""
+    import matplotlib.pyplot as plt
+
+    from cobelrun.errors import allowed_list, suggest
+    from cobelrun.figures import save_figure
+    from cobelrun.results import load_steps, load_trials
+
+    if kind not in KINDS:
+        raise CobelError(f"unknown plot kind {kind!r}{suggest(kind, KINDS)}; allowed: "
+                         f"{allowed_list(KINDS)}")  # fmt: skip
+    run_dir = Path(run_dir)
+    fig, ax = plt.subplots(figsize=(5.5, 4.0))
+    try:
+        if kind in CURVES:
+            column, ylabel = CURVES[kind]
+            plot_curves(load_trials(run_dir), column, ax, ylabel=ylabel, label=kind)
+        else:
+            geometry = load_geometry(run_dir)
+            steps = load_steps(run_dir)
+            draw = plot_occupancy if kind == "occupancy" else plot_trajectories
+            draw(steps, geometry, ax)
+    except BaseException:
+        plt.close(fig)
+        raise
+    fig.tight_layout()
+    return save_figure(fig, Path(out) if out else run_dir / f"plot_{kind}.png")
+
+
+# -- ASCII -------------------------------------------------------------------------------------
+def ascii_geometry(geometry: Any, width: int = 60) -> str:
+    """A terminal drawing: grids cell by cell (``.`` free, ``#`` blocked, a region's first
+    letter at its place); arenas and graphs on a character raster (``o`` node, ``.`` inside)."""
+    x0, y0, x1, y1 = geometry.bounds
+    marks = {}
+    if geometry.kind == "grid" and len(geometry.cells):
+        cs = geometry.cell_size
+        xs = np.unique(geometry.cells[:, 0])
+        ys = np.unique(geometry.cells[:, 1])
+        ncol = round((xs.max() - xs.min()) / cs) + 1
+        nrow = round((ys.max() - ys.min()) / cs) + 1
+        grid = [["#"] * ncol for _ in range(nrow)]
+
+        def at(x: float, y: float) -> tuple[int, int]:
+            return round((ys.max() - y) / cs), round((x - xs.min()) / cs)
+
+        for x, y in geometry.cells:
+            r, c = at(x, y)
+            grid[r][c] = "."
+    else:
+        ncol = width
+        nrow = max(4, round(width * (y1 - y0) / max(x1 - x0, 1e-9) / 2))
+        grid = [[" "] * ncol for _ in range(nrow)]
+
+        def at(x: float, y: float) -> tuple[int, int]:
+            c = round((x - x0) / max(x1 - x0, 1e-9) * (ncol - 1))
+            r = round((y1 - y) / max(y1 - y0, 1e-9) * (nrow - 1))
+            return min(max(r, 0), nrow - 1), min(max(c, 0), ncol - 1)
+
+        if len(geometry.outline):
+            from matplotlib.path import Path as MplPath
+
+            poly = MplPath(geometry.outline)
+            for r in range(nrow):
+                for c in range(ncol):
+                    x = x0 + c / (ncol - 1) * (x1 - x0)
+                    y = y1 - r / max(nrow - 1, 1) * (y1 - y0)
+                    if poly.contains_point((x, y)):
+                        grid[r][c] = "."
+        for x, y in geometry.nodes:
+            r, c = at(x, y)
+            grid[r][c] = "o"
+    for name, region in geometry.regions.items():
+        if "x" in region:
+            r, c = at(region["x"], region["y"])
+        else:
+            r, c = at(*np.mean(np.asarray(region["points"], float), axis=0))
+        letter = name[0].upper()
+        grid[r][c] = letter
+        marks.setdefault(letter, []).append(name)
+    legend = "  ".join(f"{k}: {', '.join(v)}" for k, v in marks.items())
+    return "\n".join("".join(row) for row in grid) + ("\n" + legend if legend else "")

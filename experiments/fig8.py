@@ -1,0 +1,113 @@
+"""Fig. 8: place cells emerge in a DQN trained on camera images of a hexagonal maze.
+
+A: place cells among the 50 analysis units per snapshot (mean ± SD over runs; grey: each run);
+B: the spatial information (Skaggs) of all units per snapshot; C: representational similarity of
+the population activity with the positions' distances (rsatoolbox); bottom: activity maps of
+up to three place cells at the last snapshot (6 headings + mean). The criterion is the paper's
+(cobelrun/analysis/place_cells.py, docs/place_cells.md).
+
+The CSV has one row per (run, snapshot): ``trial``, ``place_cells``, ``units``,
+``place_cell_fraction``, ``spatial_information_median``, ``rsa_spatial``, and the Spearman rho
+of the mean count over snapshots (``spearman_rho_mean_count``, the same on every row).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from cobelrun.figures.registry import Figure, FigureData
+
+
+def draw(data: FigureData):
+    import matplotlib.pyplot as plt
+
+    from cobelrun.analysis.maps import classify_snapshots, load_activity_maps, maps_array
+    from cobelrun.figures.place_cells import (
+        plot_information,
+        plot_place_cell_counts,
+        plot_rsa,
+        plot_unit_maps,
+        spearman_rho,
+    )
+
+    units, snaps, last = [], [], None
+    for ref in data.runs["dqn"]:
+        df, grid = load_activity_maps(ref.run_dir)
+        u, s = classify_snapshots(df, grid)
+        u.insert(0, "job", ref.job)
+        s.insert(0, "job", ref.job)
+        units.append(u)
+        snaps.append(s)
+        if last is None:
+            last = (df, grid)
+    unit_table = pd.concat(units, ignore_index=True)
+    snapshots = pd.concat(snaps, ignore_index=True)
+    # runs of several jobs get distinct run numbers
+    snapshots["run"] = snapshots["job"] * 1000 + snapshots["run"]
+    unit_table["run"] = unit_table["job"] * 1000 + unit_table["run"]
+    rho = spearman_rho(snapshots)
+    n_runs = snapshots["run"].nunique()
+
+    fig = plt.figure(figsize=(7.2, 6.4), layout="constrained")
+    sub_top, sub_maps = fig.subfigures(2, 1, height_ratios=[1.0, 1.2])
+    ax_count, ax_info, ax_rsa = sub_top.subplots(1, 3)
+    plot_place_cell_counts(snapshots, ax_count)
+    ax_count.set_title(f"A  place cells ({n_runs} runs), Spearman ρ = {rho:.2f}", fontsize=8)
+    plot_information(unit_table, ax_info)
+    ax_info.set_title("B  spatial information", fontsize=8)
+    plot_rsa(snapshots, ax_rsa)
+    ax_rsa.set_title("C  population RDM vs distance", fontsize=8)
+
+    # example maps: the first run's last snapshot, its place cells with the most information
+    assert last is not None
+    df, grid = last
+    run0 = int(df["run"].min())
+    t_last = int(df.loc[df["run"] == run0, "trial"].max())
+    snap = df[(df["run"] == run0) & (df["trial"] == t_last)]
+    maps, explored, unit_ids, heads = maps_array(snap, grid)
+    first = unit_table[(unit_table["job"] == data.runs["dqn"][0].job)
+                       & (unit_table["run"] == run0) & (unit_table["trial"] == t_last)]  # fmt: skip
+    cells = first[first["is_place_cell"]].sort_values("spatial_information", ascending=False)
+    picks = cells["unit"].head(3).tolist()
+    note = "place cells" if picks else "no place cells: units with the most information"
+    if not picks:
+        picks = first.sort_values("spatial_information", ascending=False)["unit"].head(3).tolist()
+    grid_axes = sub_maps.subplots(3, len(heads) + 1)
+    for row in range(3):
+        axes = list(grid_axes[row])
+        if row < len(picks):
+            k = int(np.searchsorted(unit_ids, picks[row]))
+            plot_unit_maps(maps[k], explored, heads, axes, label=f"unit {picks[row]}")
+        else:
+            for ax in axes:
+                ax.axis("off")
+    sub_maps.suptitle(f"D  activity maps at trial {t_last} (run {run0}; {note})", fontsize=8)
+    sub_top.suptitle("Fig. 8: place cells in a DQN on a hexagonal maze (camera images)",
+                     fontsize=9)  # fmt: skip
+    for ax in (ax_count, ax_info, ax_rsa):
+        ax.tick_params(labelsize=6)
+        ax.xaxis.label.set_size(7)
+        ax.yaxis.label.set_size(7)
+
+    table = snapshots[["job", "run", "trial", "place_cells", "units", "place_cell_fraction",
+                       "spatial_information_median", "rsa_spatial"]].copy()  # fmt: skip
+    table["spearman_rho_mean_count"] = rho
+    return fig, table
+
+
+FIGURE = Figure(
+    name="fig8",
+    title="Place cells in a DQN on a hexagonal maze (counts over training, maps, RSA)",
+    runs={"dqn": ["task=place_cells"]},
+    # CI budget: 2 runs x 300 trials, snapshots every 75 (docs/place_cells.md: runtime)
+    quick={
+        "*": [
+            "task.runs=2",
+            "task.protocol.phases.0.trials=300",
+            "task.monitors.maps.every=75",
+            "task.record.steps=false",
+        ]
+    },
+    draw=draw,
+)

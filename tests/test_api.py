@@ -1,0 +1,167 @@
+"""The Python API (cobelrun.run / rerun / load / load_sweep), the end-of-run summary, rerun."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+import cobelrun
+from cobelrun.errors import ConfigError
+
+TINY = ["task.runs=2", "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12",
+        "task.record.mcap=false", "task.save_agents=false"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def api_run(tmp_path_factory) -> cobelrun.Run:
+    out = tmp_path_factory.mktemp("api") / "run"
+    return cobelrun.run("tmaze_extinction", overrides=[*TINY, "seed=5"], out=out)
+
+
+def test_run_returns_tables_manifest_and_plot(api_run, tmp_path):
+    assert isinstance(api_run, cobelrun.Run)
+    assert api_run.manifest["status"] == "completed"
+    assert api_run.manifest["task"] == "tmaze_extinction"
+    trials = api_run.trials
+    assert len(trials) == 2 * 24
+    assert set(trials["phase"]) == {"acquisition", "extinction"}
+    assert {"run", "trial", "reward", "steps", "response"} <= set(trials.columns)
+    assert {"x", "y", "action"} <= set(api_run.steps.columns)
+    assert set(api_run.manifest["phase_wall_time_s"]) == {"acquisition", "extinction"}
+    png = api_run.plot(tmp_path / "p.png")
+    assert png.is_file() and png.stat().st_size > 1000
+    again = cobelrun.load(api_run.path)
+    pd.testing.assert_frame_equal(again.trials, trials)
+
+
+def test_api_matches_cli_tables(api_run, cobel, tmp_path):
+    """The API composes exactly as `cobel run` does: same overrides, identical trials."""
+    out = tmp_path / "cli"
+    proc = cobel("run", "task=tmaze_extinction", *TINY, "seed=5", f"hydra.run.dir={out}",
+                 "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "folder:" not in proc.stderr  # --quiet: no summary
+    log = (out / "cobel.log").read_text()  # the run's log lines, not an empty file
+    assert "task tmaze_extinction, seed 5" in log and "status completed" in log
+    assert "phase extinction: runs 2, trials 12" in log
+    pd.testing.assert_frame_equal(pd.read_parquet(out / "trials.parquet"), api_run.trials)
+
+
+def test_summary_per_phase(api_run):
+    s = api_run.summary()
+    assert list(s["phase"]) == ["acquisition", "extinction"]
+    assert list(s["runs"]) == [2, 2] and list(s["trials"]) == [12, 12]
+    t = api_run.trials
+    last = t[(t["phase"] == "extinction") & (t["trial"] > 24 - 10)]
+    assert s.loc[1, "reward"] == pytest.approx(last["reward"].mean())
+    assert s.loc[1, "latency"] == pytest.approx(last["steps"].mean())
+    assert s.loc[1, "response"] == pytest.approx(last["response"].mean())
+
+
+def test_bad_input_writes_nothing(tmp_path):
+    with pytest.raises(ConfigError, match=r"agent\.epsilonn"):
+        cobelrun.run("tmaze_extinction", ["agent.epsilonn=0.1"], out=tmp_path / "x")
+    with pytest.raises(ConfigError, match="unknown task"):
+        cobelrun.run("tmaze_extinctio", out=tmp_path / "x")
+    with pytest.raises(ConfigError, match="list of strings"):
+        cobelrun.run("tmaze_extinction", "seed=1", out=tmp_path / "x")  # type: ignore[arg-type]
+    assert not (tmp_path / "x").exists()
+
+
+def test_rerun_identical_tables_and_overrides(api_run, tmp_path):
+    same = cobelrun.rerun(api_run.path, out=tmp_path / "same")
+    pd.testing.assert_frame_equal(same.trials, api_run.trials)
+    pd.testing.assert_frame_equal(same.steps, api_run.steps)
+    other = cobelrun.rerun(api_run.path, ["seed=6"], out=tmp_path / "other")
+    assert other.manifest["seed"] == 6
+    assert not other.trials["steps"].equals(api_run.trials["steps"])
+    with pytest.raises(ConfigError, match=r"not in struct|agent\.epsilonn"):
+        cobelrun.rerun(api_run.path, ["agent.epsilonn=0.1"], out=tmp_path / "bad")
+    with pytest.raises(ConfigError, match="cobel run"):
+        cobelrun.rerun(api_run.path, ["agent=mfec"], out=tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+
+
+def test_cli_summary_and_rerun(api_run, cobel, tmp_path):
+    proc = cobel("rerun", str(api_run.path), "--out", str(tmp_path / "r"))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == str(tmp_path / "r")
+    for text in ("acquisition", "extinction", "mean reward", "latency", "folder:", "cobel plot"):
+        assert text in proc.stderr, proc.stderr
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "r" / "trials.parquet"),
+                                  api_run.trials)  # fmt: skip
+    bad = cobel("rerun", str(tmp_path / "nowhere"))
+    assert bad.returncode == 2 and "not a run folder" in bad.stderr
+
+
+def test_cli_config_dir_runs_the_saved_config(cobel, tmp_path):
+    """`cobel run -cd RUN/.hydra -cn config` runs that config, not the default one."""
+    first = tmp_path / "first"
+    proc = cobel("run", "task=tmaze_extinction", *TINY, "seed=9", "agent.epsilon=0.3",
+                 f"hydra.run.dir={first}", "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    second = tmp_path / "second"
+    proc = cobel("run", "-cd", str(first / ".hydra"), "-cn", "config",
+                 f"hydra.run.dir={second}", "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    cfg = json.loads((second / "manifest.json").read_text())["config"]
+    assert cfg["agent"]["epsilon"] == 0.3 and cfg["seed"] == 9
+    pd.testing.assert_frame_equal(pd.read_parquet(second / "trials.parquet"),
+                                  pd.read_parquet(first / "trials.parquet"))  # fmt: skip
+    # a user's folder with its own task next to the built-in groups
+    user = tmp_path / "myconf"
+    (user / "task").mkdir(parents=True)
+    (user / "task" / "mine.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - tmaze_extinction\n  - _self_\n"
+        "task:\n  name: mine\n  runs: 1\n"
+    )
+    proc = cobel("run", "-cd", str(user), "task=mine", *TINY[1:], f"hydra.run.dir={tmp_path / 'm'}",
+                 "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "m" / "manifest.json").read_text())["task"] == "mine"
+    missing = cobel("run", "-cd", str(tmp_path / "nope"), "--quiet")
+    assert missing.returncode == 2 and "does not exist" in missing.stderr
+
+
+def test_hydra_help_names_the_real_command(cobel):
+    proc = cobel("run", "--hydra-help")
+    assert proc.returncode == 0, proc.stderr
+    assert 'eval "$(cobel -sc install=bash)"' in proc.stdout
+
+
+def test_import_is_light():
+    code = (
+        "import sys, cobelrun; cobelrun.run; import cobelrun.api;"
+        "bad = [m for m in ('torch', 'stable_baselines3', 'pybullet') if m in sys.modules];"
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_shell_completion_through_cobel(cobel):
+    """The command --hydra-help prints works, and completes overrides after `cobel run`."""
+    install = cobel("-sc", "install=bash")
+    assert install.returncode == 0, install.stderr
+    assert "hydra_bash_completion" in install.stdout
+    line = "cobel run task=tmaze_ext"
+    query = cobel("-sc", "query=bash", env={"COMP_LINE": line, "COMP_POINT": str(len(line))})
+    assert query.returncode == 0, query.stderr
+    assert "task=tmaze_extinction" in query.stdout
+
+
+def test_training_log_of_deep_agents(tmp_path):
+    """record.training_log: SB3's logger writes one CSV row per trial into training/run_NNNN."""
+    pytest.importorskip("stable_baselines3")
+    r = cobelrun.run("two_afc", ["task.runs=1", "task.protocol.phases.0.trials=6",
+                                 "task.record.training_log=true"], out=tmp_path / "r")  # fmt: skip
+    log = pd.read_csv(r.folder.training_log(0) / "progress.csv")
+    assert len(log) == 6
+    assert {"train/loss", "train/q_max", "rollout/exploration_rate",
+            "rollout/ep_rew_mean"} <= set(log.columns)  # fmt: skip
+    assert log["train/loss"].notna().any()
+    with pytest.raises(ConfigError, match="needs a deep"):
+        cobelrun.run("tmaze_extinction", ["task.record.training_log=true"], out=tmp_path / "x")

@@ -1,0 +1,206 @@
+"""Fig. 8 pieces: the CNN's input check, dqn_fig8, rendering at arbitrary poses, the activity-map
+monitor (online and from the render cache), and NWB export checked by nwbinspector."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cobelrun.analysis.maps import load_activity_maps, maps_array, probe_grid
+from cobelrun.envs import topology as topo
+from cobelrun.envs.observations import ImageObservation
+from cobelrun.envs.topology_env import TopologyEnv
+from cobelrun.errors import CobelError, ConfigError
+
+pytest.importorskip("pybullet")
+
+
+def hex_env(**kw) -> TopologyEnv:
+    obs = {"height": 12, "width": 48, "fov": 240, "n_cameras": 4, **kw}
+    return TopologyEnv(topology=topo.hexagonal(), actions="face", start_heading="random",
+                       observation=ImageObservation(**obs))  # fmt: skip
+
+
+def test_small_image_is_one_line_config_error(cobel):
+    out = cobel("run", "task=gridworld", "env=hex_3d", "agent=dqn", "task.runs=1")
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    assert "12x48x3" in lines[0] and "4x4 kernel" in lines[0] and "2x11" in lines[0]
+
+
+def test_small_image_error_in_python_and_for_dict_inputs():
+    pytest.importorskip("stable_baselines3")
+    from cobelrun.agents.dqn import DQNAgent
+    from cobelrun.envs.observations import MultiSensoryObservation, PoseObservation
+
+    with pytest.raises(ConfigError, match=r"12x48x3 .* too small .* agent.convs"):
+        DQNAgent(hex_env(), seed=0)
+    multi = MultiSensoryObservation({"image": ImageObservation(height=12, width=48, fov=240,
+                                     n_cameras=4), "pose": PoseObservation()})  # fmt: skip
+    env = TopologyEnv(topology=topo.hexagonal(), actions="face", observation=multi)
+    with pytest.raises(ConfigError, match=r"NatureCNN for input 'image'"):
+        DQNAgent(env, seed=0)
+
+
+def test_dqn_fig8_network_and_analysis_layer():
+    pytest.importorskip("stable_baselines3")
+    from cobelrun.agents.dqn import DQNAgent
+
+    env = hex_env()
+    agent = DQNAgent(env, policy="CnnPolicy", convs=[[32, 5, 1], [64, 4, 2], [64, 3, 2]],
+                     features_dim=50, dropout=0.35, net_arch=[], seed=0)  # fmt: skip
+    net = agent.model.q_net
+    convs = [m for m in net.modules() if m.__class__.__name__ == "Conv2d"]
+    assert [(c.out_channels, c.kernel_size, c.stride) for c in convs] == [
+        (32, (5, 5), (1, 1)), (64, (4, 4), (2, 2)), (64, (3, 3), (2, 2))]  # fmt: skip
+    assert any(m.__class__.__name__ == "Dropout" and m.p == 0.35 for m in net.modules())
+    assert net.q_net[0].out_features == 12
+    assert agent.layer_names()[0] == "analysis"
+    obs = np.stack([env.observe_pose(n, 0) for n in range(5)])
+    net.train(True)  # dropout on: activations must still be deterministic (eval mode inside)
+    a1 = agent.activations(obs, ["analysis"])["analysis"]
+    a2 = agent.activations(obs, ["analysis"])["analysis"]
+    assert a1.shape == (5, 50) and np.array_equal(a1, a2) and (a1 >= 0).all()
+    assert net.training  # restored
+    assert np.array_equal(agent.predict(obs), agent.predict(obs))
+
+
+def test_render_at_pose_matches_nodes_and_differs_between_them():
+    env = hex_env()
+    base = env.unwrapped
+    x, y = base.topology.positions[10]
+    h = float(base.topology.directions[2])
+    assert np.array_equal(base.render_at_pose(x, y, h), base.observe_pose(10, 2))
+    between = base.render_at_pose(x + 0.5, y, h)
+    assert between.shape == (3, 12, 48) and not np.array_equal(between, base.observe_pose(10, 2))
+    assert np.array_equal(between, base.render_at_pose(x + 0.5, y, h + 2 * np.pi))
+
+
+def test_probe_grid_inside_masks():
+    hexa = probe_grid(topo.hexagonal().positions)
+    assert hexa.inside.shape == (25, 25) and hexa.inside.all()  # the hexagonal maze is convex
+    t = topo.tmaze_paper()
+    g = probe_grid(t.positions, cells=True, nx=14, ny=12)
+    # 12 cells in a 7x6 bounding box, 2x2 bins per cell
+    assert g.inside.sum() == 12 * 4
+    pts = g.points()
+    d = np.abs(pts[:, None, :] - t.positions[None]).max(axis=2).min(axis=1)
+    assert (d <= 0.5).all()
+
+
+def test_offline_probe_grid_equals_online(tmp_path, monkeypatch):
+    monkeypatch.setenv("COBEL_CACHE", str(tmp_path / "cache"))
+    from cobelrun.render import cache
+
+    online = hex_env()
+    grid = probe_grid(online.topology.positions, nx=5, ny=4)
+    heads = np.deg2rad([0.0, 90.0])
+    want = online.observe_grid(grid.points(), heads)
+    assert want.shape == (20, 2, 3, 12, 48)
+    with cache.building_mode():  # the graph's own views are not cached here: bind lazily
+        offline = hex_env(render="offline")
+    with pytest.raises(CobelError, match="no render cache"):
+        offline.observe_grid(grid.points(), heads)
+    module = offline.observation_module
+    cache.build(module.cache_request(grid.points(), heads), jobs=1)
+    assert np.array_equal(offline.observe_grid(grid.points(), heads), want)
+
+    # with the cache there, an online env reads it instead of rendering
+    def no_render(*args):
+        raise AssertionError("rendered although the cache exists")
+
+    node_view = online.observe_pose(7, 0)
+    monkeypatch.setattr(online.observation_module, "render_raw_at", no_render)
+    assert np.array_equal(online.observe_grid(grid.points(), heads), want)
+    x, y = grid.points()[3]
+    assert np.array_equal(offline.render_at_pose(x, y, heads[1]), want[3, 1])
+    cache.build(module.cache_request(), jobs=1)  # the graph's views
+    with pytest.raises(CobelError, match="not in the loaded render caches"):
+        offline.render_at_pose(x + 0.01, y, heads[1])
+    node_x, node_y = offline.topology.positions[7]
+    assert np.array_equal(offline.render_at_pose(node_x, node_y, 0.0), node_view)
+
+
+TINY = ["task=place_cells", "task.runs=1", "task.protocol.phases.0.trials=3",
+        "task.protocol.max_steps=8", "agent.learning_starts=4", "task.monitors.maps.every=2",
+        "task.monitors.maps.grid=[6,5]"]  # fmt: skip
+
+
+def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    pytest.importorskip("pynwb")
+    nwbinspector = pytest.importorskip("nwbinspector")
+    out = cobel("run", *TINY)
+    assert out.returncode == 0, out.stderr
+    run_dir = out.stdout.strip().splitlines()[-1]
+    df, grid = load_activity_maps(run_dir)
+    assert set(df.columns) == {"run", "trial", "layer", "unit", "heading", "ix", "iy", "x", "y",
+                               "value"}  # fmt: skip
+    assert sorted(df["trial"].unique()) == [0, 2, 3]  # before training, every 2nd, the last
+    assert (df["layer"] == "analysis").all() and df["unit"].nunique() == 50
+    assert sorted(df["heading"].unique()) == [0, 60, 120, 180, 240, 300]
+    maps, explored, _, _ = maps_array(df[df["trial"] == 3], grid)
+    assert maps.shape == (50, 6, 5, 6) and explored.all()
+
+    exported = cobel("export", "nwb", run_dir)
+    assert exported.returncode == 0, exported.stderr
+    path = exported.stdout.strip().splitlines()[-1]
+    bad = [m for m in nwbinspector.inspect_nwbfile(path)
+           if m.importance.name in ("CRITICAL", "BEST_PRACTICE_VIOLATION", "PYNWB_VALIDATION",
+                                    "ERROR")]  # fmt: skip
+    assert not bad, [(m.check_function_name, m.message) for m in bad]
+    from pynwb import NWBHDF5IO
+
+    with NWBHDF5IO(path, "r") as io:
+        f = io.read()
+        assert len(f.trials) == 3
+        assert f.processing["behavior"]["Position"]["position"].rate == 10.0
+        table = f.processing["network"]["activity_maps_analysis"]
+        assert table["maps"].data.shape == (3 * 50, 6, 5, 6)
+        assert np.allclose(table["maps"].data[2 * 50 + 7], maps[7])
+        assert "place cells" in f.keywords[:]
+        assert f.subject.subject_id == "DQNAgent-run0"
+
+
+@pytest.mark.slow
+def test_place_cells_task_offline_equals_online(cobel, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    env = {"COBEL_CACHE": str(tmp_path / "cache")}
+    online = cobel("run", *TINY)
+    assert online.returncode == 0, online.stderr
+    built = cobel("render-cache", *TINY, "--jobs", "1", env=env)
+    assert built.returncode == 0, built.stderr
+    assert "30 probe positions x 6 headings" in built.stdout
+    off = cobel("run", *TINY, "env.observation.render=offline", env=env)
+    assert off.returncode == 0, off.stderr
+    df_on, _ = load_activity_maps(online.stdout.strip().splitlines()[-1])
+    df_off, _ = load_activity_maps(off.stdout.strip().splitlines()[-1])
+    pd.testing.assert_frame_equal(df_on, df_off)
+
+
+def test_nwb_export_of_a_tabular_run(cobel, tmp_path):
+    pytest.importorskip("pynwb")
+    nwbinspector = pytest.importorskip("nwbinspector")
+    out = cobel("run", "task=tmaze_extinction", "task.runs=2",
+                "task.protocol.phases.0.trials=5", "task.protocol.phases.1.trials=5")  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    run_dir = out.stdout.strip().splitlines()[-1]
+    exported = cobel("export", "nwb", run_dir, "--out", str(tmp_path / "nwb"))
+    assert exported.returncode == 0, exported.stderr
+    files = exported.stdout.strip().splitlines()
+    assert [f.rsplit("/", 1)[-1] for f in files] == ["run_0000.nwb", "run_0001.nwb"]
+    for path in files:
+        msgs = list(nwbinspector.inspect_nwbfile(path))
+        assert not [m for m in msgs if m.importance.name in ("CRITICAL", "BEST_PRACTICE_VIOLATION",
+                                                              "PYNWB_VALIDATION", "ERROR")]  # fmt: skip
+    from pynwb import NWBHDF5IO
+
+    with NWBHDF5IO(files[1], "r") as io:
+        f = io.read()
+        trials = f.trials.to_dataframe()
+        assert len(trials) == 10 and set(trials["phase"]) == {"acquisition", "extinction"}
+        assert "network" not in f.processing
+    missing = cobel("export", "nwb", str(tmp_path / "nope"))
+    assert missing.returncode == 2 and "does not exist" in missing.stderr

@@ -78,7 +78,8 @@ class _RepeatFilter(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         key = record.getMessage()
-        if "No space left on device" in key or "Read-only file system" in key:
+        if any(m in key for m in ("No space left on device", "Read-only file system",
+                                  "AttemptedWriteAfterFail")):  # fmt: skip
             return False  # the run fails with one line that says so
         if key in self._seen:
             return False

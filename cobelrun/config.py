@@ -129,6 +129,23 @@ def _check_type(where: str, value: Any, annotation: Any) -> None:
     raise ConfigError(f"{where} must be {wanted}, got {value!r}")
 
 
+def _check_null(where: str, annotation: Any, param: inspect.Parameter) -> None:
+    """``null`` is allowed where the annotation admits None, the default is None, or nothing
+    is declared; elsewhere it is one line naming the key (instead of a TypeError deep inside
+    the target)."""
+    if param.default is None or annotation in (inspect.Parameter.empty, Any, None, type(None)):
+        return
+    if isinstance(annotation, str):  # an unresolved forward reference: cannot tell
+        return
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _check_null(where, typing.get_args(annotation)[0], param)
+    if origin in (typing.Union, types.UnionType):
+        if any(a is type(None) or a is Any for a in typing.get_args(annotation)):
+            return
+    raise ConfigError(f"{where} must not be null")
+
+
 def _parameters(target: Any) -> tuple[dict[str, inspect.Parameter], dict[str, Any]]:
     """A callable's parameters and type hints; for a class whose ``__init__`` passes
     ``**kwargs`` on to its base class, the base's parameters too (so they are checked)."""
@@ -187,6 +204,8 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
             )
         if isinstance(value, Mapping) and "_target_" in value:
             validate_node(f"{where}.{key}", value)
+        elif value is None:
+            _check_null(f"{where}.{key}", hints.get(key, params[key].annotation), params[key])
         else:
             _check_type(f"{where}.{key}", value, hints.get(key, params[key].annotation))
 

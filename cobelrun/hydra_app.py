@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cobelrun.config import GROUPS, builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+from cobelrun.safety import check_inside, results_root
 
 
 def _check_choices(parsed: list[Any], config_dir: Path | None = None) -> None:
@@ -34,8 +35,11 @@ def _check_choices(parsed: list[Any], config_dir: Path | None = None) -> None:
         options = group_options(key, config_dir)
         values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
         for value in values:
-            if value is None and key != "task":
-                continue
+            if value is None:
+                raise ConfigError(
+                    f"{key} must name a config, got null; allowed: {allowed_list(options)} "
+                    f"(see `cobel list {key}`)"
+                )
             if not isinstance(value, str) or value not in options:
                 raise ConfigError(
                     f"unknown {key} {value!r}{suggest(str(value), options)}; "
@@ -64,6 +68,30 @@ def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> s
         )
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     return first
+
+
+def yaml_error(exc: BaseException) -> str | None:
+    """One line naming the file, line and column of a YAML syntax error in ``exc`` (or its
+    causes), or None when ``exc`` is not one."""
+    import yaml
+
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, yaml.YAMLError):
+            mark = getattr(cur, "problem_mark", None) or getattr(cur, "context_mark", None)
+            problem = getattr(cur, "problem", None) or str(cur).strip().splitlines()[0]
+            context = getattr(cur, "context", None)
+            what = f"{context}: {problem}" if context else str(problem)
+            if mark is None:
+                return f"YAML syntax error: {what}"
+            return (
+                f"YAML syntax error in {mark.name}, line {mark.line + 1}, column "
+                f"{mark.column + 1}: {what}"
+            )
+        cur = cur.__cause__ or cur.__context__
+    return None
 
 
 def _writable_root(path: Path) -> None:
@@ -150,6 +178,9 @@ def composer(
         except MissingConfigException as exc:
             raise ConfigError(str(exc).strip().splitlines()[0]) from None
         except HydraException as exc:
+            yaml_msg = yaml_error(exc)
+            if yaml_msg is not None:
+                raise ConfigError(yaml_msg) from None
             base_cfg = None
             try:  # the config without the bad override, to list the keys that are allowed
                 plain = [o for o in overrides if o.split("=", 1)[0] in GROUPS]
@@ -157,6 +188,12 @@ def composer(
             except HydraException:
                 pass
             raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
+        except Exception as exc:  # YAML syntax errors, Hydra's ValueErrors on odd overrides
+            msg = yaml_error(exc)
+            if msg is None:
+                lines = str(exc).strip().splitlines()
+                msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
+            raise ConfigError(msg) from None
 
     from hydra import version
 
@@ -201,9 +238,19 @@ def validate(
             out = OmegaConf.select(cfg, "hydra.run.dir")
         except Exception as exc:  # interpolation errors in the output folder pattern
             raise ConfigError(f"cannot resolve hydra.run.dir: {exc}") from None
+        if not str(out or "").strip():
+            raise ConfigError("hydra.run.dir must name a folder, got an empty string")
         _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
-    build_task(job_cfg, probe_agent=True)
+    try:
+        build_task(job_cfg, probe_agent=True)
+    except CobelError:
+        raise
+    except Exception as exc:  # a value no check anticipated: still one line, nothing written
+        lines = str(exc).strip().splitlines()
+        raise ConfigError(
+            f"invalid config: {type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+        ) from exc
     return cfg, jobs
 
 
@@ -287,6 +334,7 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     """
     import traceback
 
+    import cobelrun.sweep as sweep
     from cobelrun.runner import run
     from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
     from cobelrun.sweep import write_job_status as status
@@ -294,17 +342,27 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     subdir = str(hc.sweep.subdir)
     num = int(subdir) if subdir.isdigit() else int(hc.job.num)
     fields = {"job": num, "overrides": list(hc.overrides.task)}
+    sweep_dir = Path(str(hc.sweep.dir))
     wants_number = cfg.task.get("objective") is not None  # optimising sweepers need a float
     try:
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
             return job_result(run_dir, wants_number)
+        if sweep.stop_requested(sweep_dir):  # the sweep is stopping: do not start
+            status(run_dir, "interrupted", error="the sweep was stopped before this job started",
+                   **fields)  # fmt: skip
+            return float("nan") if wants_number else "interrupted"
         clear_outputs(run_dir)
         status(run_dir, "running", config_hash=chash, **fields)
         run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
     except KeyboardInterrupt:
+        # the files are closed and the manifest says interrupted; later jobs must not start
+        # (in-process launchers run them in this process), and the launcher reports it
         status(run_dir, "interrupted", **fields)
-        raise
+        sweep.request_stop(sweep_dir, "a job was interrupted")
+        if sweep._PARENT_PID is not None and os.getppid() != sweep._PARENT_PID:
+            os._exit(130)  # the launcher is gone: this worker must not linger
+        return float("nan") if wants_number else "interrupted"
     except Exception as exc:
         status(run_dir, "failed", error=one_line(exc), traceback=traceback.format_exc(), **fields)
         print(f"cobel: job {num} failed: {one_line(exc)}", file=sys.stderr)
@@ -357,10 +415,29 @@ def sweep_folder(overrides: list[str], cfg: DictConfig, jobs: list[dict]) -> tup
 
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     if "hydra.sweep.dir" in keys:
-        return [], Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
-    root = Path(os.environ.get("COBEL_RESULTS") or "results")
-    sweep_dir = (root / str(cfg.task.name) / "sweeps" / sweep_id(jobs)).absolute()
+        given = str(OmegaConf.select(cfg, "hydra.sweep.dir") or "")
+        if not given.strip():
+            raise ConfigError("hydra.sweep.dir must name a folder, got an empty string")
+        return [], Path(given).expanduser().absolute()
+    root = results_root()
+    sweep_dir = check_inside(root / str(cfg.task.name) / "sweeps" / sweep_id(jobs), root,
+                             "the sweep folder")  # fmt: skip
     return [f"hydra.sweep.dir={_quote(str(sweep_dir))}"], sweep_dir
+
+
+def run_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path]:
+    """A single run's folder, absolute and resolved, and the override that pins it.
+
+    Unless ``hydra.run.dir`` is given, the folder must stay inside the results root
+    (``$COBEL_RESULTS`` or ``./results``), also through symlinks.
+    """
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    out = Path(str(OmegaConf.select(cfg, "hydra.run.dir"))).expanduser()
+    if "hydra.run.dir" in keys:
+        path = out.absolute()
+    else:
+        path = check_inside(out, results_root())
+    return [f"hydra.run.dir={_quote(str(path))}"], path
 
 
 def report_sweep(sweep_dir: Path) -> int:
@@ -448,11 +525,12 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
     if not informational:
+        results_root()  # COBEL_RESULTS="" is refused before anything is composed
         cfg, jobs = validate(overrides, multirun, user_dir, config_name)
         if multirun and foreign_sweeper(overrides):
             keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
             if "hydra.sweep.dir" not in keys:
-                root = Path(os.environ.get("COBEL_RESULTS") or "results")
+                root = results_root()
                 name = f"{foreign_sweeper(overrides)}_{time.strftime('%Y-%m-%d_%H-%M-%S')}"
                 sweep_dir = (root / str(cfg.task.name) / "sweeps" / name).absolute()
                 parsed.overrides = [*overrides, f"hydra.sweep.dir={_quote(str(sweep_dir))}"]
@@ -467,16 +545,141 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             _writable_root(sweep_dir)
             parsed.overrides = [*overrides, *extra]
             os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])
-    _run_hydra(
-        args=parsed,
-        args_parser=parser,
-        task_function=job,
-        config_path=str(config_dir),
-        config_name=config_name,
-    )
-    if sweep_dir is not None:
-        return report_sweep(sweep_dir)
-    return 0
+        else:
+            extra, _ = run_folder(overrides, cfg)
+            parsed.overrides = [*overrides, *extra]
+    if sweep_dir is None:
+        _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                   config_path=str(config_dir), config_name=config_name)  # fmt: skip
+        return 0
+    from cobelrun.sweep import SweepLock, clear_stop
+
+    with SweepLock(sweep_dir), SweepStopper(sweep_dir, jobs) as stopper:
+        clear_stop(sweep_dir)
+        try:
+            _run_hydra(args=parsed, args_parser=parser, task_function=job,
+                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
+        except KeyboardInterrupt:
+            if stopper.signum is None:
+                raise
+            _release_workers()  # the third signal: the pool's workers are killed
+        finally:
+            stopper.finish()
+        if stopper.stopped:
+            return stopper.report()
+    return report_sweep(sweep_dir)
+
+
+def _release_workers() -> None:
+    try:
+        from hydra_plugins.cobel_sweeper.cobel_sweeper import _release_joblib_workers
+    except ImportError:
+        return
+    _release_joblib_workers()
+
+
+class SweepStopper:
+    """Ctrl-C and SIGTERM in a sweep's launcher: stop every job cleanly, orphan nothing.
+
+    The first signal writes the sweep's stop file (jobs that start later see it and stop at
+    once) and sends SIGTERM to the process of every running job (again each second until it
+    has stopped, in case it was between jobs), so each job closes its files and says
+    ``interrupted``; the launcher then gets every job's result as usual, its workers are shut
+    down, and the jobs that never started are marked ``interrupted``. Further signals only
+    print that the sweep is stopping.
+    """
+
+    def __init__(self, sweep_dir: Path, jobs: list[dict]) -> None:
+        import threading
+
+        self.sweep_dir = sweep_dir
+        self.jobs = [int(j["job"]) for j in jobs]
+        self.signum: int | None = None
+        self._noticed = False
+        self._count = 0
+        self._previous: dict[int, Any] = {}
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def stopped(self) -> bool:
+        from cobelrun.sweep import stop_requested
+
+        return self.signum is not None or stop_requested(self.sweep_dir)
+
+    def __enter__(self) -> SweepStopper:
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        self.finish()
+        for sig, prev in self._previous.items():
+            signal.signal(sig, prev)
+        self._previous.clear()
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        import threading
+
+        from cobelrun.sweep import request_stop
+
+        if self.signum is not None:
+            self._count += 1
+            if self._count >= 3:  # a job does not stop: the third signal stops them all now
+                print("cobel: stopping the sweep's workers now", file=sys.stderr)
+                raise KeyboardInterrupt
+            if not self._noticed:
+                self._noticed = True
+                print("cobel: stopping the sweep, please wait (a third signal kills the jobs)",
+                      file=sys.stderr)  # fmt: skip
+            return
+        self._count = 1
+        self.signum = signum
+        request_stop(self.sweep_dir, f"signal {signum}")
+        print("cobel: stopping the sweep: running jobs close their files, the others do not "
+              "start", file=sys.stderr)  # fmt: skip
+        self._thread = threading.Thread(target=self._forward, daemon=True)
+        self._thread.start()
+
+    def _forward(self) -> None:
+        import signal
+
+        from cobelrun.sweep import running_pids
+
+        while not self._done.is_set():
+            for pid in running_pids(self.sweep_dir, self.jobs).values():
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGTERM)
+            self._done.wait(1.0)
+
+    def finish(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def report(self) -> int:
+        """Mark jobs that never started, rebuild the index, print one line; exit code 130."""
+        from cobelrun.sweep import clear_stop, job_rows, mark_not_started, read_json, summary
+
+        mark_not_started(self.sweep_dir, self.jobs, "the sweep was stopped before this job started")
+        clear_stop(self.sweep_dir)
+        try:
+            counts = summary(job_rows(self.sweep_dir))
+        except CobelError:
+            counts = {}
+        command = (read_json(self.sweep_dir / "sweep.json") or {}).get("command", "")
+        done = counts.get("done", 0)
+        print(f"cobel: interrupted; {done} of {len(self.jobs)} jobs done; resume with: {command}",
+              file=sys.stderr)  # fmt: skip
+        return 130
 
 
 register_resolvers()  # also in worker processes that unpickle `job`
+# a log file that cannot be written (a full disk, a read-only folder) must not print a
+# traceback per message: the run itself fails with one line that names the problem
+logging.raiseExceptions = False

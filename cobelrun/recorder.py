@@ -12,6 +12,7 @@ drops rows that were already taken from a buffer.
 from __future__ import annotations
 
 import collections
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -438,16 +439,17 @@ class RunRecorder:
         """Write what is buffered, wait for the writer thread, finish every file (further
         signals are held off until the files are complete)."""
         with self.guard.closing():
-            try:
-                for table in self._sinks:
-                    self._flush(table)
-            finally:
+            steps = [*(functools.partial(self._flush, t) for t in self._sinks), self._writer.close,
+                     *(sink.writer.close for sink in self._sinks.values())]  # fmt: skip
+            if self.agents is not None:
+                steps.append(self.agents.close)
+            if self.mcap is not None:
+                steps.append(self.mcap.close)
+            first: BaseException | None = None
+            for step in steps:  # every file is finished even when another one fails (full disk)
                 try:
-                    self._writer.close()
-                finally:
-                    for sink in self._sinks.values():
-                        sink.writer.close()
-                    if self.agents is not None:
-                        self.agents.close()
-                    if self.mcap is not None:
-                        self.mcap.close()
+                    step()
+                except BaseException as exc:
+                    first = first or exc
+            if first is not None:
+                raise first

@@ -129,4 +129,48 @@ def load_collected(
         p = p / f"{table}.parquet"
     if not p.is_file():
         raise CobelError(f"{p} does not exist; run `cobel collect SWEEP_DIR` first")
-    return pd.read_parquet(p, columns=columns, filters=filters)
+    check_collected(p)
+    try:
+        return pd.read_parquet(p, columns=columns, filters=filters)
+    except Exception as exc:  # a column or filter the file lacks, or a damaged file
+        raise CobelError(f"cannot read {p}: {str(exc).strip().splitlines()[0]}") from None
+
+
+def check_collected(path: str | Path) -> dict[str, str]:
+    """Check a file written by ``cobel collect`` before trusting it; returns its swept columns.
+
+    It must be a readable Parquet file whose metadata names its swept columns
+    (``cobel.swept``), with an int32 ``job`` column first, every swept column present, and
+    the key columns of a run table (``run``, ``trial``) as integers. Anything else (a file
+    from elsewhere, one cut short, a schema edited by hand) is a one-line CobelError naming
+    the file and the command that rewrites it.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    p = Path(path)
+    again = f"rewrite it with `cobel collect {p.parent.parent}`"
+    try:
+        schema = pq.read_schema(p)
+    except Exception as exc:
+        raise CobelError(f"{p} is not a readable Parquet file ({str(exc).splitlines()[0]}); "
+                         f"{again}") from None  # fmt: skip
+    meta = schema.metadata or {}
+    try:
+        swept = json.loads(meta[b"cobel.swept"])
+        assert isinstance(swept, dict)
+    except (KeyError, ValueError, AssertionError):
+        raise CobelError(f"{p} was not written by `cobel collect` (no cobel.swept metadata); "
+                         f"{again}") from None  # fmt: skip
+    names = schema.names
+    if not names or names[0] != "job" or not pa.types.is_int32(schema.field("job").type):
+        raise CobelError(f"{p}: the first column must be 'job' (int32); {again}")
+    missing = [c for c in swept if c not in names]
+    if missing:
+        raise CobelError(f"{p} lacks the swept columns {missing}; {again}")
+    for key in ("run", "trial"):
+        if key in names and not pa.types.is_integer(schema.field(key).type):
+            raise CobelError(
+                f"{p}: column '{key}' must hold integers, not {schema.field(key).type}; {again}"
+            )
+    return swept

@@ -20,11 +20,13 @@ import cobelrun
 from cobelrun.config import instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
+from cobelrun.io.atomic import atomic_write_text, disk_error, is_disk_error
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
+from cobelrun.safety import check_memory, check_name
 from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
@@ -59,7 +61,11 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     With ``probe_agent`` one agent is constructed and dropped, so that errors in the agent's
     parameters are reported before anything is written.
     """
+    _check_resolves(cfg)
     spec = validate_run(cfg)
+    check_name("task.name", spec.task.name)  # it names the output folder
+    if spec.task.protocol is not None:
+        check_memory(spec.task.protocol)
     objective = None
     if cfg.task.get("objective") is not None:
         objective = instantiate("task.objective", cfg.task.objective)
@@ -90,7 +96,14 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         monitors[str(name)] = monitor
     record = RecordConfig.from_spec(spec.task.record)
     if probe_agent or record.training_log:
-        probe = make_agent(seed=run_seed(spec.seed, 0)[0])  # constructor errors surface here
+        try:  # constructor errors surface here, before any output
+            probe = make_agent(seed=run_seed(spec.seed, 0)[0])
+        except CobelError:
+            raise
+        except Exception as exc:  # a value the agent's own checks did not anticipate
+            raise ConfigError(
+                f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
+            ) from exc
         if record.training_log and not callable(getattr(probe, "log_training", None)):
             raise ConfigError(
                 f"task.record.training_log needs a deep (SB3) agent such as agent=dqn; "
@@ -114,6 +127,25 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
         objective=objective,
     )
+
+
+def _check_resolves(cfg: Any) -> None:
+    """Every interpolation (``${...}``) of the config resolves; else one line naming the key."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not isinstance(cfg, DictConfig):
+        return
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        where = f"{key}: " if key else ""
+        raise ConfigError(f"{where}cannot resolve the value: {_first_line(exc)}") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else ""
 
 
 def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
@@ -285,21 +317,21 @@ def run(
     """
     run_dir = Path(run_dir)
     folder = RunFolder(run_dir)
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CobelError(f"cannot create output folder {run_dir}: {exc.strerror}") from None
     resolved = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(resolved, Mapping)
-    task = build_task(cfg)
-    folder.config.write_text(OmegaConf.to_yaml(OmegaConf.create(resolved)))
+    task = build_task(cfg)  # everything is checked before the folder is touched
     manifest = Manifest(run_dir)
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
         else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task)}
     )
-    manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(folder.config, OmegaConf.to_yaml(OmegaConf.create(resolved)))
+        manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
+    except OSError as exc:
+        raise CobelError(disk_error(exc, run_dir)) from None
     metadata = {"cobel.version": cobelrun.__version__, "cobel.seed": str(task.seed),
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
@@ -314,20 +346,55 @@ def run(
                 manifest.finish("interrupted")
             raise
         except BaseException as exc:
+            disk = is_disk_error(exc)
+            error = disk_error(exc, run_dir) if disk else f"{type(exc).__name__}: {exc}"
             with guard.closing():
-                manifest.finish("failed", error=f"{type(exc).__name__}: {exc}")
+                _finish_failed(manifest, error)
+            if disk:  # a full disk or a read-only folder is not a bug: one line, no traceback
+                raise CobelError(f"{error}; {_kept(folder)}") from exc
             raise
-        with guard.closing():
-            summary = {"job_result": result} if isinstance(result, Mapping) else {}
-            if phase_times:
-                summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
-            if task.objective is not None:
-                import pandas as pd
+        try:
+            with guard.closing():
+                summary = {"job_result": result} if isinstance(result, Mapping) else {}
+                if phase_times:
+                    summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
+                if task.objective is not None:
+                    import pandas as pd
 
-                summary["objective"] = float(
-                    task.objective(pd.read_parquet(folder.table("trials")))
+                    summary["objective"] = float(
+                        task.objective(pd.read_parquet(folder.table("trials")))
+                    )
+                    summary["objective_name"] = str(getattr(task.objective, "name", "objective"))
+                manifest.finish(
+                    "completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary
                 )
-                summary["objective_name"] = str(getattr(task.objective, "name", "objective"))
-            manifest.finish("completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary)
-            folder.done.write_text("completed\n")
+                folder.done.write_text("completed\n")
+        except OSError as exc:
+            error = disk_error(exc, run_dir)
+            with guard.closing():
+                _finish_failed(manifest, error)
+            raise CobelError(f"{error}; {_kept(folder)}") from exc
     return run_dir
+
+
+def _finish_failed(manifest: Manifest, error: str) -> None:
+    """Mark the manifest failed; on a disk that cannot take even that, the manifest keeps
+    saying ``running`` and ``cobel status`` marks it when it repairs the folder."""
+    try:
+        manifest.finish("failed", error=error)
+    except OSError:
+        pass
+
+
+def _kept(folder: RunFolder) -> str:
+    """What a failed run left readable (for the one-line error)."""
+    tables = folder.tables()
+    parts = folder.unfinished_tables()
+    what = []
+    if tables:
+        what.append(f"tables {', '.join(tables)}")
+    if parts:
+        what.append(
+            f"parts of {', '.join(parts)} (free space, then `cobel status {folder.path}` merges them)"
+        )
+    return "kept: " + ("; ".join(what) if what else "nothing was written yet")

@@ -425,3 +425,156 @@ def collect(
                 tmp.unlink()
         written[table] = target
     return written
+
+
+# -- stopping a sweep and keeping it to one launcher ----------------------------------------------
+
+#: written by the launcher when it is asked to stop (Ctrl-C, SIGTERM); jobs that start later see
+#: it and stop at once, marked ``interrupted``
+STOP_FILE = ".stop"
+#: the advisory lock (``fcntl.flock``) a launcher holds on its sweep folder; holds its pid
+LOCK_FILE = ".lock"
+
+
+class SweepLock:
+    """An exclusive advisory lock on a sweep folder, held while one ``cobel run -m`` launches it.
+
+    A second launcher into the same folder is refused with the holder's pid instead of running
+    the same jobs twice (each overwriting the other's files). The lock is the kernel's
+    (``fcntl.flock``): it goes away with the process that holds it, also on SIGKILL, so a stale
+    lock file never blocks a resume.
+    """
+
+    def __init__(self, sweep_dir: str | os.PathLike[str]) -> None:
+        self.path = Path(sweep_dir) / LOCK_FILE
+        self._fd: int | None = None
+
+    def acquire(self) -> SweepLock:
+        import fcntl
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = ""
+            try:
+                holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip()
+            finally:
+                os.close(fd)
+            pid, _, host = holder.partition(" ")
+            who = (f"pid {pid}" + (f" on {host}" if host else "")) if pid else "pid unknown"
+            raise CobelError(
+                f"sweep folder {self.path.parent} is in use by another `cobel run -m` ({who}); "
+                "wait for it to finish or stop it, then run the command again to resume"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            import fcntl
+
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> SweepLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def stop_requested(sweep_dir: Path) -> bool:
+    """True once the sweep's launcher was asked to stop."""
+    return (Path(sweep_dir) / STOP_FILE).exists()
+
+
+def request_stop(sweep_dir: Path, reason: str) -> None:
+    """Tell jobs that have not started yet not to start (idempotent)."""
+    path = Path(sweep_dir) / STOP_FILE
+    if not path.exists():
+        try:
+            _write_json_atomic(path, {"reason": reason, "pid": os.getpid(), "at": _now()})
+        except OSError:
+            pass
+
+
+def clear_stop(sweep_dir: Path) -> None:
+    (Path(sweep_dir) / STOP_FILE).unlink(missing_ok=True)
+
+
+def running_pids(sweep_dir: Path, jobs: Iterable[int]) -> dict[int, int]:
+    """job -> pid of each job whose ``job.json`` says it is running in a live process here."""
+    out = {}
+    host = socket.gethostname()
+    for num in jobs:
+        state = read_json(job_dir(sweep_dir, num) / JOB_FILE) or {}
+        pid = state.get("pid")
+        if state.get("status") == "running" and state.get("host") == host and isinstance(pid, int):
+            if pid != os.getpid() and _alive(pid):
+                out[num] = pid
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def mark_not_started(sweep_dir: Path, jobs: Iterable[int], reason: str) -> int:
+    """Mark jobs still ``queued`` as ``interrupted`` (they never started); returns how many."""
+    n = 0
+    for num in jobs:
+        d = job_dir(sweep_dir, num)
+        if (read_json(d / JOB_FILE) or {}).get("status") == "queued":
+            write_job_status(d, "interrupted", error=reason)
+            n += 1
+    return n
+
+
+_PARENT_PID: int | None = None
+
+
+def worker_init() -> None:
+    """Initializer of sweep worker processes (joblib/loky).
+
+    * An idle worker ignores SIGINT and SIGTERM: a Ctrl-C in the terminal reaches every process
+      of the group, and a worker that died of it between jobs would make the pool kill the
+      others while they finish their files. A running job takes the signals itself
+      (:class:`cobelrun.recorder.SignalGuard`) and stops cleanly.
+    * On Linux the worker gets SIGTERM when the launcher dies (even of SIGKILL): its running job
+      stops cleanly, and an idle worker whose launcher is gone exits, so none is orphaned.
+    """
+    import signal
+
+    global _PARENT_PID
+    _PARENT_PID = os.getppid()
+
+    def idle(signum: int, frame: Any) -> None:
+        if os.getppid() != _PARENT_PID:  # the launcher is gone: do not linger as an orphan
+            os._exit(128 + signum)
+
+    signal.signal(signal.SIGINT, idle)
+    signal.signal(signal.SIGTERM, idle)
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != _PARENT_PID:  # the launcher died before prctl took effect
+        os._exit(1)

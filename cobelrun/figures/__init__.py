@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from cobelrun.errors import CobelError
+from cobelrun.io.atomic import atomic_path, disk_error
 
 #: plot modules by task name (``cobel plot`` picks one from the run's manifest); each has
 #: ``plot_run(run_dir, out=None) -> Path`` (``plot_run(run_dir, out=None, *others)``
@@ -53,9 +54,10 @@ def save_figure(fig: Any, out: Path, *, dpi: int = 150) -> Path:
 
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=dpi)
+        with atomic_path(out) as tmp:  # readers never see half a figure
+            fig.savefig(tmp, dpi=dpi)
     except OSError as exc:
-        raise CobelError(f"cannot write {out}: {exc.strerror}") from None
+        raise CobelError(disk_error(exc, out)) from None
     finally:
         plt.close(fig)
     return out

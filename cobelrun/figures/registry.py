@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-import os
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from typing import Any
 import pandas as pd
 
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+from cobelrun.io.atomic import atomic_path, disk_error
 
 FIGURE_DIR = "figures"
 RUN_STORE = "runs"
@@ -193,7 +193,9 @@ def get(name: str) -> Figure:
 
 
 def results_root() -> Path:
-    return Path(os.environ.get("COBEL_RESULTS") or "results")
+    from cobelrun.safety import results_root as root
+
+    return root()  # COBEL_RESULTS="" is refused (it used to mean /)
 
 
 @contextlib.contextmanager
@@ -292,12 +294,15 @@ def build(
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
             files = {"png": out_dir / f"{stem}.png", "pdf": out_dir / f"{stem}.pdf"}
-            fig.savefig(files["png"], dpi=300)
-            fig.savefig(files["pdf"])
             files["csv"] = out_dir / f"{stem}.csv"
-            table.to_csv(files["csv"], index=False)
+            with atomic_path(files["png"]) as tmp:  # readers never see half a file
+                fig.savefig(tmp, dpi=300)
+            with atomic_path(files["pdf"]) as tmp:
+                fig.savefig(tmp)
+            with atomic_path(files["csv"]) as tmp:
+                table.to_csv(tmp, index=False)
         except OSError as exc:
-            raise CobelError(f"cannot write figure files to {out_dir}: {exc.strerror}") from None
+            raise CobelError(disk_error(exc, out_dir)) from None
         finally:
             plt.close(fig)
     return files

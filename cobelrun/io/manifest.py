@@ -178,14 +178,32 @@ def _now() -> _dt.datetime:
 
 
 def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
+    """Write ``data`` as JSON to ``path`` through a temporary file and a rename.
+
+    On a full disk (ENOSPC/EDQUOT) the temporary copy may not fit next to the old file; then
+    the old file is overwritten in place (its blocks are reused), so that a run on a full disk
+    can still record why it failed.
+    """
+    import errno
+
+    text = json.dumps(_plain(data), indent=2, ensure_ascii=False, default=str) + "\n"
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(_plain(data), f, indent=2, ensure_ascii=False, default=str)
-            f.write("\n")
+            f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT) or not path.is_file():
+            raise
+        if tmp.exists():
+            tmp.unlink()  # give its blocks back first
+        with open(path, "r+", encoding="utf-8") as f:
+            f.write(text)
+            f.truncate()
+            f.flush()
+            os.fsync(f.fileno())
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -29,6 +29,7 @@ records and ``mcap.writer.Writer``.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import struct
@@ -63,6 +64,31 @@ from foxglove.messages import (
     Timestamp,
     Vector3,
 )
+
+
+class _RepeatFilter(logging.Filter):
+    """Lets each distinct message through once: on a full disk foxglove-sdk logs one warning
+    per dropped message, hundreds of thousands of lines (those are dropped: the run's error
+    line says the disk is full)."""
+
+    def __init__(self, limit: int = 1000) -> None:
+        super().__init__()
+        self._seen: set[str] = set()
+        self._limit = limit
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = record.getMessage()
+        if any(m in key for m in ("No space left on device", "Read-only file system",
+                                  "AttemptedWriteAfterFail")):  # fmt: skip
+            return False  # the run fails with one line that says so
+        if key in self._seen:
+            return False
+        if len(self._seen) < self._limit:
+            self._seen.add(key)
+        return True
+
+
+logging.getLogger("foxglove.log_sink_set").addFilter(_RepeatFilter())
 
 if TYPE_CHECKING:
     from cobelrun.envs.base import Geometry
@@ -420,7 +446,12 @@ class McapRecorder:
         if self._closed:
             return
         self._closed = True
-        self._writer.close()
+        try:
+            self._writer.close()
+        finally:
+            # a writer whose close failed (a full disk) is dropped now, while Python runs:
+            # foxglove-sdk's writer logs from its destructor, which panics at interpreter exit
+            self._writer = None
 
     def __enter__(self) -> McapRecorder:
         return self

@@ -14,6 +14,7 @@ rows written with the default row groups.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 from collections.abc import Mapping
@@ -255,12 +256,16 @@ _IPC_OPTIONS = pa.ipc.IpcWriteOptions(compression="zstd")
 
 def _write_part(table: pa.Table, path: Path) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
-    with (
-        pa.OSFile(str(tmp), "wb") as sink,
-        pa.ipc.new_file(sink, table.schema, options=_IPC_OPTIONS) as w,
-    ):
-        w.write_table(table)
-    os.replace(tmp, path)
+    try:
+        with (
+            pa.OSFile(str(tmp), "wb") as sink,
+            pa.ipc.new_file(sink, table.schema, options=_IPC_OPTIONS) as w,
+        ):
+            w.write_table(table)
+        os.replace(tmp, path)
+    finally:  # a failed write (full disk) leaves no temporary file taking space
+        if tmp.exists():
+            tmp.unlink()
 
 
 class PartedTableWriter:
@@ -373,10 +378,19 @@ class PartedTableWriter:
         if self._closed:
             return
         self._closed = True
-        self._write_row_groups()
-        assert self._pq is not None
-        self._pq.close()
-        os.replace(self._tmp, self.path)
+        try:
+            self._write_row_groups()
+            assert self._pq is not None
+            self._pq.close()
+            os.replace(self._tmp, self.path)
+        except BaseException:
+            # the parts hold every row: drop the unfinished file (it takes the space a repair
+            # needs) and keep the parts for merge_parts (`cobel status RUN_DIR`)
+            with contextlib.suppress(Exception):
+                if self._pq is not None:
+                    self._pq.close()
+            self._tmp.unlink(missing_ok=True)
+            raise
         _remove_parts(self.parts_dir)
 
 
@@ -404,25 +418,29 @@ def merge_parts(
     tmp = path.with_name(f".{path.name}.tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
     rows = 0
-    with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
-        pending: list[pa.RecordBatch] = []
-        n_pending = 0
-        for part in parts:
-            with pa.OSFile(str(part), "rb") as src:
-                reader = pa.ipc.open_file(src)
-                for i in range(reader.num_record_batches):
-                    batch = reader.get_batch(i)
-                    pending.append(batch)
-                    n_pending += batch.num_rows
-                    if n_pending >= row_group_rows:
-                        writer.write_table(pa.Table.from_batches(pending, schema=schema),
-                                           row_group_size=row_group_rows)  # fmt: skip
-                        rows += n_pending
-                        pending, n_pending = [], 0
-        if pending:
-            writer.write_table(pa.Table.from_batches(pending, schema=schema))
-            rows += n_pending
-    os.replace(tmp, path)
+    try:
+        with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
+            pending: list[pa.RecordBatch] = []
+            n_pending = 0
+            for part in parts:
+                with pa.OSFile(str(part), "rb") as src:
+                    reader = pa.ipc.open_file(src)
+                    for i in range(reader.num_record_batches):
+                        batch = reader.get_batch(i)
+                        pending.append(batch)
+                        n_pending += batch.num_rows
+                        if n_pending >= row_group_rows:
+                            writer.write_table(pa.Table.from_batches(pending, schema=schema),
+                                               row_group_size=row_group_rows)  # fmt: skip
+                            rows += n_pending
+                            pending, n_pending = [], 0
+            if pending:
+                writer.write_table(pa.Table.from_batches(pending, schema=schema))
+                rows += n_pending
+        os.replace(tmp, path)
+    finally:  # a failed merge (full disk) keeps the parts and leaves no temporary file
+        if tmp.exists():
+            tmp.unlink()
     _remove_parts(parts_dir)
     return rows
 

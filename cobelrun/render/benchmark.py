@@ -54,6 +54,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cobelrun.envs.observations import ImageObservation
 from cobelrun.errors import CobelError, ConfigError
+from cobelrun.io.atomic import atomic_path, atomic_write_text
 
 #: Fig. 4's image sizes (height, width).
 SIZES: tuple[tuple[int, int], ...] = ((20, 80), (30, 120), (45, 180), (60, 240), (75, 300))
@@ -471,8 +472,10 @@ class FrameTimeBenchmark:
             if tmp is not None:
                 shutil.rmtree(tmp, ignore_errors=True)
         table = pd.DataFrame(rows)
-        table.to_csv(run_dir / TABLE, index=False)
-        summarize(table).to_csv(run_dir / POINTS, index=False)
+        with atomic_path(run_dir / TABLE) as tmp:
+            table.to_csv(tmp, index=False)
+        with atomic_path(run_dir / POINTS) as tmp:
+            summarize(table).to_csv(tmp, index=False)
         rat = ratios(table)
 
         def by_point(col: str) -> dict[str, float]:
@@ -492,7 +495,7 @@ class FrameTimeBenchmark:
             "offline_over_none": by_point("offline_over_none"),
             "cache_build_s": {f"{h}x{w}": b for (h, w), b in builds.items()},
         }
-        (run_dir / SUMMARY).write_text(json.dumps(summary, indent=1))
+        atomic_write_text(run_dir / SUMMARY, json.dumps(summary, indent=1))
         if self.plot:
             import matplotlib
 

@@ -26,6 +26,7 @@ import json
 import os
 import sys
 import time
+import zlib
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from cobelrun.errors import CobelError
+from cobelrun.io.atomic import atomic_write_text
 from cobelrun.render.scene import CameraSpec, SceneSpec, pybullet_version, spec_hash
 
 #: Bump when the cache layout or the scene-building code changes what pixels a key means.
@@ -120,6 +122,40 @@ def _file(folder: Path, version: str) -> Path:
     return folder / f"pybullet-{version}.npy"
 
 
+def _sums_file(path: Path) -> Path:
+    """The checksums of a cache file: ``pybullet-<version>.npy.crc32.json``."""
+    return path.with_name(path.name + ".crc32.json")
+
+
+def block_checksums(images: np.ndarray) -> list[int]:
+    """CRC-32 of each node's frame block (``images[i]``: every heading of node ``i``)."""
+    flat = np.ascontiguousarray(images).reshape(images.shape[0], -1)
+    return [zlib.crc32(flat[i].data) for i in range(flat.shape[0])]
+
+
+def check_blocks(path: Path, images: np.ndarray) -> None:
+    """Compare every frame block of a loaded cache with the checksums written with it; a
+    one-line CobelError naming the first corrupted node and the rebuild command."""
+    rebuild = f"rebuild it with: {build_hint()} --force"
+    try:
+        sums = json.loads(_sums_file(path).read_text())["crc32"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise CobelError(
+            f"render cache {path} has no readable checksums ({_sums_file(path).name}), so it "
+            f"cannot be trusted; {rebuild}"
+        ) from None
+    found = block_checksums(images)
+    if len(sums) != len(found):
+        raise CobelError(f"render cache {path} has {len(found)} frame blocks but checksums for "
+                         f"{len(sums)}; {rebuild}")  # fmt: skip
+    for node, (want, got) in enumerate(zip(sums, found, strict=True)):
+        if int(want) != got:
+            raise CobelError(
+                f"render cache {path} is corrupted: the frames of node {node} do not match their "
+                f"checksum; {rebuild}"
+            )
+
+
 def build_hint() -> str:
     """The command that builds the cache for the current run (from ``sys.argv`` when possible)."""
     argv = [a for a in sys.argv[1:]]
@@ -172,6 +208,7 @@ def load(request: CacheRequest) -> np.ndarray:
             f"render cache {path} holds {images.shape} {images.dtype}, expected {want} uint8; "
             f"rebuild it with: {build_hint()}"
         )
+    check_blocks(path, images)
     images.setflags(write=False)
     return images
 
@@ -280,9 +317,18 @@ def build(
         )
     folder.mkdir(parents=True, exist_ok=True)
     tmp = folder / f".{path.name}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as fh:
-        np.save(fh, images, allow_pickle=False)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            np.save(fh, images, allow_pickle=False)
+        # checksums first: a crash between the two renames leaves a cache that fails its
+        # check (rebuild), never one that is served unchecked
+        atomic_write_text(
+            _sums_file(path), json.dumps({"block": "node", "crc32": block_checksums(images)})
+        )
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     meta = {
         "key": request.key(),
         "pybullet": version,
@@ -291,7 +337,7 @@ def build(
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
         **request.payload(),
     }
-    (folder / "meta.json").write_text(json.dumps(meta, indent=1))
+    atomic_write_text(folder / "meta.json", json.dumps(meta, indent=1))
     return path, True
 
 

@@ -19,10 +19,12 @@ and rebuilds the index (``jobs.csv``) at the end.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +75,7 @@ class CobelSweeper(BasicSweeper):
             job_rows,
             one_line,
             plan,
+            stop_requested,
             write_job_status,
             write_sweep,
         )
@@ -130,11 +133,19 @@ class CobelSweeper(BasicSweeper):
         try:
             first = 0
             for batch in batches:
+                if stop_requested(sweep_dir):  # stopped (Ctrl-C, SIGTERM): launch no more
+                    break
                 try:
-                    results = self.launcher.launch(batch, initial_job_idx=first)
+                    with _worker_setup(self.launcher):
+                        results = self.launcher.launch(batch, initial_job_idx=first)
                 except Exception as exc:  # the launcher itself failed (e.g. a killed SLURM job)
-                    log.error(f"launcher error: {one_line(exc)}")
-                    _fail_unfinished(sweep_dir, self.launched, f"launcher error: {one_line(exc)}")
+                    if stop_requested(sweep_dir):
+                        _fail_unfinished(sweep_dir, self.launched, "the sweep was stopped",
+                                         status="interrupted")  # fmt: skip
+                    else:
+                        log.error(f"launcher error: {one_line(exc)}")
+                        _fail_unfinished(sweep_dir, self.launched,
+                                         f"launcher error: {one_line(exc)}")  # fmt: skip
                     results = []
                 for r in results:
                     if r.status == JobStatus.FAILED:  # raised outside cobel's job function
@@ -209,14 +220,41 @@ def _release_joblib_workers() -> None:
             pass
 
 
-def _fail_unfinished(sweep_dir: Path, nums: list[int], error: str) -> None:
+def _fail_unfinished(sweep_dir: Path, nums: list[int], error: str, status: str = "failed") -> None:
     from cobelrun.sweep import JOB_FILE, job_dir, read_json, write_job_status
 
     for n in nums:
         d = job_dir(sweep_dir, n)
         state = read_json(d / JOB_FILE) or {}
         if state.get("status") not in FINAL:
-            write_job_status(d, "failed", error=error)
+            write_job_status(d, status, error=error)
+
+
+@contextlib.contextmanager
+def _worker_setup(launcher: Any) -> Iterator[None]:
+    """For joblib's process pool: each worker runs :func:`cobelrun.sweep.worker_init` (idle
+    workers ignore Ctrl-C; workers stop when the launcher dies). Other launchers: nothing.
+
+    Hydra's joblib launcher always asks joblib for the backend named ``loky`` (it builds the
+    ``Parallel`` itself), so for the duration of the launch that name gives a loky backend with
+    the initializer (joblib's public ``register_parallel_backend``), and the original after.
+    """
+    if type(launcher).__name__ != "JoblibLauncher":
+        yield
+        return
+    import functools
+
+    from joblib import parallel
+    from joblib._parallel_backends import LokyBackend
+
+    from cobelrun.sweep import worker_init
+
+    original = parallel.BACKENDS.get("loky", LokyBackend)
+    parallel.register_parallel_backend("loky", functools.partial(original, initializer=worker_init))
+    try:
+        yield
+    finally:
+        parallel.register_parallel_backend("loky", original)
 
 
 class _Watcher:

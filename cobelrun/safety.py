@@ -1,0 +1,173 @@
+"""Checks that keep a run from writing where it must not or allocating what the machine lacks.
+
+All of them run before any output folder exists (``cobel run``'s up-front validation and
+:func:`cobelrun.runner.build_task`), and each problem is one :class:`~cobelrun.errors.CobelError`
+line:
+
+* :func:`check_name`: task names become folder names, so they are limited to a safe character
+  set (``task.name=../../x`` is refused);
+* :func:`results_root` / :func:`check_inside`: the output root is non-empty (``COBEL_RESULTS=""``
+  is refused rather than writing to ``/``), absolute after resolution, and a run folder must stay
+  inside it, also through symlinks;
+* :func:`estimate_memory` / :func:`check_memory`: what a task's largest batch of trial records
+  would allocate, refused with the estimate and the limit when it exceeds the memory available.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from cobelrun.errors import CobelError, ConfigError
+
+__all__ = [
+    "BYTES_PER_STEP",
+    "SAFE_NAME",
+    "available_memory",
+    "check_inside",
+    "check_memory",
+    "check_name",
+    "estimate_memory",
+    "format_bytes",
+    "results_root",
+]
+
+#: task and run names: letters, digits, ``_``, ``-`` and ``.``, starting with a letter or digit
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}")
+#: the environment variable that sets the results root
+RESULTS_ENV = "COBEL_RESULTS"
+#: bytes held per simulated step of a phase's trial batch: the agent's step records (state,
+#: action, next state, reward: 4 x 8 B, allocated for trials x max_steps by compiled agents,
+#: then copied), the poses (3 x 8 B) and the steps table's columns before they are written
+BYTES_PER_STEP = 128
+#: share of the available memory a run may plan to use for one batch
+MEMORY_SHARE = 0.8
+
+
+def check_name(where: str, name: Any) -> str:
+    """``name`` if it is a safe folder name, else a one-line ConfigError naming ``where``."""
+    if not isinstance(name, str) or SAFE_NAME.fullmatch(name) is None:
+        shown = repr(name) if len(repr(name)) <= 60 else repr(name)[:57] + "..."
+        raise ConfigError(
+            f"{where} must be a name of letters, digits, '_', '-' and '.' (starting with a "
+            f"letter or digit, at most 100 characters), got {shown}"
+        )
+    return name
+
+
+def results_root(environ: Mapping[str, str] | None = None) -> Path:
+    """The results root: ``$COBEL_RESULTS`` or ``./results``, absolute and resolved.
+
+    ``COBEL_RESULTS`` set to an empty (or blank) string is refused: it used to put results
+    under ``/``.
+    """
+    env = os.environ if environ is None else environ
+    raw = env.get(RESULTS_ENV)
+    if raw is not None and not raw.strip():
+        raise CobelError(
+            f"{RESULTS_ENV} is set but empty; unset it (results go to ./results) or name a folder"
+        )
+    return Path(raw if raw is not None else "results").expanduser().absolute().resolve()
+
+
+def check_inside(path: Path, root: Path, what: str = "the run folder") -> Path:
+    """``path`` made absolute and resolved (symlinks followed); a CobelError if that is not
+    inside ``root`` (resolved too), e.g. through ``..`` or a symlink that points elsewhere."""
+    resolved = Path(path).expanduser().absolute().resolve()
+    base = Path(root).expanduser().absolute().resolve()
+    if resolved != base and not resolved.is_relative_to(base):
+        raise CobelError(
+            f"{what} {path} resolves to {resolved}, outside the results root {base}; "
+            "refusing to write there (a '..' in a name or a symlink that leaves the root)"
+        )
+    return resolved
+
+
+# -- memory ---------------------------------------------------------------------------------
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (``MemAvailable``, capped by a cgroup
+    limit and ``RLIMIT_AS``), or None where that cannot be read."""
+    found: list[int] = []
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    found.append(int(line.split()[1]) * 1024)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 2**60:
+            found.append(int(text))
+        break
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY and soft > 0:
+            found.append(int(soft))
+    except (ImportError, OSError, ValueError):
+        pass
+    if os.environ.get("COBEL_MEMORY_LIMIT", "").strip():
+        found.append(_parse_bytes(os.environ["COBEL_MEMORY_LIMIT"]))
+    return min(found) if found else None
+
+
+def _parse_bytes(text: str) -> int:
+    m = re.fullmatch(r"\s*([0-9.]+)\s*([KMGT]?)i?B?\s*", text, re.IGNORECASE)
+    if m is None:
+        raise CobelError(f"COBEL_MEMORY_LIMIT must be a size like 8G or 512M, got {text!r}")
+    scale = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}[m.group(2).upper()]
+    return int(float(m.group(1)) * scale)
+
+
+def format_bytes(n: float) -> str:
+    """``12.3 GiB``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.1f} PiB"  # pragma: no cover
+
+
+def estimate_memory(protocol: Any) -> tuple[int, str]:
+    """(bytes, what) of the largest batch of trial records a protocol's phases allocate.
+
+    A phase's trials run as one batch whose step records are held until it is recorded;
+    compiled agents allocate ``trials x max_steps`` steps up front. ``protocol`` is a
+    :class:`cobelrun.schema.ProtocolSpec` (or anything with ``max_steps`` and ``phases``).
+    """
+    worst, what = 0, ""
+    for i, phase in enumerate(protocol.phases):
+        steps = int(phase.max_steps or protocol.max_steps)
+        need = int(phase.trials) * steps * BYTES_PER_STEP
+        if need > worst:
+            worst = need
+            what = (
+                f"task.protocol.phases[{i}] ({phase.name!r}: {int(phase.trials):,} trials x "
+                f"{steps:,} max_steps x {BYTES_PER_STEP} B)"
+            )
+    return worst, what
+
+
+def check_memory(protocol: Any, limit: int | None = None) -> None:
+    """Refuse a protocol whose largest trial batch would not fit the memory available."""
+    need, what = estimate_memory(protocol)
+    limit = available_memory() if limit is None else limit
+    if limit is None or need <= MEMORY_SHARE * limit:
+        return
+    raise ConfigError(
+        f"{what} would allocate about {format_bytes(need)} for its trial records, more than "
+        f"the {format_bytes(MEMORY_SHARE * limit)} this run may use ({int(MEMORY_SHARE * 100)}% "
+        f"of {format_bytes(limit)} available); lower the trials or max_steps, or split the "
+        "phase into several"
+    )

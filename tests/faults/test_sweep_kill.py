@@ -1,0 +1,226 @@
+"""Stop real ``cobel run -m`` sweeps at seeded random points: no orphans, true statuses, and a
+resume that completes the rest to the same tables as an uninterrupted sweep.
+
+SIGINT goes to the whole process group (as a terminal's Ctrl-C does), SIGTERM and SIGKILL to
+the launcher only (as ``kill PID`` or a scheduler does). The default suite runs the lock test;
+``-m slow`` runs one stop per signal and the seeded series (``SWEEP_KILL_SEEDS``, default 100 kill points).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pandas as pd
+import psutil
+import pytest
+
+from tests.conftest import cobel_exe
+
+ARGS = ["-m", "task=tmaze_extinction", "task.runs=120", "task.record.flush_seconds=0.2",
+        "task.save_agents=false", "seed=1,2,3", "hydra.launcher.n_jobs=2"]  # fmt: skip
+KEY = ["job", "run", "trial"]
+#: counts for the closing note (printed with -s)
+FIGURES = {"faults": 0, "survived": 0, "rows_lost": 0}
+
+
+def env_for(root: Path) -> dict[str, str]:
+    env = {**os.environ, "COBEL_RESULTS": str(root)}
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+def sweep_dir(root: Path) -> Path:
+    found = sorted((root / "tmaze_extinction" / "sweeps").glob("*"))
+    assert len(found) == 1, found
+    return found[0]
+
+
+def collected(root: Path) -> dict[str, pd.DataFrame]:
+    d = sweep_dir(root)
+    proc = subprocess.run([*cobel_exe(), "collect", str(d)], env=env_for(root),
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    out = {}
+    for t in ("trials", "steps"):
+        frame = pd.read_parquet(d / "collected" / f"{t}.parquet")
+        keys = [*KEY, "step"] if t == "steps" else KEY
+        out[t] = frame.sort_values(keys).reset_index(drop=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> dict[str, pd.DataFrame]:
+    root = tmp_path_factory.mktemp("reference")
+    proc = subprocess.run([*cobel_exe(), "run", *ARGS], env=env_for(root), capture_output=True,
+                          text=True, timeout=600)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return collected(root)
+
+
+def descendants(pid: int) -> list[psutil.Process]:
+    try:
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+def stop_sweep(root: Path, seed: int, sig: int) -> tuple[subprocess.Popen, str, list[int]]:
+    """Start the sweep, wait until a job has handed rows to disk, sleep a seeded moment, send
+    ``sig``; returns the process, its stderr and the pids of its process tree at the signal."""
+    rng = random.Random(seed)
+    proc = subprocess.Popen([*cobel_exe(), "run", *ARGS], env=env_for(root),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # fmt: skip
+    deadline = time.time() + 180
+    while time.time() < deadline and proc.poll() is None:
+        if list(root.glob("tmaze_extinction/sweeps/*/*/.parts/trials")):
+            break
+        time.sleep(0.05)
+    time.sleep(rng.uniform(0.0, 3.0))
+    tree = [p.pid for p in descendants(proc.pid)]
+    if sig == signal.SIGINT:
+        os.killpg(proc.pid, sig)  # a terminal's Ctrl-C reaches every process of the group
+    else:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=300)
+    return proc, err, tree
+
+
+def assert_no_orphans(tree: list[int]) -> None:
+    deadline = time.time() + 20
+    alive = tree
+    while time.time() < deadline:
+        alive = [p for p in tree if psutil.pid_exists(p)
+                 and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]  # fmt: skip
+        if not alive:
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"orphaned processes: {[psutil.Process(p).cmdline() for p in alive]}")
+
+
+def check_prefix(found: pd.DataFrame, ref: pd.DataFrame, what: str) -> None:
+    """``found`` (one job's table) must be the first rows of ``ref`` (the same job's rows of the
+    uninterrupted sweep, in run, trial, step order)."""
+    keys = ["run", "trial", "step"] if "step" in found else ["run", "trial"]
+    assert not found.duplicated(subset=keys).any(), what
+    found = found.sort_values(keys).reset_index(drop=True)
+    expect = ref.iloc[: len(found)].reset_index(drop=True)
+    pd.testing.assert_frame_equal(found[expect.columns], expect, check_dtype=False, obj=what)
+
+
+def check_statuses(root: Path, reference: dict[str, pd.DataFrame]) -> dict[str, int]:
+    """Every job's status is true: completed jobs hold their whole tables, interrupted ones a
+    prefix of the reference (no row changed or duplicated), jobs that never ran hold nothing."""
+    d = sweep_dir(root)
+    status = subprocess.run([*cobel_exe(), "status", str(d)], env=env_for(root),
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert "Traceback" not in status.stderr, status.stderr
+    counts: dict[str, int] = {}
+    for job in range(3):
+        jd = d / str(job)
+        state = json.loads((jd / "job.json").read_text())["status"]
+        counts[state] = counts.get(state, 0) + 1
+        ref = {t: f[f["job"] == job].drop(columns=["job", "seed"]).reset_index(drop=True)
+               for t, f in reference.items()}  # fmt: skip
+        manifest = (
+            json.loads((jd / "manifest.json").read_text())
+            if (jd / "manifest.json").exists()
+            else None
+        )
+        if state == "completed":
+            assert (jd / ".done").exists() and manifest["status"] == "completed"
+            trials = pd.read_parquet(jd / "trials.parquet")
+            assert len(trials) == len(ref["trials"])
+        elif state == "interrupted":
+            assert not (jd / ".done").exists()
+            if manifest is not None:  # it had started: its files are closed and readable
+                assert manifest["status"] == "interrupted", manifest["status"]
+                assert not (jd / ".parts").exists()
+                for t in ("trials", "steps"):
+                    if (jd / f"{t}.parquet").exists():
+                        frame = pd.read_parquet(jd / f"{t}.parquet")
+                        check_prefix(frame, ref[t], f"job {job} {t}")
+        else:
+            assert state == "queued" and manifest is None, (job, state)
+    return counts
+
+
+def resume_matches(root: Path, reference: dict[str, pd.DataFrame]) -> None:
+    proc = subprocess.run([*cobel_exe(), "run", *ARGS], env=env_for(root), capture_output=True,
+                          text=True, timeout=600)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    got = collected(root)
+    for t, ref in reference.items():
+        pd.testing.assert_frame_equal(got[t][ref.columns], ref, check_dtype=False, obj=t)
+
+
+CASES = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL}
+
+
+def run_case(tmp_path: Path, reference, case: str, seed: int) -> None:
+    root = tmp_path / "results"
+    proc, err, tree = stop_sweep(root, seed, CASES[case])
+    if not tree and proc.returncode == 0:
+        pytest.skip("the sweep finished before the signal")  # a fast machine, a late kill point
+    FIGURES["faults"] += 1
+    assert tree, "the sweep had no worker processes"
+    if case == "sigkill":
+        assert proc.returncode == -signal.SIGKILL
+    elif proc.returncode == 0:
+        pytest.skip("the sweep finished before the signal")
+    else:
+        assert proc.returncode == 130, err
+        assert "Traceback" not in err, err
+        assert "cobel: interrupted;" in err and "resume with: cobel run -m" in err, err
+    assert_no_orphans(tree)
+    check_statuses(root, reference)
+    resume_matches(root, reference)
+    FIGURES["survived"] += 1
+
+
+@pytest.mark.slow  # about a minute each on a loaded 2-core machine
+@pytest.mark.parametrize("case", list(CASES))
+def test_stopped_sweep(tmp_path, reference, case):
+    run_case(tmp_path, reference, case, seed=7)
+
+
+SEEDS = int(os.environ.get("SWEEP_KILL_SEEDS", "100"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(SEEDS))
+def test_stopped_sweep_seeded(tmp_path, reference, seed):
+    case = list(CASES)[seed % 3]
+    run_case(tmp_path, reference, case, seed=1000 + seed)
+    print(f"sweep {case} seed {seed}: survived; totals {FIGURES}")
+
+
+def test_second_sweep_into_the_same_folder_is_refused(tmp_path):
+    root = tmp_path / "results"
+    first = subprocess.Popen([*cobel_exe(), "run", *ARGS[:-2], "seed=1", "task.runs=2000"],
+                             env=env_for(root), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.time() + 180
+        while time.time() < deadline and not list(
+            root.glob("tmaze_extinction/sweeps/*/0/job.json")
+        ):
+            time.sleep(0.05)
+        second = subprocess.run([*cobel_exe(), "run", *ARGS[:-2], "seed=1", "task.runs=2000"],
+                                env=env_for(root), capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert second.returncode == 2, second.stderr
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and "is in use by another `cobel run -m` (pid " in lines[0]
+        assert f"pid {first.pid}" in lines[0], lines[0]
+    finally:
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=300)
+    assert first.returncode == 130
+    job = json.loads((sweep_dir(root) / "0" / "job.json").read_text())
+    assert job["status"] in ("interrupted", "completed")

@@ -27,14 +27,12 @@ import pandas as pd
 
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.run_folder import RunFolder
+from cobelrun.run_summary import LAST_TRIALS, summary  # noqa: F401 (re-exported)
 
 __all__ = [
     "Run", "compose", "default_run_dir", "load", "load_sweep", "make_env", "rerun", "run",
     "summary",
 ]  # fmt: skip
-
-#: trials over which the summary's "last" columns are averaged
-LAST_TRIALS = 10
 
 
 @dataclass
@@ -128,46 +126,6 @@ class Run:
 
     def __repr__(self) -> str:
         return f"Run({str(self.path)!r})"
-
-
-def summary(trials: pd.DataFrame, last: int = LAST_TRIALS) -> pd.DataFrame:
-    """Per phase (in protocol order): runs, trials per run, and the means over every run of
-    the phase's last ``last`` trials of reward, latency (``steps``) and ``response``, where
-    those columns exist.
-
-    Parameters
-    ----------
-    trials
-        A ``trials`` table (one run folder).
-    last
-        How many of each phase's last trials the means cover.
-
-    Returns
-    -------
-    pandas.DataFrame
-        Columns ``phase``, ``runs``, ``trials`` and ``reward``/``latency``/``response``
-        (``last`` trials' means) where the table has them.
-    """
-    if trials.empty:
-        return pd.DataFrame(columns=["phase", "runs", "trials"])
-    rows = []
-    order = trials.drop_duplicates("phase", keep="first").sort_values("trial")["phase"]
-    columns = {"reward": "reward", "steps": "latency", "response": "response"}
-    for phase in order:
-        part = trials[trials["phase"] == phase]
-        per_run = part.groupby("run")["trial"].nunique()
-        tail_start = part["trial"].max() - last + 1
-        tail = part[part["trial"] >= tail_start]
-        row: dict[str, Any] = {
-            "phase": str(phase),
-            "runs": int(part["run"].nunique()),
-            "trials": int(per_run.max()),
-        }
-        for col, name in columns.items():
-            if col in tail:
-                row[name] = float(tail[col].astype(float).mean())
-        rows.append(row)
-    return pd.DataFrame(rows)
 
 
 def default_run_dir(task: str) -> Path:

@@ -14,7 +14,13 @@ from typing import Annotated, Any
 
 import typer
 
-from cobelrun.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, debug_enabled, fail
+from cobelrun.commands.common import (
+    EXIT_INTERRUPTED,
+    EXIT_USER_ERROR,
+    STATUS_STYLE,
+    debug_enabled,
+    fail,
+)
 from cobelrun.errors import CobelError
 
 app = typer.Typer(
@@ -229,16 +235,6 @@ _register_show(app)
 from cobelrun.commands.fit import register as _register_fit  # noqa: E402
 
 _register_fit(app)
-
-
-STATUS_STYLE = {
-    "done": "green",
-    "failed": "bold red",
-    "interrupted": "yellow",
-    "running": "cyan",
-    "queued": "cyan",
-    "missing": "dim",
-}
 
 
 @app.command("status")

@@ -318,7 +318,7 @@ def log_end(run_dir: Path) -> None:
     if folder.table("trials").is_file() and manifest.get("status") == "completed":
         import pandas as pd
 
-        from cobelrun.api import summary
+        from cobelrun.run_summary import summary
 
         for row in summary(pd.read_parquet(folder.table("trials"))).to_dict("records"):
             LOG.info("phase %s: %s", row.pop("phase"),

@@ -34,6 +34,7 @@ from typing import Any
 
 from cobelrun.errors import CobelError
 from cobelrun.io.manifest import DONE_MARKER, _write_json_atomic, config_hash
+from cobelrun.io.repair import pid_alive
 from cobelrun.io.run_folder import RunFolder
 
 SWEEP_FILE = "sweep.json"
@@ -515,22 +516,9 @@ def running_pids(sweep_dir: Path, jobs: Iterable[int]) -> dict[int, int]:
         state = read_json(job_dir(sweep_dir, num) / JOB_FILE) or {}
         pid = state.get("pid")
         if state.get("status") == "running" and state.get("host") == host and isinstance(pid, int):
-            if pid != os.getpid() and _alive(pid):
+            if pid != os.getpid() and pid_alive(pid):
                 out[num] = pid
     return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except (OSError, IndexError):
-        return True
 
 
 def mark_not_started(sweep_dir: Path, jobs: Iterable[int], reason: str) -> int:

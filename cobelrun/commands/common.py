@@ -12,6 +12,16 @@ from typing import NoReturn
 
 import typer
 
+#: rich styles of job statuses in status tables
+STATUS_STYLE = {
+    "done": "green",
+    "failed": "bold red",
+    "interrupted": "yellow",
+    "running": "cyan",
+    "queued": "cyan",
+    "missing": "dim",
+}
+
 #: exit code of a user error (bad config, name or folder)
 EXIT_USER_ERROR = 2
 #: exit code of a run stopped by Ctrl-C or SIGTERM

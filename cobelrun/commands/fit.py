@@ -93,7 +93,7 @@ def register(app: typer.Typer) -> None:
             typer.Option("--out", "-o", help="Where to write the estimates (default fit.json)."),
         ] = None,
     ) -> None:
-        from cobelrun.cli import fail
+        from cobelrun.commands.common import fail
         from cobelrun.errors import CobelError
 
         try:

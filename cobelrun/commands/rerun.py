@@ -39,7 +39,7 @@ def register(app: typer.Typer) -> None:
         quiet: Annotated[bool, typer.Option("--quiet", help="No end-of-run summary.")] = False,
     ) -> None:
         from cobelrun.api import rerun
-        from cobelrun.cli import EXIT_INTERRUPTED, fail
+        from cobelrun.commands.common import EXIT_INTERRUPTED, fail
         from cobelrun.errors import CobelError
         from cobelrun.progress import progress_enabled
 

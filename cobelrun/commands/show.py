@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
             bool, typer.Option("--no-png", help="Only the terminal drawing.")
         ] = False,
     ) -> None:
-        from cobelrun.cli import fail
+        from cobelrun.commands.common import fail
         from cobelrun.errors import CobelError
 
         try:

@@ -12,8 +12,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from cobelrun.api import LAST_TRIALS, summary
 from cobelrun.io.run_folder import RunFolder
+from cobelrun.run_summary import LAST_TRIALS, summary
 
 
 def _console() -> Any:
@@ -96,7 +96,7 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     """Print a sweep's job table: swept values, status, wall time and objective."""
     from rich.table import Table
 
-    from cobelrun.cli import STATUS_STYLE
+    from cobelrun.commands.common import STATUS_STYLE
     from cobelrun.sweep import job_rows, read_sweep
 
     sweep_dir = Path(sweep_dir)

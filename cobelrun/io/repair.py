@@ -17,7 +17,7 @@ from typing import Any
 
 from cobelrun.io.run_folder import RunFolder
 
-__all__ = ["is_alive", "repair_run"]
+__all__ = ["is_alive", "pid_alive", "repair_run"]
 
 
 def is_alive(manifest: dict[str, Any]) -> bool:
@@ -28,15 +28,18 @@ def is_alive(manifest: dict[str, Any]) -> bool:
     pid = manifest.get("pid")
     if not isinstance(pid, int) or pid <= 0:
         return False
-    if pid == os.getpid():
-        return True
+    return pid == os.getpid() or pid_alive(pid)
+
+
+def pid_alive(pid: int) -> bool:
+    """True if process ``pid`` runs on this host (a zombie, killed but not yet reaped by its
+    parent, does not count)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    # a zombie (killed, not yet reaped by its parent) is not alive
     try:
         return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
     except (OSError, IndexError):

@@ -424,6 +424,9 @@ def _shell_completion_args(argv: list[str]) -> list[str] | None:
 
 def main() -> None:
     """Console-script entry point."""
+    import cobelrun.signals
+
+    cobelrun.signals.HOLD_AFTER_STOP = True  # a stopped run exits 130, whatever comes after
     try:
         forwarded = _shell_completion_args(sys.argv[1:])
         app(args=forwarded) if forwarded is not None else app()

@@ -20,6 +20,11 @@ __all__ = ["Interrupted", "SignalGuard", "critical"]
 
 _ACTIVE: SignalGuard | None = None
 
+#: Set by the ``cobel`` CLI: once a run was stopped, further SIGINT/SIGTERM are ignored until
+#: the process exits (so a late second Ctrl-C cannot turn exit code 130 into a kill). A
+#: library caller (notebook) keeps its own handlers back.
+HOLD_AFTER_STOP = False
+
 
 def critical() -> contextlib.AbstractContextManager[None]:
     """A critical section of the active guard (none installed: a no-op)."""
@@ -38,6 +43,7 @@ class SignalGuard:
 
     def __init__(self) -> None:
         self._depth = 0
+        self._stopped = False
         self._pending: int | None = None
         self._closing = False
         self._noticed = False
@@ -52,7 +58,7 @@ class SignalGuard:
         if self._depth:
             self._pending = signum
             return
-        self._closing = True  # the run is stopping: later signals must not cut the shutdown
+        self._closing = self._stopped = True  # later signals must not cut the shutdown
         raise Interrupted(signum)
 
     @contextlib.contextmanager
@@ -70,8 +76,9 @@ class SignalGuard:
             yield self
         finally:
             _ACTIVE = outer
+            hold = self._stopped and HOLD_AFTER_STOP
             for sig, prev in self._previous.items():
-                signal.signal(sig, prev)
+                signal.signal(sig, signal.SIG_IGN if hold else prev)
             self._previous.clear()
 
     @contextlib.contextmanager
@@ -83,7 +90,7 @@ class SignalGuard:
             self._depth -= 1
         if not self._depth and self._pending is not None and not self._closing:
             signum, self._pending = self._pending, None
-            self._closing = True
+            self._closing = self._stopped = True
             raise Interrupted(signum)
 
     @contextlib.contextmanager
@@ -96,6 +103,7 @@ class SignalGuard:
             self._closing = was
         if self._pending is not None and not was:
             signum, self._pending = self._pending, None
+            self._stopped = True
             raise Interrupted(signum)
 
 

@@ -21,17 +21,16 @@ authors' code. See ``docs/replay.md`` for the equations and the departures from 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
-from cobelrun.agents.policy import check_policy, select
-from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
+from cobelrun.agents.base import ArraySpec, SeedLike, Transition
+from cobelrun.agents.policy import check_policy
+from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayAgent, empty_replays
 from cobelrun.errors import ConfigError, check_choice
-from cobelrun.records import TrialBatch
 
 REPLAY_WHEN = ("start_and_goal", "start", "goal", "off")
 NEED = ("sr", "stationary")
@@ -49,7 +48,7 @@ def stationary_distribution(T: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-class PMA(Agent):
+class PMA(ReplayAgent):
     """Tabular Q-learning with prioritized memory access (Mattar & Daw 2018).
 
     Parameters
@@ -197,19 +196,8 @@ class PMA(Agent):
         return stationary_distribution(self.T)
 
     # -- action selection ------------------------------------------------------------------
-    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
-        """Behaviour policy: softmax(beta) or epsilon-greedy (random tie-break) over ``Q[s]``."""
-        return select(self.rng, self.Q[int(obs)], self.policy, self.epsilon, self.beta)
 
     # -- trials: the base class's step loop with these hooks --------------------------------
-    def _run(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        self._log = ReplayLog()
-        self._trial = -1
-        batch = super()._run(n_trials, max_steps, learn, callbacks)
-        self.last_replays = self._log.collect()
-        return batch
 
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         """The goal -> start wrap of ``T``, then the trial-start replay."""

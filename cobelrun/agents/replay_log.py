@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
+
+from cobelrun.agents.base import Agent, TrialCallback
+from cobelrun.agents.policy import select
+from cobelrun.records import TrialBatch
 
 #: fields of an agent's ``last_replays`` (one entry per backup), read by the replays monitor
 REPLAY_FIELDS = (
@@ -42,3 +49,28 @@ class ReplayLog:
 def empty_replays() -> dict[str, np.ndarray]:
     """A replay log without entries."""
     return {k: np.zeros(0, _DTYPES.get(k, np.int64)) for k in REPLAY_FIELDS}
+
+
+class ReplayAgent(Agent):
+    """Shared by the tabular replay agents (PMA, SFMA): the behaviour policy over ``Q[s]``
+    (``self.policy``, ``epsilon``, ``beta``) and a fresh :class:`ReplayLog` per call of the
+    base step loop, whose events end up in :attr:`last_replays` (the replays monitor reads them).
+    """
+
+    Q: np.ndarray
+    policy: str
+    epsilon: float
+    beta: float
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        """Behaviour policy: epsilon-greedy (random tie-break) or softmax(beta) over ``Q[s]``."""
+        return select(self.rng, self.Q[int(obs)], self.policy, self.epsilon, self.beta)
+
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        self._log = ReplayLog()
+        self._trial = -1
+        batch = super()._run(n_trials, max_steps, learn, callbacks)
+        self.last_replays = self._log.collect()
+        return batch

@@ -21,17 +21,16 @@ same matrix.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
-from cobelrun.agents.policy import check_policy, select
-from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayLog, empty_replays
+from cobelrun.agents.base import ArraySpec, SeedLike, Transition
+from cobelrun.agents.policy import check_policy
+from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayAgent, empty_replays
 from cobelrun.errors import ConfigError, check_choice
-from cobelrun.records import TrialBatch
 
 MODES = ("default", "reverse")
 SIMILARITY = ("dr", "euclidean")
@@ -50,7 +49,7 @@ def euclidean_similarity(coords: np.ndarray) -> np.ndarray:
     return np.exp(-d)
 
 
-class SFMA(Agent):
+class SFMA(ReplayAgent):
     """Tabular Q-learning with SFMA replay (Diekmann & Cheng 2023).
 
     Parameters
@@ -159,19 +158,7 @@ class SFMA(Agent):
         self._trial, self._state = -1, -1
         self.last_replays: dict[str, np.ndarray] = empty_replays()
 
-    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
-        """Behaviour policy: epsilon-greedy (random tie-break) or softmax over ``Q[s]``."""
-        return select(self.rng, self.Q[int(obs)], self.policy, self.epsilon, self.beta)
-
     # -- trials: the base class's step loop with these hooks --------------------------------
-    def _run(
-        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
-    ) -> TrialBatch:
-        self._log = ReplayLog()
-        self._trial = -1
-        batch = super()._run(n_trials, max_steps, learn, callbacks)
-        self.last_replays = self._log.collect()
-        return batch
 
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         self._trial += 1

@@ -37,6 +37,7 @@ from typing import Any, ClassVar
 import numba
 import numpy as np
 
+from cobelrun.envs.raycast import ray_distances
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 __all__ = [
@@ -285,30 +286,6 @@ class GridCells(SpatialCode):
 
 
 # ---------------------------------------------------------------------------- BVCs
-@numba.njit(cache=True)
-def _ray_distances(x: float, y: float, cos_a: np.ndarray, sin_a: np.ndarray,
-                   walls: np.ndarray, out: np.ndarray) -> None:  # fmt: skip
-    """Distance to the first wall along each direction (inf where none)."""
-    for j in range(cos_a.shape[0]):
-        dx, dy = cos_a[j], sin_a[j]
-        best = np.inf
-        for i in range(walls.shape[0]):
-            ex = walls[i, 2] - walls[i, 0]
-            ey = walls[i, 3] - walls[i, 1]
-            den = dx * ey - dy * ex
-            if den == 0.0:
-                continue
-            wx = walls[i, 0] - x
-            wy = walls[i, 1] - y
-            t = (wx * ey - wy * ex) / den
-            if t <= 0.0 or t >= best:
-                continue
-            u = (wx * dy - wy * dx) / den
-            if 0.0 <= u <= 1.0:
-                best = t
-        out[j] = best
-
-
 class BoundaryVectorCells(SpatialCode):
     """Allocentric boundary-vector cells (Hartley et al. 2000; RatInABox's BVCs).
 
@@ -385,14 +362,14 @@ class BoundaryVectorCells(SpatialCode):
         p = np.atleast_2d(poses)
         out = np.empty((len(p), len(self.test_angles)))
         for i in range(len(p)):
-            _ray_distances(p[i, 0], p[i, 1], self._cos, self._sin, self._walls, out[i])
+            ray_distances(p[i, 0], p[i, 1], self._cos, self._sin, self._walls, out[i])
         return out
 
     def rates(self, poses: np.ndarray) -> np.ndarray:
         return self._from_distances(self.wall_distances(poses))
 
     def write(self, x: float, y: float, heading: float, out: np.ndarray) -> None:
-        _ray_distances(x, y, self._cos, self._sin, self._walls, self._r)
+        ray_distances(x, y, self._cos, self._sin, self._walls, self._r)
         out[:] = self._from_distances(self._r[None])[0]
 
 

@@ -6,49 +6,19 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import gymnasium as gym
-import numba
 import numpy as np
 from gymnasium import spaces
 
 from cobelrun.envs.arena import Arena, Shape, points_in_polygon
 from cobelrun.envs.base import Geometry, check_action
 from cobelrun.envs.cells import CameraView, SpatialCode, build_observation
+from cobelrun.envs.raycast import move_kernel
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 MOVEMENTS = ("directions", "differential", "continuous")
 START_ORDERS = ("random", "shuffled")
 #: distance (world units) kept from a wall when a move is stopped by it
 WALL_MARGIN = 1e-6
-
-
-@numba.njit(cache=True, fastmath=False)
-def move_kernel(
-    x: float, y: float, dx: float, dy: float, walls: np.ndarray, margin: float
-) -> tuple[float, float, bool]:
-    """Move from ``(x, y)`` by ``(dx, dy)``, stopping ``margin`` before the first wall crossed.
-
-    ``walls`` is (m, 4) ``x0, y0, x1, y1``. Returns the new position and whether a wall was hit.
-    """
-    t_hit = 2.0
-    for i in range(walls.shape[0]):
-        ex = walls[i, 2] - walls[i, 0]
-        ey = walls[i, 3] - walls[i, 1]
-        den = dx * ey - dy * ex
-        if den == 0.0:
-            continue
-        wx = walls[i, 0] - x
-        wy = walls[i, 1] - y
-        t = (wx * ey - wy * ex) / den
-        if t < 0.0 or t > 1.0 or t >= t_hit:
-            continue
-        u = (wx * dy - wy * dx) / den
-        if 0.0 <= u <= 1.0:
-            t_hit = t
-    if t_hit > 1.0:
-        return x + dx, y + dy, False
-    length = np.sqrt(dx * dx + dy * dy)
-    t = max(t_hit - margin / length, 0.0)
-    return x + t * dx, y + t * dy, True
 
 
 def arc_step(heading: float, v: float, omega: float, dt: float) -> tuple[float, float, float]:

@@ -86,7 +86,6 @@ def tensorboard_available() -> bool:
     return True
 
 
-
 def conv_output_hw(
     height: int, width: int, convs: Sequence[Sequence[int]]
 ) -> list[tuple[int, int]]:

@@ -61,8 +61,10 @@ def test_optuna_sweeper_optimises_the_objective(cobel, tmp_path):
     assert all(0.0 <= v <= 1.0 for v in values)
 
 
-NLL_OBJECTIVE = ("+task.objective={_target_:cobelrun.objectives.ChoiceNLL,data:%s,"
-                 "learning_rate:${agent.learning_rate},beta:${agent.beta}}")
+NLL_OBJECTIVE = (
+    "+task.objective={_target_:cobelrun.objectives.ChoiceNLL,data:%s,"
+    "learning_rate:${agent.learning_rate},beta:${agent.beta}}"
+)
 TINY_RUN = ["task.runs=1", "task.protocol.phases.0.trials=3", "task.protocol.phases.1.trials=3",
             "task.record.mcap=false", "task.record.steps=false", "task.save_agents=false"]  # fmt: skip
 

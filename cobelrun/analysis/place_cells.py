@@ -14,11 +14,12 @@ Fig. 8). Each unit has one map per heading plus their mean (7 maps for 6 heading
 
 A map *passes* if it has between 1 and 4 blobs and the bounding box of its largest blob is not
 larger than ``0.5 x`` the bounding box of the explored area. The paper's settings
-(docs/paper-settings.md) do not say how two boxes are compared; the default compares extents (the blob's box is too large if its width exceeds half
-the explored box's width *or* its height half its height), so a band across the maze fails however
-thin it is. ``box_measure="area"`` compares areas instead. A unit is a place cell if
-all 7 maps pass and the peaks of the largest blobs of the heading maps all lie within 10 bins of
-one another (largest pairwise distance, ``peak_spread``).
+(docs/paper-settings.md) do not say how two boxes are compared; the default compares extents
+(the blob's box is too large if its width exceeds half the explored box's width *or* its height
+half its height), so a band across the maze fails however thin it is. ``box_measure="area"``
+compares areas instead. A unit is a place cell if all 7 maps pass and the peaks of the largest
+blobs of the heading maps all lie within 10 bins of one another (largest pairwise distance,
+``peak_spread``).
 
 Field metrics use the unit's mean map with uniform occupancy over the explored bins (the agent is
 placed at every position for the same time): Skaggs spatial information (Skaggs et al. 1993,
@@ -59,7 +60,8 @@ BOX_MEASURES = ("extent", "area")
 
 @dataclass(frozen=True)
 class PlaceCellCriterion:
-    """Parameters of the place-cell criterion (defaults: the paper's, docs/paper-settings.md Fig. 8).
+    """Parameters of the place-cell criterion (defaults: the paper's; docs/paper-settings.md,
+    Fig. 8).
 
     Attributes
     ----------

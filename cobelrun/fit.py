@@ -30,6 +30,7 @@ from cobelrun.errors import CobelError, ConfigError
 
 __all__ = [
     "PARAMS",
+    "ChoiceData",
     "FitResult",
     "fit_choices",
     "load_choices",
@@ -161,6 +162,61 @@ def load_choices(path: str | Path) -> pd.DataFrame:
     return data
 
 
+@dataclass(frozen=True)
+class ChoiceData:
+    """A choice table as the per-trial arrays the likelihood needs, checked once.
+
+    Build it with :meth:`from_table`; :meth:`nll` is the negative log-likelihood of the
+    choices under softmax Q-learning (:func:`q_learning_nll`). ``cobel fit``
+    (:func:`fit_choices`) and the ``task.objective`` :class:`cobelrun.objectives.ChoiceNLL`
+    both evaluate it.
+    """
+
+    choices: np.ndarray
+    rewards: np.ndarray
+    states: np.ndarray
+    sessions: np.ndarray
+    n_states: int
+    n_actions: int
+
+    @classmethod
+    def from_table(cls, data: pd.DataFrame, n_actions: int | None = None) -> ChoiceData:
+        """Arrays of a table with ``choice``, ``reward`` (``state``, ``session`` optional).
+
+        Parameters
+        ----------
+        data
+            One row per trial, in order.
+        n_actions
+            Number of actions (default: the largest choice + 1).
+        """
+        choices = data["choice"].to_numpy(dtype=np.int64)
+        rewards = data["reward"].to_numpy(dtype=np.float64)
+        states = (data["state"] if "state" in data else pd.Series(0, index=data.index)).to_numpy(
+            np.int64
+        )
+        sessions = (
+            pd.factorize(data["session"])[0] if "session" in data else np.zeros(len(data), np.int64)
+        )
+        n_actions = int(n_actions or choices.max() + 1)
+        if choices.min() < 0 or choices.max() >= n_actions:
+            raise CobelError(
+                f"choices must lie in 0..{n_actions - 1}, got {choices.min()}..{choices.max()}"
+            )
+        if states.min() < 0:
+            raise CobelError(f"states must be >= 0, got {states.min()}")
+        return cls(choices, rewards, states, np.asarray(sessions, np.int64),
+                   int(states.max() + 1), n_actions)  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self.choices)
+
+    def nll(self, learning_rate: float, beta: float, q0: float = 0.0) -> float:
+        """Negative log-likelihood of the choices (:func:`q_learning_nll`)."""
+        return q_learning_nll(learning_rate, beta, self.choices, self.rewards, self.states,
+                              self.sessions, self.n_states, self.n_actions, q0)  # fmt: skip
+
+
 @dataclass
 class FitResult:
     """Maximum-likelihood estimates.
@@ -232,25 +288,11 @@ def fit_choices(
         raise ConfigError(f"unknown fit method {method!r}; allowed: 'scipy', 'optuna'")
     values = {key: float((initial or {}).get(key, 0.5 if "rate" in key else 1.0)) for key in PARAMS}
     ranges = {key: tuple(map(float, (bounds or {}).get(key, PARAMS[key][1]))) for key in params}
-    choices = data["choice"].to_numpy(dtype=np.int64)
-    rewards = data["reward"].to_numpy(dtype=np.float64)
-    states = (data["state"] if "state" in data else pd.Series(0, index=data.index)).to_numpy(
-        np.int64
-    )
-    sessions = (
-        pd.factorize(data["session"])[0] if "session" in data else np.zeros(len(data), np.int64)
-    )
-    n_actions = int(n_actions or choices.max() + 1)
-    if choices.min() < 0 or choices.max() >= n_actions:
-        raise CobelError(
-            f"choices must lie in 0..{n_actions - 1}, got {choices.min()}..{choices.max()}"
-        )
-    n_states = int(states.max() + 1)
+    table = ChoiceData.from_table(data, n_actions)
 
     def nll(x: Sequence[float]) -> float:
         v = {**values, **dict(zip(params, x, strict=True))}
-        return q_learning_nll(v["agent.learning_rate"], v["agent.beta"], choices, rewards,
-                              states, sessions, n_states, n_actions)  # fmt: skip
+        return table.nll(v["agent.learning_rate"], v["agent.beta"])
 
     rng = np.random.default_rng(seed)
     if method == "scipy":
@@ -279,7 +321,7 @@ def fit_choices(
     return FitResult(
         params=dict(zip(params, estimate, strict=True)),
         nll=value,
-        n_trials=len(choices),
+        n_trials=len(table),
         method=method,
         fixed={k: v for k, v in values.items() if k not in params},
     )

@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from cobelrun.errors import ConfigError
+from cobelrun.errors import CobelError, ConfigError
 from cobelrun.schema import ProtocolSpec, validate
 
 
@@ -96,3 +96,26 @@ class Protocol:
         base.apply_changes(
             rewards=phase.rewards or None, terminals=phase.terminals or None, starts=phase.starts
         )
+
+    def check(self, env: Any) -> None:
+        """Apply every phase's changes once, in order, then restore the world: a bad state name,
+        terminal or start fails here, before anything runs (a ConfigError naming the phase).
+
+        An env's own checks may raise ``ValueError``/``KeyError``/``TypeError``; they become a
+        ConfigError too, so a user's env module still gives the one-line error.
+        """
+        changing = [p for p in self.phases if p.rewards or p.terminals or p.starts is not None]
+        if not changing:
+            return
+        try:
+            for phase in changing:
+                try:
+                    self.apply(phase, env)
+                except CobelError:
+                    raise
+                except (ValueError, KeyError, TypeError) as exc:
+                    raise ConfigError(f"task.protocol phase {phase.name!r}: {exc}") from exc
+        finally:
+            reset = getattr(env.unwrapped, "reset_world", None)
+            if callable(reset):
+                reset()

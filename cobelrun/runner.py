@@ -7,6 +7,7 @@ trials, the recorder (monitors + writers) persists them, the manifest records st
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -30,6 +31,9 @@ from cobelrun.safety import check_memory, check_name
 from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
+
+#: the run's log lines (Hydra's job logging: RUN_DIR/cobel.log; warnings also on stderr)
+LOG = logging.getLogger("cobel")
 
 
 @dataclass
@@ -76,6 +80,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     assert spec.task.protocol is not None  # TaskSpec requires one unless there is a job
     protocol = Protocol.from_spec(spec.task.protocol)
     env = instantiate("env", cfg.env)
+    protocol.check(env)  # every phase's changes once: bad state names fail before any output
     agent_node = OmegaConf.to_container(cfg.agent, resolve=True)
     assert isinstance(agent_node, dict)
     load_from = agent_node.pop("load_from", None)  # handled here, not by the agent
@@ -271,7 +276,9 @@ def execute(
             base.np_random = np.random.default_rng(env_seed)
             agent = task.make_agent(seed=agent_seed)
             if task.record.training_log:
-                agent.log_training(folder.training_log(run))
+                notes = agent.log_training(folder.training_log(run))
+                for note in (notes or []) if run == 0 else []:
+                    LOG.warning(note)  # e.g. TensorBoard skipped: once per task, not per run
             if task.load_from is not None:
                 load_saved_agent(agent, task.load_from, run)
             recorder.start_run(run, agent)

@@ -165,3 +165,55 @@ def test_training_log_of_deep_agents(tmp_path):
     assert log["train/loss"].notna().any()
     with pytest.raises(ConfigError, match="needs a deep"):
         cobelrun.run("tmaze_extinction", ["task.record.training_log=true"], out=tmp_path / "x")
+
+
+TB_RUN = ["run", "task=two_afc", "task.runs=2", "task.protocol.phases.0.trials=5",
+          "task.record.training_log=true", "task.record.mcap=false", "--quiet"]  # fmt: skip
+
+
+def test_training_log_writes_tensorboard_events(cobel, tmp_path):
+    """With tensorboard installed, each run's folder also holds event files with the CSV's
+    curves (read back through tensorboard's public EventAccumulator)."""
+    pytest.importorskip("stable_baselines3")
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    proc = cobel(*TB_RUN, f"hydra.run.dir={tmp_path / 'r'}")
+    assert proc.returncode == 0, proc.stderr
+    assert "TensorBoard output skipped" not in proc.stderr
+    for run in (0, 1):
+        folder = tmp_path / "r" / "training" / f"run_{run:04d}"
+        assert len(list(folder.glob("events.out.tfevents.*"))) == 1
+        events = EventAccumulator(str(folder))
+        events.Reload()
+        csv = pd.read_csv(folder / "progress.csv")
+        for tag in ("train/loss", "train/q_max", "rollout/exploration_rate"):
+            logged = [e.value for e in events.Scalars(tag)]
+            assert logged == pytest.approx(csv[tag].dropna().tolist(), rel=1e-6)
+        assert len(events.Scalars("rollout/exploration_rate")) == 5  # one per trial
+
+
+def test_training_log_without_tensorboard(cobel, tmp_path):
+    """tensorboard blocked (a sitecustomize that maps it to None, as if not installed): the
+    run still writes the CSV logs and says once, in one line, that TensorBoard was skipped."""
+    pytest.importorskip("stable_baselines3")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text("import sys\nsys.modules['tensorboard'] = None\n")
+    proc = cobel(*TB_RUN, f"hydra.run.dir={tmp_path / 'r'}", env={"PYTHONPATH": str(site)})
+    assert proc.returncode == 0, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if "TensorBoard output skipped" in line]
+    assert len(lines) == 1, proc.stderr  # once per task, not once per run
+    assert "pip install tensorboard" in lines[0] and "progress.csv" in lines[0]
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    for run in (0, 1):
+        folder = tmp_path / "r" / "training" / f"run_{run:04d}"
+        assert len(pd.read_csv(folder / "progress.csv")) == 5
+        assert not list(folder.glob("events.out.tfevents.*"))
+    assert "TensorBoard output skipped" in (tmp_path / "r" / "cobel.log").read_text()
+    # the Python API prints the same line (Python's last-resort handler, no logging set up)
+    code = ("import sys; sys.modules['tensorboard'] = None\nimport cobelrun\n"
+            f"cobelrun.run('two_afc', {TB_RUN[2:6]!r}, out={str(tmp_path / 'api')!r})\n")  # fmt: skip
+    api = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert api.returncode == 0, api.stderr
+    assert api.stderr.count("TensorBoard output skipped") == 1, api.stderr

@@ -55,3 +55,57 @@ def test_env_missing_a_contract_is_a_one_line_error(tmp_path):
     assert "needs an environment with 'discrete_states'" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_linear_track_bad_input_is_a_config_error(tmp_path):
+    """The example env raises cobel's ConfigError, and a bad phase fails before any output."""
+    import sys
+
+    import pytest
+
+    from cobelrun.errors import ConfigError
+
+    sys.path.insert(0, str(EXAMPLES))
+    try:
+        from linear_track import LinearTrackEnv
+    finally:
+        sys.path.remove(str(EXAMPLES))
+    env = LinearTrackEnv()
+    with pytest.raises(ConfigError, match="terminals are its two ends"):
+        env.apply_changes(terminals={"left_end": False})
+    with pytest.raises(ConfigError, match="unknown place 'middle'; allowed: left_end"):
+        env.apply_changes(rewards={"middle": 1.0})
+    with pytest.raises(ConfigError, match="integer >= 3"):
+        LinearTrackEnv(length=2)
+
+    work = tmp_path / "work"
+    shutil.copytree(EXAMPLES, work)
+    env_vars = {**os.environ, "PYTHONPATH": str(work)}
+    env_vars.pop("HYDRA_FULL_ERROR", None)
+    for bad, message in [
+        ("+task.protocol.phases.0.terminals={left_end:false}", "terminals are its two ends"),
+        ("+task.protocol.phases.0.rewards={middle:1.0}", "unknown place 'middle'"),
+    ]:
+        out = tmp_path / "run"
+        proc = subprocess.run(
+            [*cobel_exe(), "run", "task=gridworld", "env=linear_track", "task.runs=1", bad,
+             f"hydra.run.dir={out}"],
+            cwd=work, env=env_vars, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert proc.returncode == 2, proc.stderr
+        assert message in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert not out.exists()
+
+
+def test_bad_phase_of_a_builtin_env_fails_before_output(tmp_path):
+    """A phase naming a state the maze lacks is refused while validating: no run folder."""
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [*cobel_exe(), "run", "task=gridworld", "task.runs=1",
+         "+task.protocol.phases.0.terminals={99:true}", f"hydra.run.dir={out}"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "99" in proc.stderr, proc.stderr
+    assert not out.exists()

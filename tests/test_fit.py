@@ -11,7 +11,7 @@ import pytest
 
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.fit import fit_choices, q_learning_nll, simulate_choices
-from cobelrun.objectives import TrialMean
+from cobelrun.objectives import ChoiceNLL, TrialMean
 
 TRUE_LR, TRUE_BETA = 0.3, 4.0
 
@@ -59,6 +59,85 @@ def test_optuna_sweeper_optimises_the_objective(cobel, tmp_path):
     values = [json.loads((tmp_path / "opt" / str(j) / "manifest.json").read_text())["objective"]
               for j in (0, 1)]  # fmt: skip
     assert all(0.0 <= v <= 1.0 for v in values)
+
+
+NLL_OBJECTIVE = (
+    "+task.objective={_target_:cobelrun.objectives.ChoiceNLL,data:%s,"
+    "learning_rate:${agent.learning_rate},beta:${agent.beta}}"
+)
+TINY_RUN = ["task.runs=1", "task.protocol.phases.0.trials=3", "task.protocol.phases.1.trials=3",
+            "task.record.mcap=false", "task.record.steps=false", "task.save_agents=false"]  # fmt: skip
+
+
+def test_choice_nll_objective_shares_the_fit_likelihood(tmp_path):
+    """ChoiceNLL evaluates the same likelihood that `cobel fit` minimises: at the fitted
+    parameters it equals the fit's nll, and the generating parameters score better than far
+    ones."""
+    data = tmp_path / "choices.parquet"
+    d = simulate_choices(500, TRUE_LR, TRUE_BETA, seed=4)
+    d.to_parquet(data)
+    fit = fit_choices(d, ["agent.learning_rate", "agent.beta"])
+    lr, beta = fit.params["agent.learning_rate"], fit.params["agent.beta"]
+    assert ChoiceNLL(str(data), lr, beta)(None) == pytest.approx(fit.nll, rel=1e-12)
+    direct = q_learning_nll(TRUE_LR, TRUE_BETA, d["choice"], d["reward"], d["state"],
+                            np.zeros(500), 1, 2)  # fmt: skip
+    assert ChoiceNLL(str(data), TRUE_LR, TRUE_BETA)(None) == pytest.approx(direct)
+    assert ChoiceNLL(str(data), 0.95, 0.5)(None) > direct + 10
+    assert ChoiceNLL(str(data), 0.3, 4.0).name == "nll of choices.parquet (500 trials)"
+    with pytest.raises(ConfigError, match=r"task\.objective\.data: .*does not exist"):
+        ChoiceNLL(str(tmp_path / "none.parquet"), 0.3, 4.0)
+    with pytest.raises(ConfigError, match=r"learning_rate must lie in \[0.0, 1.0\]"):
+        ChoiceNLL(str(data), 1.5, 4.0)
+    with pytest.raises(ConfigError, match="beta must be a number"):
+        ChoiceNLL(str(data), 0.3, "high")
+
+
+def test_run_returns_the_nll_of_choices_at_its_agent_parameters(tmp_path):
+    """task.objective=ChoiceNLL takes the agent's parameters by interpolation: the run's
+    manifest holds the data's nll at exactly the composed learning rate and beta."""
+    import cobelrun
+
+    data = tmp_path / "choices.parquet"
+    d = simulate_choices(300, TRUE_LR, TRUE_BETA, seed=5)
+    d.to_parquet(data)
+    r = cobelrun.run("tmaze_extinction", [*TINY_RUN, "agent.learning_rate=0.45", "agent.beta=3.5",
+                                          NLL_OBJECTIVE % data], out=tmp_path / "r")  # fmt: skip
+    expected = q_learning_nll(0.45, 3.5, d["choice"], d["reward"], d["state"], np.zeros(300), 1, 2)
+    assert r.objective == pytest.approx(expected)
+    assert r.manifest["objective_name"] == "nll of choices.parquet (300 trials)"
+    with pytest.raises(ConfigError, match=r"task\.objective\.data"):
+        cobelrun.run("tmaze_extinction", [*TINY_RUN, NLL_OBJECTIVE % (tmp_path / "none.csv")],
+                     out=tmp_path / "bad")  # fmt: skip
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("optuna") is None, reason="needs cobelrun[fit]")
+def test_optuna_sweeper_minimises_the_choice_nll(cobel, tmp_path):
+    """`cobel run -m hydra/sweeper=optuna` with a ChoiceNLL objective: every job returns the
+    data's nll at its sampled parameters, and Optuna reports the smallest as best."""
+    import yaml
+
+    data = tmp_path / "choices.parquet"
+    d = simulate_choices(300, TRUE_LR, TRUE_BETA, seed=6)
+    d.to_parquet(data)
+    proc = cobel("run", "-m", "hydra/sweeper=optuna", "hydra/launcher=basic",
+                 "task=tmaze_extinction", *TINY_RUN, NLL_OBJECTIVE % data,
+                 "agent.learning_rate=interval(0.05,0.95)", "agent.beta=interval(0.5,10.0)",
+                 "hydra.sweeper.n_trials=4", "hydra.sweeper.direction=minimize",
+                 "hydra.sweeper.sampler.seed=1", f"hydra.sweep.dir={tmp_path / 'opt'}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    values = []
+    for job in range(4):
+        manifest = json.loads((tmp_path / "opt" / str(job) / "manifest.json").read_text())
+        cfg = yaml.safe_load((tmp_path / "opt" / str(job) / "config.yaml").read_text())
+        lr, beta = cfg["agent"]["learning_rate"], cfg["agent"]["beta"]
+        expected = q_learning_nll(lr, beta, d["choice"], d["reward"], d["state"], np.zeros(300),
+                                  1, 2)  # fmt: skip
+        assert manifest["objective"] == pytest.approx(expected)
+        values.append(expected)
+    best = yaml.safe_load((tmp_path / "opt" / "optimization_results.yaml").read_text())
+    assert best["best_value"] == pytest.approx(min(values))
 
 
 def test_nll_matches_a_direct_computation():

@@ -51,3 +51,30 @@ def test_make_env_time_limit_from_config(task, steps):
         _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         n += 1
     assert n <= expected
+
+
+def test_gymnasium_entry_point_registers_every_id():
+    """The package's `gymnasium.envs` entry point (read by gymnasium 0.26-0.29 at import; see
+    docs/envs.md) is in the installed metadata and, called as those loaders call it (inside
+    `namespace(<key>)`), registers every id in a fresh interpreter."""
+    code = (
+        "import sys\n"
+        "from importlib.metadata import entry_points\n"
+        "import gymnasium as gym\n"
+        "from gymnasium.envs.registration import namespace\n"
+        "assert 'cobelrun' not in sys.modules\n"
+        "(ep,) = [e for e in entry_points(group='gymnasium.envs') if e.value.startswith('cobelrun')]\n"
+        "assert (ep.name, ep.value) == ('cobel', 'cobelrun.envs:register_envs'), ep\n"
+        "with namespace(ep.name):\n"
+        "    ep.load()()\n"
+        "for i in sorted(k for k in gym.registry if k.startswith('cobel/')):\n"
+        "    env = gym.make(i)\n"
+        "    env.reset(seed=0)\n"
+        "    print(i, env.spec.namespace, type(env.unwrapped).__name__)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    lines = [line.split() for line in out.stdout.splitlines()]
+    assert [line[0] for line in lines] == sorted(ENV_IDS)
+    assert {line[1] for line in lines} == {"cobel"}
+    assert [line[2] for line in lines] == [ENV_IDS[i].split(":")[1] for i in sorted(ENV_IDS)]

@@ -118,6 +118,43 @@ def test_submitit_local_sweep(cobel, tmp_path):
     assert len(a) == 2 * 16
 
 
+def test_slurm_launcher_against_stand_in_slurm_commands(cobel, tmp_path):
+    """hydra/launcher=slurm end to end with stand-ins for sbatch, srun and sacct
+    (tests/fake_slurm): submitit writes one array script from conf/hydra/launcher/slurm.yaml,
+    each task runs cobel's job with the environment SLURM gives it, and the sweep ends done and
+    indexed, with the same tables as a single run of the same config."""
+    import os
+
+    fake = Path(__file__).parent / "fake_slurm"
+    state = tmp_path / "slurm_state"
+    env = {"PATH": f"{fake}{os.pathsep}{os.environ['PATH']}", "FAKE_SLURM_DIR": str(state)}
+    proc = cobel("run", "-m", "hydra/launcher=slurm", "hydra.launcher.partition=testpart",
+                 "hydra.launcher.timeout_min=5", "task=tmaze_extinction", "seed=4,5", *TINY,
+                 env=env)  # fmt: skip
+    sweep = sweep_dir_of(proc)
+    index = pd.read_csv(sweep / "jobs.csv")
+    assert list(index["status"]) == ["done", "done"] and list(index["seed"]) == [4, 5]
+    (script,) = state.glob("sbatch_*.sh")  # one array for both jobs
+    text = script.read_text()
+    for line in ("#SBATCH --partition=testpart", "#SBATCH --time=5", "#SBATCH --cpus-per-task=1",
+                 "#SBATCH --mem=4GB", "#SBATCH --array=0-1%2",  # parallelism min(64, jobs)
+                 "#SBATCH --job-name=cobel-tmaze_extinction",
+                 "export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1"):  # fmt: skip
+        assert line in text, line
+    assert "srun --unbuffered" in text and "submitit.core._submit" in text
+    array_id = script.stem.split("_")[1]
+    assert sorted(p.name for p in state.glob("state_*")) == [
+        f"state_{array_id}_0",
+        f"state_{array_id}_1",
+    ]
+    assert {p.read_text() for p in state.glob("state_*")} == {"COMPLETED"}
+    single = cobel("run", "task=tmaze_extinction", "seed=4", *TINY, "--quiet",
+                   f"hydra.run.dir={tmp_path / 'single'}")  # fmt: skip
+    assert single.returncode == 0, single.stderr
+    pd.testing.assert_frame_equal(pd.read_parquet(sweep / "0" / "trials.parquet"),
+                                  pd.read_parquet(tmp_path / "single" / "trials.parquet"))  # fmt: skip
+
+
 def test_status_of_a_folder_that_is_no_sweep(cobel, tmp_path):
     proc = cobel("status", str(tmp_path))
     assert proc.returncode == 2 and "not a cobel sweep folder" in proc.stderr

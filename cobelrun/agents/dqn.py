@@ -68,6 +68,22 @@ NATURE_CONVS = ((32, 8, 4), (64, 4, 2), (64, 3, 1))
 #: Layer name aliases of the CNN network: ``analysis`` is the dense ReLU layer after the
 #: convolutions (Fig. 8's "analysis" layer, recorded for place-cell maps).
 CNN_LAYER_ALIASES = {"analysis": "features_extractor.linear.1"}
+#: the line a run prints when task.record.training_log cannot write TensorBoard files
+TENSORBOARD_SKIPPED = (
+    "task.record.training_log: TensorBoard output skipped, tensorboard is not installed "
+    "(pip install tensorboard, or pip install 'cobelrun[tensorboard]'); the CSV log "
+    "(training/run_NNNN/progress.csv) is written"
+)
+
+
+def tensorboard_available() -> bool:
+    """Whether SB3's TensorBoard writer can run (``torch.utils.tensorboard`` imports, which
+    needs the ``tensorboard`` package)."""
+    try:
+        import torch.utils.tensorboard  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def conv_output_hw(
@@ -462,20 +478,26 @@ class DQNAgent(Agent):
         rec.finished = rec.finished[:n_trials]
         return rec.batch()
 
-    def log_training(self, folder: str | Path) -> None:
+    def log_training(self, folder: str | Path) -> list[str]:
         """Log training curves through SB3's logger into ``folder`` (``progress.csv``, and
         TensorBoard event files when ``tensorboard`` is installed), one row per trial:
         ``train/loss``, ``train/q_max`` (max Q at the current observation),
         ``rollout/exploration_rate`` (epsilon), ``rollout/ep_rew_mean`` (mean trial return,
-        SB3's window of 100 trials)."""
-        import importlib.util
+        SB3's window of 100 trials).
 
+        Returns
+        -------
+        list of str
+            Notes for the user: one line saying that TensorBoard output was skipped (and how to
+            install it) when ``tensorboard`` cannot be imported; empty otherwise.
+        """
         from stable_baselines3.common.logger import configure
 
-        formats = ["csv"] + (["tensorboard"] if importlib.util.find_spec("tensorboard") else [])
+        tensorboard = tensorboard_available()
         Path(folder).mkdir(parents=True, exist_ok=True)
-        self.model.set_logger(configure(str(folder), formats))
+        self.model.set_logger(configure(str(folder), ["csv"] + (["tensorboard"] * tensorboard)))
         self.model.log_q = True
+        return [] if tensorboard else [TENSORBOARD_SKIPPED]
 
     # -- inference ---------------------------------------------------------------------------
     def _obs_tensor(self, observations: Any) -> torch.Tensor:

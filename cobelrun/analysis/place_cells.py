@@ -5,20 +5,21 @@ with the agent placed at each of ``H x W`` grid positions facing each heading, a
 an ``(H, W)`` bool mask of the positions that lie inside the maze (positions outside it are
 ignored; their values may be NaN).
 
-The place-cell criterion is the one used for the paper's figure (FACTS.md, Fig. 8). Each unit has
-one map per heading plus their mean (7 maps for 6 headings). Each map is
+The place-cell criterion is the one used for the paper's figure (docs/paper-settings.md,
+Fig. 8). Each unit has one map per heading plus their mean (7 maps for 6 headings). Each map is
 
 1. smoothed with a Gaussian of ``sigma = 2`` bins (:func:`smooth_map`),
 2. thresholded: everything under ``0.25 x`` the map's maximum is set to zero,
 3. labelled into connected blobs (``scipy.ndimage.label``, 4-connectivity).
 
 A map *passes* if it has between 1 and 4 blobs and the bounding box of its largest blob is not
-larger than ``0.5 x`` the bounding box of the explored area. FACTS.md does not say how two boxes
-are compared; the default compares extents (the blob's box is too large if its width exceeds half
-the explored box's width *or* its height half its height), so a band across the maze fails however
-thin it is. ``box_measure="area"`` compares areas instead. A unit is a place cell if
-all 7 maps pass and the peaks of the largest blobs of the heading maps all lie within 10 bins of
-one another (largest pairwise distance, ``peak_spread``).
+larger than ``0.5 x`` the bounding box of the explored area. The paper's settings
+(docs/paper-settings.md) do not say how two boxes are compared; the default compares extents
+(the blob's box is too large if its width exceeds half the explored box's width *or* its height
+half its height), so a band across the maze fails however thin it is. ``box_measure="area"``
+compares areas instead. A unit is a place cell if all 7 maps pass and the peaks of the largest
+blobs of the heading maps all lie within 10 bins of one another (largest pairwise distance,
+``peak_spread``).
 
 Field metrics use the unit's mean map with uniform occupancy over the explored bins (the agent is
 placed at every position for the same time): Skaggs spatial information (Skaggs et al. 1993,
@@ -59,7 +60,8 @@ BOX_MEASURES = ("extent", "area")
 
 @dataclass(frozen=True)
 class PlaceCellCriterion:
-    """Parameters of the place-cell criterion (defaults: the paper's, FACTS.md Fig. 8).
+    """Parameters of the place-cell criterion (defaults: the paper's; docs/paper-settings.md,
+    Fig. 8).
 
     Attributes
     ----------

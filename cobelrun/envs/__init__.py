@@ -3,18 +3,18 @@
 Importing this package registers the environment ids ``cobel/GridWorld-v0`` and
 ``cobel/DiscreteGridWorld-v0``, ``cobel/Topology-v0``, ``cobel/TwoAFC-v0``,
 ``cobel/Continuous2D-v0`` (string entry points, registered once).
-Without importing anything first, ``gymnasium.make("cobelrun.envs:cobel/GridWorld-v0")``
-imports this package and makes the env (gymnasium >= 1.0 removed the ``gymnasium.envs``
-entry-point plugins, so a bare ``cobel/...`` id needs this import). A task's env with its
-``max_episode_steps`` from the config: ``cobelrun.api.make_env("tmaze_extinction")``.
+Without importing anything first,
+``gymnasium.make("cobelrun.envs:cobel/GridWorld-v0")`` imports this package and makes the env.
+:func:`register_envs` is also the package's ``gymnasium.envs`` entry point, which gymnasium
+0.26-0.29 loaded at import; gymnasium >= 1.0 removed that loader, so there a bare
+``cobel/...`` id needs this import. A task's env with its ``max_episode_steps`` from the
+config: ``cobelrun.api.make_env("tmaze_extinction")``.
 See docs/envs.md.
 """
 
 from __future__ import annotations
 
 from typing import Any
-
-import gymnasium as gym
 
 from cobelrun.envs.choice import TwoAFCEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
@@ -39,10 +39,18 @@ ENV_IDS: dict[str, str] = {
 
 
 def register_envs() -> None:
-    """Register cobel's environments with gymnasium (safe to call more than once)."""
+    """Register cobel's environments with gymnasium (safe to call more than once).
+
+    This is also the ``gymnasium.envs`` entry point of the package (``pyproject.toml``), which
+    gymnasium 0.26-0.29 call while ``gymnasium`` itself is still being imported: hence the
+    names come from ``gymnasium.envs.registration`` rather than the half-initialised
+    ``gymnasium`` module.
+    """
+    from gymnasium.envs.registration import register, registry
+
     for env_id, entry_point in ENV_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point)
+        if env_id not in registry:
+            register(id=env_id, entry_point=entry_point)
 
 
 register_envs()

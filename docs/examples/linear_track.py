@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.envs.base import Geometry, check_action, point_region
+from cobelrun.errors import ConfigError
 
 
 class LinearTrackEnv(gym.Env):
@@ -54,7 +55,7 @@ class LinearTrackEnv(gym.Env):
 
     def __init__(self, length: int = 9, spacing: float = 0.1) -> None:
         if isinstance(length, bool) or not isinstance(length, int) or length < 3:
-            raise ValueError(f"length must be an integer >= 3, got {length!r}")
+            raise ConfigError(f"env.length must be an integer >= 3, got {length!r}")
         self.length, self.spacing = length, float(spacing)
         self.action_space = gym.spaces.Discrete(2)
         self.observation_space = gym.spaces.Discrete(length)
@@ -77,7 +78,10 @@ class LinearTrackEnv(gym.Env):
         for ref, value in (rewards or {}).items():
             self.rewards[self.state_index(ref)] = float(value)
         if terminals:
-            raise ValueError("the linear track's terminals are its two ends")
+            raise ConfigError(
+                "the linear track's terminals are its two ends; a phase cannot change them "
+                f"(got terminals {dict(terminals)!r})"
+            )
         if starts is not None:
             self.starts = [self.state_index(s) for s in starts]
 
@@ -90,7 +94,7 @@ class LinearTrackEnv(gym.Env):
         named = {"left_end": 0, "right_end": self.length - 1}
         s = named.get(ref, ref)
         if isinstance(s, bool) or not isinstance(s, int | np.integer) or not 0 <= s < self.length:
-            raise ValueError(
+            raise ConfigError(
                 f"unknown place {ref!r}; allowed: left_end, right_end, 0..{self.length - 1}"
             )
         return int(s)

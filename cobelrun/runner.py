@@ -208,7 +208,8 @@ def load_saved_agent(agent: Any, load_from: str, run: int) -> None:
 
 def kept(task: Task) -> dict[str, Any]:
     """What the run folder will hold, for the manifest: every trial row always; step rows,
-    MCAP poses/events and agents as ``task.record`` and ``task.save_agents`` say."""
+    MCAP poses/events (``runs``: the first N runs in full; ``trial_tables``: every run's
+    trials on ``/trials``) and agents as ``task.record`` and ``task.save_agents`` say."""
     rec = task.record
     step_runs = (
         list(range(task.runs)) if rec.runs == "all" else [r for r in rec.runs if r < task.runs]
@@ -217,7 +218,11 @@ def kept(task: Task) -> dict[str, Any]:
     return {
         "trials": "all",
         "steps": {"runs": len(step_runs) if rec.steps else 0, "trial_every": rec.trial_every},
-        "mcap": {"runs": mcap_runs if rec.mcap else 0, "images": rec.images},
+        "mcap": {
+            "runs": mcap_runs if rec.mcap else 0,
+            "trial_tables": task.runs if rec.mcap else 0,
+            "images": rec.images,
+        },
         "agents": sorted(task.save_agents)
         if len(task.save_agents) <= 20
         else f"{len(task.save_agents)} runs",

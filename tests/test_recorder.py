@@ -262,3 +262,25 @@ def test_every_runs_trials_go_to_the_mcap_as_trial_tables(tmp_path):
         kept["t_start"]
     )
     assert got["t_start"].is_monotonic_increasing
+
+
+def test_streamed_summary_equals_the_summary_of_the_whole_table(tmp_path):
+    """What `cobel run` logs and prints at the end is read in batches of rows (flat memory)
+    and equals the pandas summary of the whole table, also for a table of several batches."""
+    from cobelrun.run_summary import summary, summary_of_file
+
+    rng = np.random.default_rng(3)
+    runs, per_phase = 700, 100  # 140,000 rows: three batches of 65,536
+    rows = pd.DataFrame({
+        "run": np.repeat(np.arange(runs, dtype=np.int32), 2 * per_phase),
+        "trial": np.tile(np.arange(1, 2 * per_phase + 1, dtype=np.int32), runs),
+        "phase": np.tile(np.repeat(["acquisition", "extinction"], per_phase), runs),
+        "reward": rng.random(runs * 2 * per_phase), "steps": rng.integers(1, 35, runs * 2 * per_phase),
+        "response": rng.integers(0, 2, runs * 2 * per_phase).astype(np.int8),
+    })  # fmt: skip
+    rows.loc[rows["run"] == 5, "reward"] = np.nan  # skipped, as pandas' mean does
+    path = tmp_path / "trials.parquet"
+    rows.to_parquet(path, row_group_size=50_000)
+    got = summary_of_file(path)
+    pd.testing.assert_frame_equal(got, summary(rows), check_dtype=False)
+    assert list(got["phase"]) == ["acquisition", "extinction"] and got["runs"].tolist() == [700] * 2

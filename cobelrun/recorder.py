@@ -125,6 +125,15 @@ class WriterThread:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="cobel-writer") if enabled else None
         self._pending: collections.deque[Future] = collections.deque()
         self._max_pending = max_pending
+        #: CPU seconds the background thread spent in write calls (0 when disabled)
+        self.cpu_s = 0.0
+
+    def _timed(self, fn: Callable[..., Any], *args: Any) -> None:
+        t0 = time.thread_time()
+        try:
+            fn(*args)
+        finally:
+            self.cpu_s += time.thread_time() - t0
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._pool is None:
@@ -134,7 +143,7 @@ class WriterThread:
             self._pending[0].done() or len(self._pending) >= self._max_pending
         ):
             self._pending.popleft().result()
-        self._pending.append(self._pool.submit(fn, *args))
+        self._pending.append(self._pool.submit(self._timed, fn, *args))
 
     def close(self) -> None:
         """Wait for pending calls (raising the first error) and stop the thread."""
@@ -533,6 +542,12 @@ class RunRecorder:
                 batch.start_state, batch.end_state, batch.steps, batch.reward,
                 None if response is None else np.asarray(response),
             )  # fmt: skip
+
+    @property
+    def writer_cpu_s(self) -> float:
+        """CPU seconds spent on the background writer thread so far (Arrow's own compression
+        threads not included)."""
+        return self._writer.cpu_s
 
     # -- closing -------------------------------------------------------------------------------
     def close(self) -> None:

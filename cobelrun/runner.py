@@ -250,11 +250,14 @@ def execute(
     guard: SignalGuard | None = None,
     metadata: Mapping[str, str] | None = None,
     phase_times: dict[str, float] | None = None,
+    cpu_times: dict[str, float] | None = None,
 ) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``.
 
     ``phase_times``, when given, is filled with each phase's wall time in seconds (summed over
-    runs; recording included).
+    runs; recording included); ``cpu_times`` with the CPU seconds of the simulation thread
+    (``simulation_thread``: the loop, recording on it included) and of the recorder's
+    background writer (``writer_thread``).
     """
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
@@ -268,6 +271,7 @@ def execute(
     recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
                            background=background_writes, geometry=geometry,
                            save_agents=bool(task.save_agents))  # fmt: skip
+    cpu0 = time.thread_time()
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
@@ -308,6 +312,9 @@ def execute(
                 recorder.save_agent(run, agent)
     finally:
         recorder.close()
+        if cpu_times is not None:
+            cpu_times["simulation_thread"] = time.thread_time() - cpu0
+            cpu_times["writer_thread"] = recorder.writer_cpu_s
 
 
 def run(
@@ -342,10 +349,12 @@ def run(
     t0 = time.perf_counter()
     guard = SignalGuard()
     phase_times: dict[str, float] = {}
+    cpu_times: dict[str, float] = {}
     with guard.installed():
         try:
             result = execute(task, run_dir, progress=progress, background_writes=background_writes,
-                             guard=guard, metadata=metadata, phase_times=phase_times)  # fmt: skip
+                             guard=guard, metadata=metadata, phase_times=phase_times,
+                             cpu_times=cpu_times)  # fmt: skip
         except KeyboardInterrupt:
             with guard.closing():
                 manifest.finish("interrupted")
@@ -363,6 +372,8 @@ def run(
                 summary = {"job_result": result} if isinstance(result, Mapping) else {}
                 if phase_times:
                     summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
+                if cpu_times:
+                    summary["cpu_time_s"] = {k: round(v, 3) for k, v in cpu_times.items()}
                 if task.objective is not None:
                     import pandas as pd
 

@@ -10,7 +10,9 @@ plus every run's trial table, every agent) and with recording reduced to the tri
 (``task.record.steps=false task.record.mcap=false task.save_agents=none``). It reports wall
 time, the run loop's time (manifest ``wall_time_s``), the child's CPU time (user + system, all
 threads), peak RSS (``ru_maxrss``), folder size and file count, and the recording cost:
-(default - reduced) / reduced, on loop time and on CPU time.
+(default - reduced) / reduced, on loop time, on CPU time, and (code that writes the manifest's
+``cpu_time_s``) on the simulation thread's CPU time: on a machine with a free core for the
+writer thread, that is what recording adds to the wall time.
 
 ``--before REF`` also measures the code of git ref ``REF`` (exported with ``git archive`` and
 put first on ``PYTHONPATH``; same interpreter and packages), alternating with the working
@@ -67,6 +69,7 @@ def measure(runs: int, extra: list[str], out: Path, code: Path | None) -> dict:
         "wall_s": round(wall, 2),
         "loop_s": float(manifest["wall_time_s"]),
         "cpu_s": round(float(cpu), 2),
+        "thread_cpu_s": manifest.get("cpu_time_s"),  # simulation / writer thread (newer code)
         "peak_rss_mb": round(int(rss_kb) / 1024, 1),
         "folder_mb": round(sum(sizes.values()) / 1e6, 2),
         "files": len(files),
@@ -121,13 +124,21 @@ def main() -> None:
                 results[runs][name] = {"default": full, "trials_only": reduced,
                                        "recording_cost": round(cost, 3),
                                        "recording_cost_cpu": round(cost_cpu, 3)}  # fmt: skip
+                threads = ""
+                if full["thread_cpu_s"] and reduced["thread_cpu_s"]:
+                    sim, base = (m["thread_cpu_s"]["simulation_thread"] for m in (full, reduced))
+                    cost_sim = (sim - base) / base
+                    results[runs][name]["recording_cost_simulation_thread"] = round(cost_sim, 3)
+                    threads = (f"; simulation thread CPU {sim:.1f} vs {base:.1f} s "
+                               f"(+{100 * cost_sim:.0f}%), writer thread "
+                               f"{full['thread_cpu_s']['writer_thread']:.1f} s")  # fmt: skip
                 print(f"{runs:>7} runs, {name}: loop {full['loop_s']:.1f} s vs trials only "
                       f"{reduced['loop_s']:.1f} s -> recording +{100 * cost:.0f}% "
                       f"(CPU {full['cpu_s']:.1f} vs {reduced['cpu_s']:.1f} s: "
                       f"+{100 * cost_cpu:.0f}%), peak RSS {full['peak_rss_mb']:.0f} MB "
                       f"(trials only {reduced['peak_rss_mb']:.0f} MB), folder "
                       f"{full['folder_mb']:.1f} MB in {full['files']} files; "
-                      f"largest {full['largest']}", flush=True)  # fmt: skip
+                      f"largest {full['largest']}{threads}", flush=True)  # fmt: skip
     out = HERE / "results" / "scale.json"
     out.parent.mkdir(exist_ok=True)
     load = os.getloadavg()

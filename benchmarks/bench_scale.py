@@ -92,6 +92,7 @@ def main() -> None:
     ap.add_argument("--before", default=None, help="git ref to measure too (e.g. main)")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--tmp", type=Path, default=None, help="scratch folder (default: a temp dir)")
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "scale.json")
     opts = ap.parse_args()
     head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                           capture_output=True, text=True).stdout.strip()  # fmt: skip
@@ -139,7 +140,7 @@ def main() -> None:
                       f"(trials only {reduced['peak_rss_mb']:.0f} MB), folder "
                       f"{full['folder_mb']:.1f} MB in {full['files']} files; "
                       f"largest {full['largest']}{threads}", flush=True)  # fmt: skip
-    out = HERE / "results" / "scale.json"
+    out = opts.out
     out.parent.mkdir(exist_ok=True)
     load = os.getloadavg()
     out.write_text(json.dumps({"maxrss_unit": "MB", "python": sys.version.split()[0],

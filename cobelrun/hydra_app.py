@@ -316,11 +316,9 @@ def log_end(run_dir: Path) -> None:
     if "objective" in manifest:
         LOG.info("objective (%s) = %s", manifest.get("objective_name"), manifest["objective"])
     if folder.table("trials").is_file() and manifest.get("status") == "completed":
-        import pandas as pd
+        from cobelrun.run_summary import summary_of_file
 
-        from cobelrun.run_summary import summary
-
-        for row in summary(pd.read_parquet(folder.table("trials"))).to_dict("records"):
+        for row in summary_of_file(folder.table("trials")).to_dict("records"):
             LOG.info("phase %s: %s", row.pop("phase"),
                      ", ".join(f"{k} {v:.4g}" for k, v in row.items()))  # fmt: skip
 

@@ -7,6 +7,13 @@ parts, bounded by rows *and* time (``record.flush_seconds``, default 2 s), so a 
 loses at most the last couple of seconds; at the end the parts are merged into one Parquet file
 per table. Buffer changes run inside :meth:`SignalGuard.critical`, so Ctrl-C or SIGTERM never
 drops rows that were already taken from a buffer.
+
+Per-step tables are the bulk of a job (a 20,000-run Fig. 6B job has 60 million step rows), so
+monitors that declare themselves :attr:`~cobelrun.monitors.Monitor.joinable` (the trajectory
+monitor) are not called per batch: the recorder keeps the batches (the agent's arrays, no
+copy) and, every ~260,000 steps or ``flush_seconds``, joins them and has the monitor build the
+columns of all of them at once, on the writer thread. The simulation thread then spends a list
+append per batch on the step table.
 """
 
 from __future__ import annotations
@@ -118,6 +125,15 @@ class WriterThread:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="cobel-writer") if enabled else None
         self._pending: collections.deque[Future] = collections.deque()
         self._max_pending = max_pending
+        #: CPU seconds the background thread spent in write calls (0 when disabled)
+        self.cpu_s = 0.0
+
+    def _timed(self, fn: Callable[..., Any], *args: Any) -> None:
+        t0 = time.thread_time()
+        try:
+            fn(*args)
+        finally:
+            self.cpu_s += time.thread_time() - t0
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._pool is None:
@@ -127,7 +143,7 @@ class WriterThread:
             self._pending[0].done() or len(self._pending) >= self._max_pending
         ):
             self._pending.popleft().result()
-        self._pending.append(self._pool.submit(fn, *args))
+        self._pending.append(self._pool.submit(self._timed, fn, *args))
 
     def close(self) -> None:
         """Wait for pending calls (raising the first error) and stop the thread."""
@@ -198,6 +214,9 @@ class _FrameGrabber:
 
 def _write_columns(writer: PartedTableWriter, parts: list[Mapping[str, Any]]) -> None:
     """Join column batches and write them as one part (runs on the writer thread)."""
+    if len(parts) == 1:
+        writer.write_part(parts[0])
+        return
     names = parts[0].keys()
     writer.write_part({k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in names})
 
@@ -225,7 +244,14 @@ class RunRecorder:
         Builds the MCAP writer: ``factory(path, geometry=..., start_ns=...)``.
     """
 
+    #: rows per part of a table (and per Parquet row group of per-trial and event tables)
     ROW_GROUP_ROWS = 1 << 16
+    #: steps of joined batches per part of a per-step table
+    JOIN_STEPS = 1 << 18
+    #: Parquet row group of per-step tables (~30 MB of Arrow buffers before encoding)
+    STEP_ROW_GROUP_ROWS = 1 << 19
+    #: MCAP trial tables handed to the writer thread together
+    MCAP_TABLES = 64
 
     def __init__(
         self,
@@ -254,10 +280,16 @@ class RunRecorder:
                 folder.table(name), folder.parts(name), pa.schema(fields),
                 metadata={**(metadata or {}), "cobel.table": name, "cobel.rows": per,
                           "cobel.schema_version": SCHEMA_VERSION},
+                row_group_rows=self.STEP_ROW_GROUP_ROWS if per == "step" else self.ROW_GROUP_ROWS,
             )  # fmt: skip
             self._sinks[name] = _TableSink(writer, self.ROW_GROUP_ROWS, record.flush_seconds)
         for m in self.monitors:
             m.bind(self._emit)
+        self._joinable = self._joinable_monitors() if record.steps else []
+        self._joined: list[tuple[TrialBatch, BatchInfo]] = []  # batches awaiting step rows
+        self._joined_steps = 0
+        self._mcap_tables: list[tuple[Any, ...]] = []  # trial tables awaiting the MCAP
+        self._last_pending = time.monotonic()
         self.start_ns = time.time_ns()
         self.mcap = None
         if record.mcap:
@@ -298,6 +330,22 @@ class RunRecorder:
                 raise ConfigError(f"two monitors write the same column(s) of '{name}': "
                                   f"{', '.join(dup)}")  # fmt: skip
         return tables
+
+    def _joinable_monitors(self) -> list[Monitor]:
+        """Joinable monitors whose tables are per-step tables written only by joinable,
+        per-step-only monitors (their rows can then be built later, in bulk)."""
+
+        def step_only(m: Monitor) -> bool:
+            names = [t.name for t in m.tables()]
+            return bool(names) and all(self.tables[n][0] == "step" for n in names)
+
+        candidates = [m for m in self.monitors if m.joinable and step_only(m)]
+        ids = {id(m) for m in candidates}
+        writers: dict[str, set[int]] = {}
+        for m in self.monitors:
+            for t in m.tables():
+                writers.setdefault(t.name, set()).add(id(m))
+        return [m for m in candidates if all(writers[t.name] <= ids for t in m.tables())]
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start_run(self, run: int, agent: Any) -> None:
@@ -360,7 +408,10 @@ class RunRecorder:
         key = steps_recorded
         if key not in self._active:
             active = []
+            joinable = {id(m) for m in self._joinable}
             for m in self.monitors:
+                if id(m) in joinable:
+                    continue  # rows built in bulk (_write_joined)
                 kinds = {self.tables[t.name][0]: t.name for t in m.tables()}
                 rows = [name for per, name in kinds.items() if per in ("trial", "step")]
                 written = [name for name in rows if name in self._sinks
@@ -406,21 +457,79 @@ class RunRecorder:
         per_trial = {k: v for name, cols in merged.items() if self.tables[name][0] == "trial"
                      for k, v in cols.items()}  # fmt: skip
         self._write_mcap(run, phase, trial, batch, per_trial)
+        if self._joinable and records_run:
+            self._joined.append((batch, info))
+            self._joined_steps += batch.n_steps
+            if self._joined_steps >= self.JOIN_STEPS:
+                self._flush_joined()
+        if time.monotonic() - self._last_pending >= self.record_cfg.flush_seconds:
+            self._flush_pending()
+
+    def _flush_joined(self) -> None:
+        batches, self._joined, self._joined_steps = self._joined, [], 0
+        if batches:
+            self._writer.submit(self._write_joined, batches)
+
+    def _flush_mcap_tables(self) -> None:
+        tables, self._mcap_tables = self._mcap_tables, []
+        if tables and self.mcap is not None:
+            self._writer.submit(self._write_mcap_tables, self.mcap, tables)
+
+    def _flush_pending(self) -> None:
+        """Hand the joined batches and MCAP trial tables to the writer thread (by time)."""
+        self._last_pending = time.monotonic()
+        self._flush_joined()
+        self._flush_mcap_tables()
+
+    @staticmethod
+    def _write_mcap_tables(mcap: Any, tables: list[tuple[Any, ...]]) -> None:
+        for args in tables:
+            mcap.write_trial_table(*args)
+
+    def _write_joined(self, batches: list[tuple[TrialBatch, BatchInfo]]) -> None:
+        """Step rows of joined batches from the joinable monitors (on the writer thread)."""
+        joined = TrialBatch.concat([b for b, _ in batches]) if len(batches) > 1 else batches[0][0]
+        info = BatchInfo.joined([i for _, i in batches], [b.n_trials for b, _ in batches])
+        merged: dict[str, dict[str, Any]] = {}
+        for m in self._joinable:
+            for table, cols in m.on_batch(joined, info).items():
+                if table not in self.tables or self.tables[table][0] != "step":
+                    raise ConfigError(f"monitor {type(m).__name__} returned rows for '{table}', "
+                                      "which is not one of its step tables")  # fmt: skip
+                merged.setdefault(table, {}).update(cols)
+        every = self.record_cfg.trial_every
+        step_keep = None
+        if every != 1:
+            keep = (info.trials(joined.n_trials) - 1) % every == 0
+            step_keep = np.repeat(keep, joined.steps)
+        for table, cols in merged.items():
+            if step_keep is not None:
+                cols = {k: np.asarray(v)[step_keep] for k, v in cols.items()}
+            self._sinks[table].writer.write_part(cols)
 
     def _write_mcap(
         self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict
     ) -> None:
         n = batch.n_trials
         n_poses = batch.n_steps + n
-        t = self.start_ns + self._clock + np.arange(n_poses, dtype=np.int64) * STEP_NS
+        t0 = self.start_ns + self._clock
         self._clock += n_poses * STEP_NS
         if self.mcap is None:
             return
+        response = trial_cols.get("response")
+        # every run's trials, one protobuf message per run and phase (issue 19)
+        self._mcap_tables.append((
+            run, phase, int(trial[0]), t0, batch.steps, batch.reward, batch.start_state,
+            batch.end_state, batch.terminated, None if response is None else np.asarray(response),
+        ))  # fmt: skip
+        if not self.record_cfg.mcap_run(run):
+            if len(self._mcap_tables) >= self.MCAP_TABLES:
+                self._flush_mcap_tables()
+            return  # poses and per-trial events of the first mcap_runs runs only
+        self._flush_mcap_tables()
+        t = t0 + np.arange(n_poses, dtype=np.int64) * STEP_NS
         start_pos = batch.offsets[:-1] + np.arange(n)
         end_pos = start_pos + batch.steps
-        response = trial_cols.get("response")
-        if not self.record_cfg.mcap_run(run):
-            return  # trials.parquet holds every trial; the viewer file stays small (issue 19)
         with self.guard.critical():
             poses = batch.with_poses(self.env).poses()
             if poses is not None:
@@ -434,12 +543,19 @@ class RunRecorder:
                 None if response is None else np.asarray(response),
             )  # fmt: skip
 
+    @property
+    def writer_cpu_s(self) -> float:
+        """CPU seconds spent on the background writer thread so far (Arrow's own compression
+        threads not included)."""
+        return self._writer.cpu_s
+
     # -- closing -------------------------------------------------------------------------------
     def close(self) -> None:
         """Write what is buffered, wait for the writer thread, finish every file (further
         signals are held off until the files are complete)."""
         with self.guard.closing():
-            steps = [*(functools.partial(self._flush, t) for t in self._sinks), self._writer.close,
+            steps = [*(functools.partial(self._flush, t) for t in self._sinks),
+                     self._flush_pending, self._writer.close,
                      *(sink.writer.close for sink in self._sinks.values())]  # fmt: skip
             if self.agents is not None:
                 steps.append(self.agents.close)

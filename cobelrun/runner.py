@@ -213,7 +213,8 @@ def load_saved_agent(agent: Any, load_from: str, run: int) -> None:
 
 def kept(task: Task) -> dict[str, Any]:
     """What the run folder will hold, for the manifest: every trial row always; step rows,
-    MCAP poses/events and agents as ``task.record`` and ``task.save_agents`` say."""
+    MCAP poses/events (``runs``: the first N runs in full; ``trial_tables``: every run's
+    trials on ``/trials``) and agents as ``task.record`` and ``task.save_agents`` say."""
     rec = task.record
     step_runs = (
         list(range(task.runs)) if rec.runs == "all" else [r for r in rec.runs if r < task.runs]
@@ -222,7 +223,11 @@ def kept(task: Task) -> dict[str, Any]:
     return {
         "trials": "all",
         "steps": {"runs": len(step_runs) if rec.steps else 0, "trial_every": rec.trial_every},
-        "mcap": {"runs": mcap_runs if rec.mcap else 0, "images": rec.images},
+        "mcap": {
+            "runs": mcap_runs if rec.mcap else 0,
+            "trial_tables": task.runs if rec.mcap else 0,
+            "images": rec.images,
+        },
         "agents": sorted(task.save_agents)
         if len(task.save_agents) <= 20
         else f"{len(task.save_agents)} runs",
@@ -250,11 +255,14 @@ def execute(
     guard: SignalGuard | None = None,
     metadata: Mapping[str, str] | None = None,
     phase_times: dict[str, float] | None = None,
+    cpu_times: dict[str, float] | None = None,
 ) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``.
 
     ``phase_times``, when given, is filled with each phase's wall time in seconds (summed over
-    runs; recording included).
+    runs; recording included); ``cpu_times`` with the CPU seconds of the simulation thread
+    (``simulation_thread``: the loop, recording on it included) and of the recorder's
+    background writer (``writer_thread``).
     """
     if task.job is not None:
         return task.job(task.config, run_dir, progress=progress)
@@ -268,6 +276,7 @@ def execute(
     recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
                            background=background_writes, geometry=geometry,
                            save_agents=bool(task.save_agents))  # fmt: skip
+    cpu0 = time.thread_time()
     try:
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
@@ -310,6 +319,9 @@ def execute(
                 recorder.save_agent(run, agent)
     finally:
         recorder.close()
+        if cpu_times is not None:
+            cpu_times["simulation_thread"] = time.thread_time() - cpu0
+            cpu_times["writer_thread"] = recorder.writer_cpu_s
 
 
 def run(
@@ -344,10 +356,12 @@ def run(
     t0 = time.perf_counter()
     guard = SignalGuard()
     phase_times: dict[str, float] = {}
+    cpu_times: dict[str, float] = {}
     with guard.installed():
         try:
             result = execute(task, run_dir, progress=progress, background_writes=background_writes,
-                             guard=guard, metadata=metadata, phase_times=phase_times)  # fmt: skip
+                             guard=guard, metadata=metadata, phase_times=phase_times,
+                             cpu_times=cpu_times)  # fmt: skip
         except KeyboardInterrupt:
             with guard.closing():
                 manifest.finish("interrupted")
@@ -365,6 +379,8 @@ def run(
                 summary = {"job_result": result} if isinstance(result, Mapping) else {}
                 if phase_times:
                     summary["phase_wall_time_s"] = {k: round(v, 3) for k, v in phase_times.items()}
+                if cpu_times:
+                    summary["cpu_time_s"] = {k: round(v, 3) for k, v in cpu_times.items()}
                 if task.objective is not None:
                     import pandas as pd
 

@@ -69,7 +69,8 @@ def test_run_tmaze_extinction_writes_a_complete_run_folder(cobel, tmp_path):
     assert "numpy" in manifest["versions"]
     messages = read_mcap(run / "run.mcap")
     topics = {m[0] for m in messages}
-    assert topics == {"/maze", "/trial", "/run_0000/pose", "/run_0001/pose", "/run_0002/pose"}
+    assert topics == {"/maze", "/trial", "/trials", "/run_0000/pose", "/run_0001/pose",
+                      "/run_0002/pose"}  # fmt: skip
     poses = [m for m in messages if m[0].endswith("/pose")]
     assert len(poses) == len(steps) + len(trials)  # each trial's start, then every step
     assert {m[1] for m in poses} == {"foxglove.PoseInFrame"}

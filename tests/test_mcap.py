@@ -216,6 +216,15 @@ def test_bad_input_fails_clearly(tmp_path: Path) -> None:
             rec.write_trial_events(0, one, "a", t[:1], t[:1], one, one, one, [np.inf])
         with pytest.raises(ValueError, match="response"):
             rec.write_trial_events(0, one, "a", t[:1], t[:1], one, one, one, [1.0], ["x"])
+        two, yes = np.array([3, 4]), np.array([True, False])
+        with pytest.raises(ValueError, match="1-based"):
+            rec.write_trial_table(0, "a", 0, START, two, [0.0, 1.0], two, two, yes)
+        with pytest.raises(ValueError, match="reward must be"):
+            rec.write_trial_table(0, "a", 1, START, two, [0.0, np.nan], two, two, yes)
+        with pytest.raises(ValueError, match="end_state must be"):
+            rec.write_trial_table(0, "a", 1, START, two, [0.0, 1.0], two, one, yes)
+        with pytest.raises(ValueError, match="steps must be 1-D"):
+            rec.write_trial_table(0, "a", 1, START, np.zeros((2, 2), int), [0.0], two, two, yes)
         with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
             rec.write_image(0, START, np.zeros((4, 4), np.uint8))
         rec.write_poses(0, t[:0], np.zeros((0, 3)))  # empty: nothing written

@@ -6,6 +6,7 @@ import json
 import time
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -129,7 +130,8 @@ def test_agents_of_a_job_go_into_one_archive(cobel, tmp_path):
     assert runs_in(folder.agents_archive) == [0, 5, 11]
     kept = json.loads(folder.manifest.read_text())["kept"]
     assert kept == {"trials": "all", "steps": {"runs": 12, "trial_every": 1},
-                    "mcap": {"runs": 10, "images": False}, "agents": [0, 5, 11]}  # fmt: skip
+                    "mcap": {"runs": 10, "trial_tables": 12, "images": False},
+                    "agents": [0, 5, 11]}  # fmt: skip
     assert not folder.agents.exists() and not folder.agent_parts.exists()
     # +agent.load_from picks run r's member and checks it against the agent's schema
     cont = cobel("run", "task=tmaze_extinction", "task.runs=1", f"+agent.load_from={out}",
@@ -181,3 +183,104 @@ def test_archive_round_trip_and_corrupt_state_is_a_clear_error(tmp_path):
         a0["a0.values"].shape != a1["a0.values"].shape
         or a0["a1.values"].shape != a1["a1.values"].shape
     )
+
+
+def _run_in_process(tmp_path, name, overrides, background=True):
+    from cobelrun.api import compose
+    from cobelrun.runner import build_task, execute
+
+    task = build_task(compose("tmaze_extinction", overrides))
+    out = tmp_path / name
+    out.mkdir()
+    execute(task, out, background_writes=background)
+    return out
+
+
+SMALL = ["task.runs=6", "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=7"]
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_step_rows_built_in_bulk_equal_rows_built_per_batch(tmp_path, monkeypatch, every):
+    """The trajectory monitor's rows, built from joined batches on the writer thread (parts of
+    a few batches each), are the rows it builds batch by batch: every step row, in order."""
+    from cobelrun.monitors import TrajectoryMonitor
+
+    overrides = [*SMALL, f"task.record.trial_every={every}", "task.save_agents=none"]
+    monkeypatch.setattr(RunRecorder, "JOIN_STEPS", 300)  # many joins, each of several batches
+    joined = _run_in_process(tmp_path, "joined", overrides)
+    monkeypatch.setattr(TrajectoryMonitor, "joinable", False)
+    per_batch = _run_in_process(tmp_path, "per_batch", overrides, background=False)
+    a = pq.read_table(joined / "steps.parquet").to_pandas()
+    b = pq.read_table(per_batch / "steps.parquet").to_pandas()
+    assert len(a) > 1000
+    assert a.equals(b)
+    trials = pq.read_table(joined / "trials.parquet").to_pandas()
+    kept = trials[(trials["trial"] - 1) % every == 0]
+    assert len(a) == kept["steps"].sum()  # every step row of every kept trial
+    counts = a.groupby(["run", "trial"]).size()
+    expected = kept.set_index(["run", "trial"])["steps"]
+    assert counts.reindex(expected.index, fill_value=0).tolist() == expected.tolist()
+    assert (a.groupby(["run", "trial"])["step"].max() == counts).all()
+    assert set(a["run"]) == set(range(6))
+    meta = pq.ParquetFile(joined / "steps.parquet").metadata
+    assert meta.row_group(0).column(0).encodings.count("RLE_DICTIONARY") == 1
+
+
+def test_every_runs_trials_go_to_the_mcap_as_trial_tables(tmp_path):
+    """Poses and per-trial events only for the first mcap_runs runs; every run's trials as
+    one cobel.TrialTable per run and phase, equal to trials.parquet."""
+    out = _run_in_process(tmp_path, "run", [*SMALL, "task.record.mcap_runs=2"])
+    trials = pq.read_table(out / "trials.parquet").to_pandas()
+    messages = read_mcap(out / "run.mcap")
+    topics = {m[0] for m in messages}
+    assert topics == {"/maze", "/trial", "/trials", "/run_0000/pose", "/run_0001/pose"}
+    events = [m[3] for m in messages if m[0] == "/trial"]
+    assert {e["run"] for e in events} == {0, 1}
+    tables = [m for m in messages if m[0] == "/trials"]
+    assert len(tables) == 6 * 2 and {m[1] for m in tables} == {"cobel.TrialTable"}
+    rows = []
+    for _, _, log_time, msg in tables:
+        t0 = msg.timestamp.seconds * 10**9 + msg.timestamp.nanos
+        assert t0 == log_time
+        offsets = np.concatenate([[0], np.cumsum(msg.steps)[:-1]]) + np.arange(len(msg.steps))
+        for i in range(len(msg.steps)):
+            rows.append({"run": msg.run, "trial": msg.first_trial + i, "phase": msg.phase,
+                         "steps": msg.steps[i], "reward": msg.reward[i],
+                         "start_state": msg.start_state[i], "end_state": msg.end_state[i],
+                         "terminated": msg.terminated[i], "response": msg.response[i],
+                         "t_start": t0 + int(offsets[i]) * 100_000_000})  # fmt: skip
+    got = pd.DataFrame(rows).sort_values(["run", "trial"]).reset_index(drop=True)
+    cols = ["run", "trial", "phase", "steps", "reward", "start_state", "end_state",
+            "terminated", "response"]  # fmt: skip
+    want = trials.sort_values(["run", "trial"]).reset_index(drop=True)[cols]
+    pd.testing.assert_frame_equal(got[cols], want, check_dtype=False)
+    # the documented trial start times agree with the start events of the runs kept in full
+    starts = {(e["run"], e["trial"]): t for (topic, _, t, e) in messages
+              if topic == "/trial" and e["event"] == "start"}  # fmt: skip
+    kept = got[got["run"] < 2]
+    assert [starts[(r, t)] for r, t in zip(kept["run"], kept["trial"], strict=True)] == list(
+        kept["t_start"]
+    )
+    assert got["t_start"].is_monotonic_increasing
+
+
+def test_streamed_summary_equals_the_summary_of_the_whole_table(tmp_path):
+    """What `cobel run` logs and prints at the end is read in batches of rows (flat memory)
+    and equals the pandas summary of the whole table, also for a table of several batches."""
+    from cobelrun.run_summary import summary, summary_of_file
+
+    rng = np.random.default_rng(3)
+    runs, per_phase = 700, 100  # 140,000 rows: three batches of 65,536
+    rows = pd.DataFrame({
+        "run": np.repeat(np.arange(runs, dtype=np.int32), 2 * per_phase),
+        "trial": np.tile(np.arange(1, 2 * per_phase + 1, dtype=np.int32), runs),
+        "phase": np.tile(np.repeat(["acquisition", "extinction"], per_phase), runs),
+        "reward": rng.random(runs * 2 * per_phase), "steps": rng.integers(1, 35, runs * 2 * per_phase),
+        "response": rng.integers(0, 2, runs * 2 * per_phase).astype(np.int8),
+    })  # fmt: skip
+    rows.loc[rows["run"] == 5, "reward"] = np.nan  # skipped, as pandas' mean does
+    path = tmp_path / "trials.parquet"
+    rows.to_parquet(path, row_group_size=50_000)
+    got = summary_of_file(path)
+    pd.testing.assert_frame_equal(got, summary(rows), check_dtype=False)
+    assert list(got["phase"]) == ["acquisition", "extinction"] and got["runs"].tolist() == [700] * 2

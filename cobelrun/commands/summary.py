@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from cobelrun.io.run_folder import RunFolder
-from cobelrun.run_summary import LAST_TRIALS, summary
+from cobelrun.run_summary import LAST_TRIALS, summary_of_file
 
 
 def _console() -> Any:
@@ -39,9 +39,7 @@ def run_summary_table(run_dir: str | Path) -> Any:
     folder = RunFolder(run_dir)
     if not folder.table("trials").is_file():
         return None
-    import pandas as pd
-
-    frame = summary(pd.read_parquet(folder.table("trials")))
+    frame = summary_of_file(folder.table("trials"))
     manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
     times = manifest.get("phase_wall_time_s") or {}
     table = Table(

@@ -133,11 +133,7 @@ def merge_agent_parts(parts_dir: str | os.PathLike[str], path: str | os.PathLike
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1,
                              allowZip64=True) as zf:  # fmt: skip
             for key in keys:
-                info = []
-                for p in parts:  # shapes and dtypes first; one array in memory at a time
-                    arr = p[key]
-                    info.append((arr.shape, arr.dtype))
-                    del arr
+                info = [_header(f, key) for f in files]  # shapes and dtypes, no data read
                 dtype = np.result_type(*(d for _, d in info))
                 shape = (sum(s[0] for s, _ in info), *info[0][0][1:])
                 with zf.open(f"{key}.npy", "w", force_zip64=True) as out:
@@ -156,6 +152,17 @@ def merge_agent_parts(parts_dir: str | os.PathLike[str], path: str | os.PathLike
             tmp.unlink()
     shutil.rmtree(parts_dir)
     return n
+
+
+def _header(npz: Path, key: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of member ``key`` of an npz file, from its ``.npy`` header alone."""
+    with zipfile.ZipFile(npz) as zf, zf.open(f"{key}.npy") as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        else:
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+    return shape, dtype
 
 
 def runs_in(path: str | os.PathLike[str]) -> list[int]:

@@ -12,7 +12,11 @@ Channels (all in the frame ``maze``, world units; see ``docs/mcap.md``)
     ``foxglove.RawImage`` (protobuf, ``rgb8``): camera frames, when the run records images.
 ``/trial``
     ``cobel.TrialEvent`` (JSON, schema :data:`TRIAL_EVENT_SCHEMA`): one ``start`` and one ``end``
-    event per trial of every run, trials 1-based.
+    event per trial of the runs kept in full, trials 1-based.
+``/trials``
+    ``cobel.TrialTable`` (protobuf, :data:`TRIAL_TABLE_PROTO`): the trials of every run, one
+    message per run and phase with a packed column per field (steps, reward, start and end
+    state, terminated, response), logged at the phase's first trial start.
 
 Log times are nanoseconds since the Unix epoch, starting at the run's real wall-clock start
 (``start_ns``), so Foxglove shows the date the run was made. The file is chunked (zstd, chunk
@@ -95,6 +99,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TRIAL_EVENT_SCHEMA",
+    "TRIAL_TABLE_PROTO",
     "McapRecorder",
     "heading_to_quaternion",
     "repair_mcap",
@@ -125,6 +130,67 @@ TRIAL_EVENT_SCHEMA: dict[str, Any] = {
     },
     "required": ["event", "run", "trial", "phase"],
 }
+
+
+#: ``cobel.TrialTable`` on ``/trials`` (protobuf; the file holds it as a FileDescriptorSet).
+TRIAL_TABLE_PROTO = """\
+syntax = "proto3";
+package cobel;
+import "google/protobuf/timestamp.proto";
+
+// The trials of one phase of one run: one value per trial in each repeated field.
+// Trial i (0-based) is trial number first_trial + i; it starts at timestamp +
+// (sum(steps[:i]) + i) * 100 ms and ends steps[i] * 100 ms later (the pose clock).
+message TrialTable {
+  google.protobuf.Timestamp timestamp = 1;  // start of the phase's first trial
+  uint32 run = 2;                           // run index, 0-based (as in trials.parquet)
+  string phase = 3;                         // protocol phase name
+  uint32 first_trial = 4;                   // 1-based, counted across phases
+  repeated int64 steps = 5;                 // steps taken = escape latency
+  repeated double reward = 6;               // reward summed over the trial
+  repeated int64 start_state = 7;
+  repeated int64 end_state = 8;
+  repeated bool terminated = 9;             // false: the trial hit max_steps
+  repeated int32 response = 10;             // coded response; empty if the task codes none
+}
+"""
+
+_TRIAL_TABLE: tuple[Any, bytes] | None = None
+
+
+def _trial_table_type() -> tuple[Any, bytes]:
+    """The ``cobel.TrialTable`` message class and its FileDescriptorSet (built once, from
+    descriptors equal to :data:`TRIAL_TABLE_PROTO`, through protobuf's public API)."""
+    global _TRIAL_TABLE
+    if _TRIAL_TABLE is None:
+        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, timestamp_pb2
+
+        F = descriptor_pb2.FieldDescriptorProto
+        proto = descriptor_pb2.FileDescriptorProto(
+            name="cobel/trial_table.proto", package="cobel", syntax="proto3",
+            dependency=["google/protobuf/timestamp.proto"],
+        )  # fmt: skip
+        msg = proto.message_type.add(name="TrialTable")
+        fields = [("timestamp", F.TYPE_MESSAGE), ("run", F.TYPE_UINT32),
+                  ("phase", F.TYPE_STRING), ("first_trial", F.TYPE_UINT32),
+                  ("steps", F.TYPE_INT64), ("reward", F.TYPE_DOUBLE),
+                  ("start_state", F.TYPE_INT64), ("end_state", F.TYPE_INT64),
+                  ("terminated", F.TYPE_BOOL), ("response", F.TYPE_INT32)]  # fmt: skip
+        for number, (name, typ) in enumerate(fields, start=1):
+            repeated = number >= 5
+            f = msg.field.add(name=name, number=number, type=typ,
+                              label=F.LABEL_REPEATED if repeated else F.LABEL_OPTIONAL)  # fmt: skip
+            if typ == F.TYPE_MESSAGE:
+                f.type_name = ".google.protobuf.Timestamp"
+        timestamp = descriptor_pb2.FileDescriptorProto()
+        timestamp_pb2.DESCRIPTOR.CopyToProto(timestamp)
+        pool = descriptor_pool.DescriptorPool()
+        pool.Add(timestamp)
+        pool.Add(proto)
+        cls = message_factory.GetMessageClass(pool.FindMessageTypeByName("cobel.TrialTable"))
+        fds = descriptor_pb2.FileDescriptorSet(file=[timestamp, proto]).SerializeToString()
+        _TRIAL_TABLE = (cls, fds)
+    return _TRIAL_TABLE
 
 
 def heading_to_quaternion(heading_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,6 +262,7 @@ class McapRecorder:
     """
 
     TRIAL_TOPIC = "/trial"
+    TRIALS_TOPIC = "/trials"
     SCENE_TOPIC = "/maze"
 
     def __init__(
@@ -224,6 +291,7 @@ class McapRecorder:
         self._closed = False
         self._poses: dict[str, PoseInFrameChannel] = {}
         self._cameras: dict[int, RawImageChannel] = {}
+        self._trials: foxglove.Channel | None = None
         try:
             self._trial = foxglove.Channel(
                 self.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA, context=self._context
@@ -371,6 +439,75 @@ class McapRecorder:
         for a, b, t0, t1 in zip(starts, ends, ts.tolist(), te.tolist(), strict=True):
             log(a, log_time=t0)
             log(b, log_time=t1)
+
+    # ------------------------------------------------------------------ trial tables
+    def write_trial_table(
+        self,
+        run: int,
+        phase: str,
+        first_trial: int,
+        t_ns: int,
+        steps: np.ndarray,
+        reward: np.ndarray,
+        start_state: np.ndarray,
+        end_state: np.ndarray,
+        terminated: np.ndarray,
+        response: np.ndarray | None = None,
+    ) -> None:
+        """Write the trials of one phase of one run as one ``cobel.TrialTable`` on ``/trials``.
+
+        Parameters
+        ----------
+        run : int
+            Run index (0-based).
+        phase : str
+            Protocol phase of these trials.
+        first_trial : int
+            Trial number (1-based, across phases) of the first trial.
+        t_ns : int
+            Absolute log time: the start of the first trial.
+        steps, start_state, end_state : (n,) int
+            Steps taken (escape latency), start and end state of each trial.
+        reward : (n,) float
+            Summed reward of each trial (finite).
+        terminated : (n,) bool
+            Whether each trial ended in a terminal state.
+        response : (n,) int, optional
+            Coded response of each trial (left empty when omitted).
+        """
+        self._check_open()
+        st = np.asarray(steps)
+        n = st.shape[0] if st.ndim == 1 else -1
+        if n < 0:
+            raise ValueError(f"write_trial_table: steps must be 1-D, got shape {st.shape}")
+        t = int(t_ns)
+        if t < 0:
+            raise ValueError("write_trial_table: t_ns must be >= 0")
+        if int(first_trial) < 1:
+            raise ValueError("write_trial_table: trials are 1-based (first_trial < 1)")
+        cols: dict[str, list[Any]] = {}
+        for name, values in (("steps", st), ("start_state", start_state),
+                             ("end_state", end_state), ("terminated", terminated),
+                             ("response", response)):  # fmt: skip
+            if values is None:
+                continue
+            a = np.asarray(values)
+            if a.shape != (n,) or (n and a.dtype.kind not in "iub"):
+                raise ValueError(f"write_trial_table: {name} must be ({n},) integers, "
+                                 f"got {a.shape} {a.dtype}")  # fmt: skip
+            cols[name] = a.astype(bool if name == "terminated" else np.int64).tolist()
+        rew = np.asarray(reward, dtype=np.float64)
+        if rew.shape != (n,) or not np.isfinite(rew).all():
+            raise ValueError(f"write_trial_table: reward must be ({n},) finite floats")
+        cls, fds = _trial_table_type()
+        if self._trials is None:
+            schema = foxglove.Schema(name="cobel.TrialTable", encoding="protobuf", data=fds)
+            self._trials = foxglove.Channel(self.TRIALS_TOPIC, schema=schema,
+                                            message_encoding="protobuf", context=self._context)  # fmt: skip
+        msg = cls(run=int(run), phase=str(phase), first_trial=int(first_trial),
+                  reward=rew.tolist(), **cols)  # fmt: skip
+        msg.timestamp.seconds, msg.timestamp.nanos = divmod(t, _NS_PER_S)
+        self._trials.log(msg.SerializeToString(), log_time=t)
 
     # ------------------------------------------------------------------ images
     def write_image(self, run: int, t_ns: int, image: np.ndarray) -> None:

@@ -76,15 +76,46 @@ class Table:
 
 @dataclass(frozen=True)
 class BatchInfo:
-    """Where a batch of trials belongs: run, phase and the 1-based trial numbers."""
+    """Where a batch of trials belongs: run, phase and the 1-based trial numbers.
+
+    A batch the recorder joined from several batches (for :attr:`Monitor.joinable` monitors)
+    spans runs and phases: then ``trial_runs`` and ``trial_numbers`` hold each trial's run and
+    trial number, and ``run``, ``phase`` and ``first_trial`` are those of its first trial. Use
+    :meth:`runs` and :meth:`trials`, which are right in both cases.
+    """
 
     run: int
     phase: str
     first_trial: int
     env: Any
+    trial_runs: np.ndarray | None = None
+    trial_numbers: np.ndarray | None = None
 
     def trials(self, n: int) -> np.ndarray:
+        """(n,) int32: the 1-based trial number of each trial of the batch."""
+        if self.trial_numbers is not None:
+            return self.trial_numbers
         return np.arange(self.first_trial, self.first_trial + n, dtype=np.int32)
+
+    def runs(self, n: int) -> np.ndarray:
+        """(n,) int32: the run of each trial of the batch."""
+        if self.trial_runs is not None:
+            return self.trial_runs
+        return np.full(n, self.run, np.int32)
+
+    @classmethod
+    def joined(cls, infos: Sequence[BatchInfo], n_trials: Sequence[int]) -> BatchInfo:
+        """The info of batches joined in this order (``n_trials[i]`` trials in batch ``i``)."""
+        first = infos[0]
+        counts = np.asarray(n_trials, np.int64)
+        starts = np.repeat(np.array([i.first_trial for i in infos], np.int32), counts)
+        begin = np.repeat(np.cumsum(counts) - counts, counts)
+        within = np.arange(int(counts.sum()), dtype=np.int32) - begin.astype(np.int32)
+        return cls(
+            run=first.run, phase=first.phase, first_trial=first.first_trial, env=first.env,
+            trial_runs=np.repeat(np.array([i.run for i in infos], np.int32), counts),
+            trial_numbers=starts + within,
+        )  # fmt: skip
 
 
 Emit = Callable[[str, Mapping[str, Any]], None]
@@ -95,6 +126,14 @@ class Monitor(abc.ABC):
 
     #: env contracts (names in :data:`cobelrun.envs.base.CONTRACTS`) this monitor needs
     requires: ClassVar[tuple[str, ...]] = ()
+
+    #: True if :meth:`on_batch` depends only on the batch, ``info.runs()``/``info.trials()``
+    #: and the env's fixed layout (no agent, no state kept between batches). The recorder may
+    #: then call it later, on its writer thread, with many batches joined into one
+    #: (:meth:`TrialBatch.concat`, :meth:`BatchInfo.joined`): per-step tables cost a few numpy
+    #: calls per ~65,000 rows instead of per batch. Only used for monitors that write per-step
+    #: tables alone.
+    joinable: ClassVar[bool] = False
 
     _emit: Emit | None = None
 
@@ -231,6 +270,7 @@ class ResponseMonitor(TrialColumnsMonitor):
         self.before_refs = list(before or [])
         self.states = np.zeros(0, np.int64)
         self.before = np.zeros(0, np.int64)
+        self._is_response: np.ndarray | None = None
         self._cumulative = 0
 
     requires = ("discrete_states",)
@@ -240,6 +280,9 @@ class ResponseMonitor(TrialColumnsMonitor):
         base = env.unwrapped
         self.states = np.array([base.state_index(r) for r in self.refs], dtype=np.int64)
         self.before = np.array([base.state_index(r) for r in self.before_refs], dtype=np.int64)
+        # response states as a lookup table: one take per batch instead of np.isin
+        self._is_response = np.zeros(int(base.n_states), np.int8)
+        self._is_response[self.states] = 1
 
     def start_run(self, run: int, agent: Any = None) -> None:
         self._cumulative = 0
@@ -251,7 +294,11 @@ class ResponseMonitor(TrialColumnsMonitor):
         if self.before.size:
             response = self._first_choice(batch)
         else:
-            response = np.isin(batch.end_state, self.states).astype(np.int8)
+            response = (
+                np.isin(batch.end_state, self.states).astype(np.int8)
+                if self._is_response is None
+                else self._is_response[batch.end_state]
+            )
         cumulative = self._cumulative + np.cumsum(response, dtype=np.int64)
         if cumulative.size:
             self._cumulative = int(cumulative[-1])
@@ -274,7 +321,10 @@ class ResponseMonitor(TrialColumnsMonitor):
 class TrajectoryMonitor(Monitor):
     """Every step: run, trial, step, state, pose (x, y, heading), action, reward and next state
     (the ``steps`` table). Positions come from the env's pose contract (``x``/``y`` of the state
-    the action was taken in); envs without poses write NaN."""
+    the action was taken in); envs without poses write NaN. Joinable: the recorder builds the
+    table from many batches at once, on its writer thread."""
+
+    joinable = True
 
     def tables(self) -> list[Table]:
         return [Table("steps", (
@@ -302,7 +352,7 @@ class TrajectoryMonitor(Monitor):
         else:
             before = np.full((batch.n_steps, 3), np.nan)
         return {"steps": {
-            "run": np.full(batch.n_steps, info.run, np.int32),
+            "run": np.repeat(info.runs(n), batch.steps),
             "trial": np.repeat(info.trials(n), batch.steps),
             "step": batch.step_index().astype(np.int32),
             "state": batch.step_state,

@@ -100,12 +100,12 @@ FIGURE = Figure(
     name="fig8",
     title="Place cells in a DQN on a hexagonal maze (counts over training, maps, RSA)",
     runs={"dqn": ["task=place_cells"]},
-    # CI budget: 2 runs x 300 trials, snapshots every 75 (docs/place_cells.md: runtime)
+    # CI budget: 2 runs x 500 trials, snapshots every 100 (docs/place_cells.md: runtime)
     quick={
         "*": [
             "task.runs=2",
-            "task.protocol.phases.0.trials=300",
-            "task.monitors.maps.every=75",
+            "task.protocol.phases.0.trials=500",
+            "task.monitors.maps.every=100",
             "task.record.steps=false",
         ]
     },

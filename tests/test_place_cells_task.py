@@ -67,6 +67,47 @@ def test_dqn_fig8_network_and_analysis_layer():
     assert np.array_equal(agent.predict(obs), agent.predict(obs))
 
 
+def test_keras_init_and_q_init():
+    """init=keras: Glorot-uniform weights within their bound, zero biases; q_init sets the output
+    biases, so an untrained network's Q values sit at q_init; the target net is the same."""
+    pytest.importorskip("stable_baselines3")
+    import torch
+
+    from cobelrun.agents.dqn import DQNAgent
+
+    env = hex_env()
+    kw = {"policy": "CnnPolicy", "convs": [[32, 5, 1], [64, 4, 2], [64, 3, 2]],
+          "features_dim": 50, "dropout": 0.35, "net_arch": []}  # fmt: skip
+    agent = DQNAgent(env, init="keras", q_init=-5.0, seed=0, **kw)
+    net, target = agent.model.policy.q_net, agent.model.policy.q_net_target
+    layers = [m for m in net.modules() if isinstance(m, torch.nn.Linear | torch.nn.Conv2d)]
+    assert len(layers) == 5
+    for m in layers[:-1]:
+        assert torch.count_nonzero(m.bias) == 0
+    for m in layers:
+        w = m.weight.detach().numpy()
+        fan_in = w[0].size
+        fan_out = w.shape[0] * (w[0, 0].size if w.ndim == 4 else 1)
+        bound = np.sqrt(6 / (fan_in + fan_out))
+        assert np.abs(w).max() <= bound
+        assert w.std() == pytest.approx(bound / np.sqrt(3), rel=0.1)  # uniform(-b, b)
+    assert np.all(layers[-1].bias.detach().numpy() == -5.0)
+    for (k, v), (k2, v2) in zip(net.state_dict().items(), target.state_dict().items(), strict=True):
+        assert k == k2 and torch.equal(v, v2)
+    obs = np.stack([env.observe_pose(n, 0) for n in range(20)])
+    q = agent.predict(obs)
+    assert abs(q.mean() + 5.0) < 0.5 and q.std() > 0
+    # the default (PyTorch's init) draws non-zero biases; same seed, same weights
+    torch_agent = DQNAgent(env, seed=0, **kw)
+    assert torch.count_nonzero(torch_agent.model.q_net.q_net[0].bias) > 0
+    again = DQNAgent(env, init="keras", q_init=-5.0, seed=0, **kw)
+    assert np.array_equal(again.predict(obs), q)
+    with pytest.raises(ConfigError, match="agent.init 'glorot' is not known.*allowed"):
+        DQNAgent(env, init="glorot", seed=0, **kw)
+    with pytest.raises(ConfigError, match="agent.q_init must be a finite number"):
+        DQNAgent(env, q_init=float("nan"), seed=0, **kw)
+
+
 def test_render_at_pose_matches_nodes_and_differs_between_them():
     env = hex_env()
     base = env.unwrapped

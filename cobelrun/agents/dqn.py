@@ -65,6 +65,9 @@ LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "ms
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 #: SB3's NatureCNN (used for image inputs of a Dict observation by MultiInputPolicy)
 NATURE_CONVS = ((32, 8, 4), (64, 4, 2), (64, 3, 1))
+#: Weight initialisations by config name: PyTorch's layer defaults, or Keras' (Glorot-uniform
+#: weights, zero biases: what CoBeL-RL's keras-rl networks started from)
+INITS = ("torch", "keras")
 #: Layer name aliases of the CNN network: ``analysis`` is the dense ReLU layer after the
 #: convolutions (Fig. 8's "analysis" layer, recorded for place-cell maps).
 CNN_LAYER_ALIASES = {"analysis": "features_extractor.linear.1"}
@@ -170,6 +173,16 @@ class ConvFeatures(BaseFeaturesExtractor):
         return self.linear(self.cnn(observations))
 
 
+def keras_init(net: torch.nn.Module) -> None:
+    """Keras' default initialisation in place: Glorot-uniform weights, zero biases, for every
+    dense and convolutional layer of ``net`` (draws from torch's global generator)."""
+    for mod in net.modules():
+        if isinstance(mod, torch.nn.Linear | torch.nn.Conv2d):
+            torch.nn.init.xavier_uniform_(mod.weight)
+            if mod.bias is not None:
+                torch.nn.init.zeros_(mod.bias)
+
+
 class DQNAgent(Agent):
     """DQN (Mnih et al. 2015) through stable-baselines3, trained in trials.
 
@@ -225,6 +238,15 @@ class DQNAgent(Agent):
     dropout
         Dropout rate after the CNN's dense layer (default 0; Fig. 8: 0.35). Active while
         learning only; acting, testing and :meth:`activations` run the network in eval mode.
+    init
+        Initial weights of the Q network: ``"torch"`` (PyTorch's layer defaults, uniform
+        +-1/sqrt(fan_in) for weights and biases; default) or ``"keras"`` (Glorot-uniform weights
+        and zero biases, Keras' defaults and so CoBeL-RL's). The target network starts as a copy.
+    q_init
+        Initial Q value: the output layer's biases start at this value (default ``None``: as
+        ``init``). With a constant step cost ``c`` per step, ``c / (1 - gamma)`` starts the
+        network at the return of a trial that never ends, so learning does not have to move
+        every Q value there through the hidden units (docs/place_cells.md).
     prioritized
         Use proportional prioritized experience replay (:mod:`cobelrun.agents.per`).
     per_alpha, per_beta, per_beta_steps, per_epsilon
@@ -266,6 +288,8 @@ class DQNAgent(Agent):
         features_dim: int = 256,
         conv_padding: str = "valid",
         dropout: float = 0.0,
+        init: str = "torch",
+        q_init: float | None = None,
         prioritized: bool = False,
         per_alpha: float = 0.6,
         per_beta: float = 0.4,
@@ -299,6 +323,10 @@ class DQNAgent(Agent):
         ):
             if isinstance(value, bool) or not isinstance(value, int) or value < lo:
                 raise ConfigError(f"agent.{name} must be an integer >= {lo}, got {value!r}")
+        if q_init is not None and (
+            isinstance(q_init, bool) or not isinstance(q_init, int | float) or not np.isfinite(q_init)
+        ):
+            raise ConfigError(f"agent.q_init must be a finite number or null, got {q_init!r}")
         if learning_rate <= 0:
             raise ConfigError(f"agent.learning_rate must be > 0, got {learning_rate}")
         if conv_padding not in ("valid", "same"):
@@ -307,6 +335,11 @@ class DQNAgent(Agent):
             )
         if max_grad_norm is not None and not max_grad_norm > 0:
             raise ConfigError(f"agent.max_grad_norm must be > 0 or null, got {max_grad_norm}")
+        if init not in INITS:
+            raise ConfigError(
+                f"agent.init {init!r} is not known{suggest(init, list(INITS))}; "
+                f"allowed: {allowed_list(list(INITS))}"
+            )
         if loss not in LOSSES:
             raise ConfigError(
                 f"agent.loss {loss!r} is not known{suggest(loss, list(LOSSES))}; "
@@ -377,7 +410,8 @@ class DQNAgent(Agent):
             "target_update_interval": target_update_interval, "policy": policy,
             "net_arch": policy_kwargs["net_arch"], "activation": activation,
             "prioritized": self.prioritized, "loss": loss, "max_grad_norm": max_grad_norm,
-            "trial_end_updates": trial_end_updates, "dropout": dropout,
+            "trial_end_updates": trial_end_updates, "dropout": dropout, "init": init,
+            "q_init": q_init,
         }  # fmt: skip
 
         np_seed, torch_seed, space_seed, per_seed = self.seed_sequence.generate_state(4)
@@ -417,6 +451,15 @@ class DQNAgent(Agent):
                 seed=None,  # seeded through _rng_scope; SB3's seed= would also reseed the env
                 **kwargs,
             )
+            q_net = self.model.policy.q_net
+            if init == "keras":
+                keras_init(q_net)
+            if q_init is not None:
+                out = [m for m in q_net.q_net.modules() if isinstance(m, torch.nn.Linear)][-1]
+                with torch.no_grad():
+                    out.bias.fill_(float(q_init))
+            if init == "keras" or q_init is not None:
+                self.model.policy.q_net_target.load_state_dict(q_net.state_dict())
         self.model.td_loss = LOSSES[loss]
         self.model.trial_end_updates = int(trial_end_updates)
         # a private action space: its sampler is the agent's, not the environment's

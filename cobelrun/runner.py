@@ -164,10 +164,11 @@ def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
 def run_seed(seed: int, run: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
     """(agent, environment) seed sequences of run ``run``, derived from the one ``seed``.
 
-    Identical to ``SeedSequence(seed).spawn(runs)[run].spawn(2)`` but O(1) per run.
+    Identical to ``SeedSequence(seed).spawn(runs)[run].spawn(2)`` (a child's spawn key is its
+    parent's plus its index) but O(1) per run, and made directly (~5 us each).
     """
-    agent, env = np.random.SeedSequence(seed, spawn_key=(run,)).spawn(2)
-    return agent, env
+    seq = np.random.SeedSequence
+    return seq(seed, spawn_key=(run, 0)), seq(seed, spawn_key=(run, 1))
 
 
 def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.random.SeedSequence]]:

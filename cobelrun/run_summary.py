@@ -48,8 +48,8 @@ def phase_rows(columns: Mapping[str, Any], last: int = LAST_TRIALS) -> list[dict
     Parameters
     ----------
     columns
-        A trials table's columns as arrays: ``phase``, ``run``, ``trial`` and any of
-        ``reward``, ``steps``, ``response``.
+        A trials table's columns as arrays: ``phase`` (labels, or a ``(names, codes)``
+        pair), ``run``, ``trial`` and any of ``reward``, ``steps``, ``response``.
     last
         How many of each phase's last trials the means cover.
 
@@ -59,18 +59,24 @@ def phase_rows(columns: Mapping[str, Any], last: int = LAST_TRIALS) -> list[dict
         One row per phase: ``phase``, ``runs``, ``trials`` and ``reward``/``latency``/
         ``response`` (``last`` trials' means) where the table has them.
     """
-    phase = np.asarray(columns["phase"]).astype(str)
-    if phase.size == 0:
+    phase = columns["phase"]
+    if isinstance(phase, tuple):  # (names, codes): the phase of row i is names[codes[i]]
+        names, codes = list(phase[0]), np.asarray(phase[1], dtype=np.int64)
+    else:
+        labels, codes = np.unique(np.asarray(phase).astype(str), return_inverse=True)
+        names = labels.tolist()
+    if codes.size == 0:
         return []
     run = np.asarray(columns["run"], dtype=np.int64)
     trial = np.asarray(columns["trial"], dtype=np.int64)
-    names, first = np.unique(phase, return_index=True)
+    used, first = np.unique(codes, return_index=True)
     # phases in the order of the trial number of their first row
-    order = sorted(zip(names.tolist(), first.tolist(), strict=True), key=lambda p: trial[p[1]])
+    order = sorted(zip(used.tolist(), first.tolist(), strict=True), key=lambda p: trial[p[1]])
     measures = {col: _floats(columns[col]) for col in MEASURES if col in columns}
     rows = []
-    for name, _ in order:
-        sel = phase == name
+    for code, _ in order:
+        name = names[code]
+        sel = codes == code
         runs, trials = run[sel], trial[sel]
         per_run = np.unique(np.stack([runs, trials], axis=1), axis=0)  # (run, trial) pairs
         _, counts = np.unique(per_run[:, 0], return_counts=True)
@@ -90,10 +96,34 @@ def read_phase_rows(path: str | Path, last: int = LAST_TRIALS) -> list[dict[str,
     (``pyarrow.parquet.read_table`` and Arrow's ``to_numpy`` import pandas, ~0.3 s)."""
     import pyarrow.parquet as pq
 
-    file = pq.ParquetFile(path)
+    file = pq.ParquetFile(path, read_dictionary=["phase"])
     wanted = [c for c in ("phase", "run", "trial", *MEASURES) if c in file.schema_arrow.names]
     table = file.read(columns=wanted)
-    return phase_rows({c: _column(table.column(c)) for c in wanted}, last)
+    columns: dict[str, Any] = {c: _column(table.column(c)) for c in wanted if c != "phase"}
+    if "phase" in wanted:  # as (names, codes): no Python string per row
+        names: list[str] = []
+        codes = []
+        for chunk in table.column("phase").chunks:  # codes point into the chunk's dictionary
+            base = len(names)
+            names += [str(v) for v in chunk.dictionary.to_pylist()]
+            codes.append(_numbers(chunk.indices).astype(np.int64) + base)
+        # a name in several chunks' dictionaries: one code for it
+        first = {}
+        for i, n in enumerate(names):
+            first.setdefault(n, i)
+        remap = np.array([first[n] for n in names], dtype=np.int64)
+        all_codes = np.concatenate(codes) if codes else np.empty(0, np.int64)
+        columns["phase"] = (names, remap[all_codes] if remap.size else all_codes)
+    return phase_rows(columns, last)
+
+
+def _numbers(array: Any) -> np.ndarray:
+    """An Arrow array of fixed-width numbers without nulls, read from its data buffer."""
+    dtype = np.dtype(array.type.to_pandas_dtype())
+    if array.null_count:
+        raise ValueError("missing values in a column that must have none")
+    return np.frombuffer(array.buffers()[1], dtype=dtype, count=len(array),
+                         offset=array.offset * dtype.itemsize)  # fmt: skip
 
 
 def _column(column: Any) -> np.ndarray:
@@ -103,10 +133,8 @@ def _column(column: Any) -> np.ndarray:
 
     kind = column.type
     if (pa.types.is_integer(kind) or pa.types.is_floating(kind)) and column.null_count == 0:
-        dtype = np.dtype(kind.to_pandas_dtype())
-        parts = [np.frombuffer(c.buffers()[1], dtype=dtype, count=len(c), offset=c.offset * dtype.itemsize)
-                 for c in column.chunks]  # fmt: skip
-        return np.concatenate(parts) if parts else np.empty(0, dtype)
+        parts = [_numbers(c) for c in column.chunks]
+        return np.concatenate(parts) if parts else np.empty(0, kind.to_pandas_dtype())
     values = np.empty(len(column), dtype=object)
     values[:] = column.to_pylist()
     return values

@@ -53,7 +53,10 @@ def test_phase_rows_match_a_pandas_reference(tmp_path, last: int) -> None:
     path = tmp_path / "trials.parquet"
     pq.write_table(pa.Table.from_pandas(df, preserve_index=False), path)
     got_file = read_phase_rows(path, last)
-    for got in (got_df, got_file):
+    many = tmp_path / "groups.parquet"  # row groups (chunks) with their own dictionaries
+    pq.write_table(pa.Table.from_pandas(df, preserve_index=False), many, row_group_size=17)
+    got_groups = read_phase_rows(many, last)
+    for got in (got_df, got_file, got_groups):
         assert [r["phase"] for r in got] == ["acquisition", "extinction"]
         for g, w in zip(got, want, strict=True):
             assert g["runs"] == w["runs"] == 3

@@ -316,9 +316,9 @@ def log_end(run_dir: Path) -> None:
     if "objective" in manifest:
         LOG.info("objective (%s) = %s", manifest.get("objective_name"), manifest["objective"])
     if folder.table("trials").is_file() and manifest.get("status") == "completed":
-        from cobelrun.run_summary import summary_of_file
+        from cobelrun.run_summary import read_phase_rows
 
-        for row in summary_of_file(folder.table("trials")).to_dict("records"):
+        for row in read_phase_rows(folder.table("trials")):
             LOG.info("phase %s: %s", row.pop("phase"),
                      ", ".join(f"{k} {v:.4g}" for k, v in row.items()))  # fmt: skip
 
@@ -545,7 +545,7 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])
         else:
             extra, _ = run_folder(overrides, cfg)
-            parsed.overrides = [*overrides, *extra]
+            return run_composed(cfg, extra, user_dir, config_name)
     if sweep_dir is None:
         _run_hydra(args=parsed, args_parser=parser, task_function=job,
                    config_path=str(config_dir), config_name=config_name)  # fmt: skip
@@ -566,6 +566,52 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
         if stopper.stopped:
             return stopper.report()
     return report_sweep(sweep_dir)
+
+
+def run_composed(
+    cfg: DictConfig, extra: list[str], config_dir: Path | None, config_name: str
+) -> int:
+    """Run one job on the config that :func:`validate` composed; return the exit code.
+
+    Hydra's own ``run`` composes the config twice more (once to find the run mode, once to
+    run), ~0.1 s each; this does what it does after composing, on the one composition:
+    ``extra`` (``hydra.run.dir=...``, from :func:`run_folder`) and ``hydra.mode=RUN`` are
+    applied and recorded among the Hydra overrides as Hydra would, Hydra's logging is
+    configured, and the job runs through Hydra's ``run_job`` (output folder, ``.hydra/``
+    files, job logging, callbacks) with Hydra's error reporting.
+    """
+    from hydra._internal.callbacks import Callbacks
+    from hydra._internal.utils import run_and_report
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.utils import configure_log, run_job
+    from hydra.types import HydraContext, RunMode
+    from omegaconf import open_dict, read_write
+
+    applied = [*extra, "hydra.mode=RUN"]
+    with read_write(cfg), open_dict(cfg):
+        for o in _parse(extra):
+            OmegaConf.update(cfg, o.key_or_group, o.value(), merge=False)
+        cfg.hydra.mode = RunMode.RUN
+        cfg.hydra.overrides.hydra.extend(applied)
+
+    def _run() -> None:
+        with composer(config_dir, config_name):
+            hydra = GlobalHydra.instance().hydra
+            assert hydra is not None
+            configure_log(cfg.hydra.hydra_logging, cfg.hydra.verbose)
+            callbacks = Callbacks(cfg)
+            callbacks.on_run_start(config=cfg, config_name=config_name)
+            ret = run_job(
+                hydra_context=HydraContext(config_loader=hydra.config_loader,
+                                           callbacks=callbacks),
+                task_function=job, config=cfg, job_dir_key="hydra.run.dir",
+                job_subdir_key=None, configure_logging=True,
+            )  # fmt: skip
+            callbacks.on_run_end(config=cfg, config_name=config_name, job_return=ret)
+            _ = ret.return_value  # raises the job's exception, as Hydra's run does
+
+    run_and_report(_run)
+    return 0
 
 
 def _release_workers() -> None:

@@ -169,10 +169,11 @@ def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
 def run_seed(seed: int, run: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
     """(agent, environment) seed sequences of run ``run``, derived from the one ``seed``.
 
-    Identical to ``SeedSequence(seed).spawn(runs)[run].spawn(2)`` but O(1) per run.
+    Identical to ``SeedSequence(seed).spawn(runs)[run].spawn(2)`` (a child's spawn key is its
+    parent's plus its index) but O(1) per run, and made directly (~5 us each).
     """
-    agent, env = np.random.SeedSequence(seed, spawn_key=(run,)).spawn(2)
-    return agent, env
+    seq = np.random.SeedSequence
+    return seq(seed, spawn_key=(run, 0)), seq(seed, spawn_key=(run, 1))
 
 
 def run_seeds(seed: int, runs: int) -> list[tuple[np.random.SeedSequence, np.random.SeedSequence]]:
@@ -317,11 +318,40 @@ def execute(
             recorder.end_run(run, agent, first - 1)
             if run in task.save_agents:
                 recorder.save_agent(run, agent)
+            if run % TRIM_EVERY == TRIM_EVERY - 1:
+                trim_memory()
     finally:
         recorder.close()
         if cpu_times is not None:
             cpu_times["simulation_thread"] = time.thread_time() - cpu0
             cpu_times["writer_thread"] = recorder.writer_cpu_s
+
+
+#: runs between two :func:`trim_memory` calls
+TRIM_EVERY = 50
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+def trim_memory() -> None:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``, as Dask's
+    workers do; a no-op elsewhere). Runs leave small freed blocks between long-lived ones
+    (the recorder's buffers), which glibc keeps: by the end of 1,000 Fig. 6B runs ~30 MB."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def run(

@@ -231,6 +231,43 @@ def test_sum_tree_prefix_search() -> None:
                                   [0, 0, 1, 1, 3, 4])  # fmt: skip
 
 
+def _naive_tree(capacity: int, updates: list[tuple[np.ndarray, np.ndarray]]) -> SumTree:
+    """The definition: set the leaves one value at a time (a later duplicate overwrites an
+    earlier one), then build every internal node from its two children."""
+    tree = SumTree(capacity)
+    sums, mins = np.zeros(2 * tree.size), np.full(2 * tree.size, np.inf)
+    for idx, values in updates:
+        for i, v in zip(idx.tolist(), values.tolist(), strict=True):
+            sums[tree.size + i] = mins[tree.size + i] = v
+    for node in range(tree.size - 1, 0, -1):
+        sums[node] = sums[2 * node] + sums[2 * node + 1]
+        mins[node] = min(mins[2 * node], mins[2 * node + 1])
+    tree.sums, tree.mins = sums, mins
+    return tree
+
+
+@pytest.mark.parametrize("capacity", [1, 2, 7, 64, 1000])
+def test_sum_tree_update_matches_a_naive_rebuild(capacity: int) -> None:
+    """Batches with repeated indices (later values win), single updates, empty updates."""
+    rng = np.random.default_rng(capacity)
+    tree, updates = SumTree(capacity), []
+    for step in range(60):
+        n = [0, 1, 3, 32, 200][step % 5]
+        idx = rng.integers(0, capacity, n)
+        if n > 1:
+            idx[: n // 2] = idx[n - n // 2 :]  # every batch repeats indices
+        values = rng.random(n) * 10.0
+        tree.update(idx, values)
+        updates.append((idx, values))
+        ref = _naive_tree(capacity, updates)
+        np.testing.assert_array_equal(tree.sums, ref.sums)
+        np.testing.assert_array_equal(tree.mins, ref.mins)
+    u = rng.random(500) * tree.total
+    np.testing.assert_array_equal(tree.find(u), ref.find(u))
+    with pytest.raises(ValueError, match="indices but"):
+        tree.update(np.arange(2), np.ones(3))
+
+
 def test_per_sampling_follows_priorities() -> None:
     obs_space = spaces.Box(0, 1, (2,), np.float32)
     buf = PrioritizedReplayBuffer(8, obs_space, spaces.Discrete(2), device="cpu", alpha=1.0,

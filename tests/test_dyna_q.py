@@ -39,15 +39,36 @@ class Recorder(TrialCallback):
     ],
 )
 def test_compiled_and_python_paths_identical(kw):
-    _env_a, fast = make(**kw, engine="compiled")
-    _env_b, slow = make(**kw, engine="python")
+    env_a, fast = make(**kw, engine="compiled")
+    env_b, slow = make(**kw, engine="python")
     a = fast.train(30, 35)
     b = slow.train(30, 35)
-    np.testing.assert_array_equal(a.steps, b.steps)
-    np.testing.assert_array_equal(a.step_action, b.step_action)
-    np.testing.assert_array_equal(a.step_next_state, b.step_next_state)
-    np.testing.assert_array_equal(a.end_state, b.end_state)
+    assert_same_batches(a, b)
     np.testing.assert_allclose(fast.Q, slow.Q, rtol=0, atol=0)
+    # the environment's generator was used alike (the T-maze's one start: not at all)
+    assert env_a.np_random.random() == env_b.np_random.random()
+
+
+def assert_same_batches(a, b):
+    for name in ("steps", "start_state", "end_state", "reward", "terminated", "offsets",
+                 "step_state", "step_action", "step_next_state", "step_reward"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_paths_identical_with_several_start_states():
+    """Start states drawn from the environment's generator: the same draws on both paths."""
+    world = open_field(5, 4, starts=[0, 3, 12, 17], goal=19)
+    env_a, fast = make(world, **PAPER, engine="compiled")
+    env_b, slow = make(world, **PAPER, engine="python")
+    for rewards in ({}, {19: 0.5}):
+        if rewards:
+            for env in (env_a, env_b):
+                env.unwrapped.apply_changes(rewards=rewards)
+        a, b = fast.train(25, 40), slow.train(25, 40)
+        assert_same_batches(a, b)
+        assert len(set(a.start_state.tolist())) > 1
+    np.testing.assert_array_equal(fast.Q, slow.Q)
+    assert env_a.np_random.random() == env_b.np_random.random()
 
 
 def test_paths_identical_on_stochastic_world_and_callbacks_use_python_path():
@@ -58,7 +79,7 @@ def test_paths_identical_on_stochastic_world_and_callbacks_use_python_path():
     a = fast.train(20, 50)
     b = slow.train(20, 50, callbacks=[cb])
     assert cb.steps == b.n_steps
-    np.testing.assert_array_equal(a.step_next_state, b.step_next_state)
+    assert_same_batches(a, b)
     np.testing.assert_array_equal(fast.Q, slow.Q)
 
 

@@ -267,7 +267,7 @@ def test_every_runs_trials_go_to_the_mcap_as_trial_tables(tmp_path):
 def test_streamed_summary_equals_the_summary_of_the_whole_table(tmp_path):
     """What `cobel run` logs and prints at the end is read in batches of rows (flat memory)
     and equals the pandas summary of the whole table, also for a table of several batches."""
-    from cobelrun.run_summary import summary, summary_of_file
+    from cobelrun.run_summary import read_phase_rows, summary
 
     rng = np.random.default_rng(3)
     runs, per_phase = 700, 100  # 140,000 rows: three batches of 65,536
@@ -281,6 +281,6 @@ def test_streamed_summary_equals_the_summary_of_the_whole_table(tmp_path):
     rows.loc[rows["run"] == 5, "reward"] = np.nan  # skipped, as pandas' mean does
     path = tmp_path / "trials.parquet"
     rows.to_parquet(path, row_group_size=50_000)
-    got = summary_of_file(path)
+    got = pd.DataFrame(read_phase_rows(path))
     pd.testing.assert_frame_equal(got, summary(rows), check_dtype=False)
     assert list(got["phase"]) == ["acquisition", "extinction"] and got["runs"].tolist() == [700] * 2

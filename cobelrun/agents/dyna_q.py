@@ -29,12 +29,16 @@ import numpy as np
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
 from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
 from cobelrun.agents.memory import TabularMemory
-from cobelrun.envs.base import TabularModel, require
+from cobelrun.envs.base import TabularModel, require, supports
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 from cobelrun.signals import critical
 
 ENGINES = ("auto", "compiled", "python")
+
+# placeholders for the table the kernel does not read (deterministic or stochastic worlds)
+_NO_NEXT_STATE = np.zeros((1, 1), np.int64)
+_NO_T_CUM = np.zeros((1, 1, 1))
 
 
 def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
@@ -121,7 +125,8 @@ class DynaQ(Agent):
         base = env.unwrapped
         self.n_states = int(env.observation_space.n)
         self.n_actions = int(env.action_space.n)
-        self.tabular = isinstance(base, TabularModel)
+        self.tabular = supports(base, TabularModel)  # remembered per env (~25 us each)
+        self._all_allowed: np.ndarray | None = None
         if self.engine == "compiled":
             require(env, ("tabular_model",), "agent.engine 'compiled' (use 'auto' or 'python')")
         if self.use_mask:
@@ -135,7 +140,9 @@ class DynaQ(Agent):
     def _mask(self) -> np.ndarray:
         if self.use_mask:
             return np.ascontiguousarray(self.env.unwrapped.action_mask(), dtype=np.bool_)
-        return np.ones((self.n_states, self.n_actions), dtype=np.bool_)
+        if self._all_allowed is None:  # read by the kernels only when use_mask is on
+            self._all_allowed = np.ones((self.n_states, self.n_actions), dtype=np.bool_)
+        return self._all_allowed
 
     def _params(self) -> tuple:
         return (
@@ -193,43 +200,54 @@ class DynaQ(Agent):
         world = base.world
         det_table = world.next_state
         deterministic = det_table is not None
-        next_state = det_table if deterministic else np.zeros((1, 1), np.int64)
-        T_cum = np.zeros((1, 1, 1)) if deterministic else np.cumsum(world.T, axis=2)
+        starts = np.ascontiguousarray(world.starts, np.int64)
+        if deterministic:
+            next_state, T_cum = det_table, _NO_T_CUM
+        else:
+            next_state, T_cum = _NO_NEXT_STATE, self._cumulative(world.T)
+        # a deterministic world with one start state draws nothing from the env's generator:
+        # leave it out (handing a Generator to compiled code costs ~10-30 us per call)
+        env_rng = None if deterministic and starts.shape[0] <= 1 else base.np_random
         cap = n_trials * max_steps
-        out_state = np.empty(cap, np.int64)
-        out_action = np.empty(cap, np.int64)
-        out_next = np.empty(cap, np.int64)
-        out_reward = np.empty(cap, np.float64)
-        steps = np.zeros(n_trials, np.int64)
-        term = np.zeros(n_trials, np.bool_)
-        starts = np.zeros(n_trials, np.int64)
+        step_ints = np.empty((3, cap), np.int64)  # state, action, next state
+        step_reward = np.empty(cap, np.float64)
+        trial_ints = np.empty((3, n_trials), np.int64)  # steps, start, end
+        reward = np.empty(n_trials, np.float64)
+        term = np.empty(n_trials, np.bool_)
+        offsets = np.zeros(n_trials + 1, np.int64)
         with critical():  # a signal inside the kernel's generator access corrupts it
             total = run_trials(
-                self.rng, base.np_random, self.Q, self._mask(), self.use_mask,
+                self.rng, env_rng, self.Q, self._mask(), self.use_mask,
                 *self.memory.arrays(), self.memory.reward_rate,
-                deterministic, np.ascontiguousarray(next_state, np.int64), T_cum,
+                deterministic, next_state, T_cum,
                 np.ascontiguousarray(world.rewards, np.float64),
-                np.ascontiguousarray(world.terminal, np.bool_),
-                np.ascontiguousarray(world.starts, np.int64),
+                np.ascontiguousarray(world.terminal, np.bool_), starts,
                 *self._params(), n_trials, max_steps, learn,
-                out_state, out_action, out_next, out_reward, steps, term, starts,
+                step_ints[0], step_ints[1], step_ints[2], step_reward,
+                trial_ints[0], term, trial_ints[1], trial_ints[2], reward, offsets,
             )  # fmt: skip
-        offsets = np.zeros(n_trials + 1, np.int64)
-        np.cumsum(steps, out=offsets[1:])
-        step_reward = out_reward[:total].copy()
-        end = np.where(steps > 0, out_next[np.maximum(offsets[1:] - 1, 0)], starts)
+        steps = step_ints[:, :total].copy()
         return TrialBatch(
-            start_state=starts,
-            end_state=end,
-            steps=steps,
-            reward=np.add.reduceat(step_reward, offsets[:-1]) if total else np.zeros(n_trials),
+            start_state=trial_ints[1],
+            end_state=trial_ints[2],
+            steps=trial_ints[0],
+            reward=reward,
             terminated=term,
             offsets=offsets,
-            step_state=out_state[:total].copy(),
-            step_action=out_action[:total].copy(),
-            step_next_state=out_next[:total].copy(),
-            step_reward=step_reward,
+            step_state=steps[0],
+            step_action=steps[1],
+            step_next_state=steps[2],
+            step_reward=step_reward[:total].copy(),
         )
+
+    def _cumulative(self, T: np.ndarray) -> np.ndarray:
+        """Cumulative transition probabilities of a stochastic world, kept while ``T`` is
+        the same (read-only) array."""
+        cached = getattr(self, "_T_cum", None)
+        if cached is None or cached[0] is not T:
+            cached = (T, np.cumsum(T, axis=2))
+            self._T_cum = cached
+        return cached[1]
 
     def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
         s = int(obs)

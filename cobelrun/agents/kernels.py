@@ -264,22 +264,35 @@ def run_trials(
     deterministic, next_state, T_cum, R, terminal, starts,
     policy, epsilon, beta, lr, gamma, replay_mode, replay_batch, sampling,
     n_trials, max_steps, learn,
-    out_state, out_action, out_next, out_reward, out_steps, out_term, out_start,
+    out_state, out_action, out_next, out_reward,
+    out_steps, out_term, out_start, out_end, out_rsum, out_offsets,
 ):  # fmt: skip
-    """Run ``n_trials`` Dyna-Q trials; fill the step buffers; return the total number of steps.
+    """Run ``n_trials`` Dyna-Q trials; fill the step and trial buffers; return the total
+    number of steps.
 
-    Makes exactly the draws of ``DynaQ._run_python`` (agent draws from ``rng``, start states and
-    stochastic transitions from the environment's ``env_rng``) in the same order.
+    Per step: ``out_state``, ``out_action``, ``out_next``, ``out_reward``. Per trial:
+    ``out_steps``, ``out_term``, ``out_start``, ``out_end`` (the last state), ``out_rsum`` (the
+    reward sum) and ``out_offsets[trial + 1]`` (the end of its steps; ``out_offsets[0]`` is
+    left as given).
+
+    Makes exactly the draws of the Python engine (agent draws from ``rng``, start states and
+    stochastic transitions from the environment's ``env_rng``) in the same order. ``env_rng``
+    may be None when the world is deterministic with one start state: it then draws nothing
+    (and passing a Generator into compiled code costs ~10-30 us per call).
     """
     n_actions = Q.shape[1]
     n_pairs = Q.shape[0] * n_actions
     n_states_env = T_cum.shape[2]
     k = 0
     for trial in range(n_trials):
-        s = starts[randint(env_rng, starts.shape[0])]
+        if env_rng is None:
+            s = starts[0]
+        else:
+            s = starts[randint(env_rng, starts.shape[0])]
         out_start[trial] = s
         done = False
         n = 0
+        rsum = 0.0
         while n < max_steps:
             # -- select_action(rng, Q[s], mask[s], ...)
             n_allowed = n_actions
@@ -301,14 +314,18 @@ def run_trials(
                                 a = b
                                 break
                             j -= 1
-                else:
+                else:  # one pass: the best value, its first action and how many tie
                     best = -np.inf
-                    for b in range(n_actions):
-                        if ((not masked) or mask[s, b]) and Q[s, b] > best:
-                            best = Q[s, b]
                     m = 0
                     for b in range(n_actions):
-                        if ((not masked) or mask[s, b]) and Q[s, b] == best:
+                        if masked and not mask[s, b]:
+                            continue
+                        q = Q[s, b]
+                        if q > best:
+                            best = q
+                            m = 1
+                            a = b
+                        elif q == best:
                             if m == 0:
                                 a = b
                             m += 1
@@ -341,7 +358,9 @@ def run_trials(
             if a < 0:
                 a = n_actions - 1
             # -- transition(env_rng, ...)
-            if deterministic:
+            if env_rng is None:
+                s2 = next_state[s, a]
+            elif deterministic:
                 s2 = next_state[s, a]
             else:
                 s2 = np.searchsorted(T_cum[s, a], env_rng.random(), side="right")
@@ -353,14 +372,19 @@ def run_trials(
                 # -- q_update(Q, mask, use_mask, s, a, r, s2, done, lr, gamma)
                 target = r
                 if not done:
-                    best = -np.inf
-                    for b in range(n_actions):
-                        if ((not use_mask) or mask[s2, b]) and Q[s2, b] > best:
-                            best = Q[s2, b]
-                    if best == -np.inf:
+                    if use_mask:
+                        best = -np.inf
                         for b in range(n_actions):
-                            if b == 0 or Q[s2, b] > best:
+                            if mask[s2, b] and Q[s2, b] > best:
                                 best = Q[s2, b]
+                        if best == -np.inf:
+                            for b in range(n_actions):
+                                if b == 0 or Q[s2, b] > best:
+                                    best = Q[s2, b]
+                    else:
+                        best = Q[s2, 0]
+                        for b in range(1, n_actions):
+                            best = max(best, Q[s2, b])
                     target += gamma * best
                 Q[s, a] += lr * (target - Q[s, a])
                 # -- memory_store(...)
@@ -371,14 +395,37 @@ def run_trials(
                     visited[s, a] = True
                     visited_list[n_visited[0]] = s * n_actions + a
                     n_visited[0] += 1
-                if replay_mode == REPLAY_STEP:
-                    _replay_inline(rng, Q, mask, use_mask, m_next, m_reward, m_terminal,
-                                   visited_list, n_visited, sampling, replay_batch, lr, gamma,
-                                   n_actions, n_pairs)  # fmt: skip
+                if replay_mode == REPLAY_STEP:  # _replay_inline, spelled out (see above)
+                    for _ in range(replay_batch):
+                        if sampling == SAMPLE_ALL or n_visited[0] == 0:
+                            idx = randint(rng, n_pairs)
+                        else:
+                            idx = visited_list[randint(rng, n_visited[0])]
+                        rs = idx // n_actions
+                        ra = idx - rs * n_actions
+                        target = m_reward[rs, ra]
+                        if not m_terminal[rs, ra]:
+                            rs2 = m_next[rs, ra]
+                            if use_mask:
+                                best = -np.inf
+                                for b in range(n_actions):
+                                    if mask[rs2, b] and Q[rs2, b] > best:
+                                        best = Q[rs2, b]
+                                if best == -np.inf:
+                                    for b in range(n_actions):
+                                        if b == 0 or Q[rs2, b] > best:
+                                            best = Q[rs2, b]
+                            else:  # the plain max (branch-free; Q values are finite)
+                                best = Q[rs2, 0]
+                                for b in range(1, n_actions):
+                                    best = max(best, Q[rs2, b])
+                            target += gamma * best
+                        Q[rs, ra] += lr * (target - Q[rs, ra])
             out_state[k] = s
             out_action[k] = a
             out_next[k] = s2
             out_reward[k] = r
+            rsum += r
             k += 1
             n += 1
             s = s2
@@ -390,4 +437,7 @@ def run_trials(
                            n_actions, n_pairs)  # fmt: skip
         out_steps[trial] = n
         out_term[trial] = done
+        out_end[trial] = s
+        out_rsum[trial] = rsum
+        out_offsets[trial + 1] = k
     return k

@@ -48,17 +48,39 @@ class SumTree:
         return self.sums[np.asarray(idx) + self.size]
 
     def update(self, idx: np.ndarray, values: np.ndarray) -> None:
-        """Set leaves ``idx`` to ``values`` (later duplicates win) and refresh their ancestors."""
-        pos = np.asarray(idx, dtype=np.int64) + self.size
-        self.sums[pos] = values
-        self.mins[pos] = values
-        pos = np.unique(pos // 2)
-        while pos.size and pos[0] >= 1:
-            self.sums[pos] = self.sums[2 * pos] + self.sums[2 * pos + 1]
-            self.mins[pos] = np.minimum(self.mins[2 * pos], self.mins[2 * pos + 1])
-            if pos[0] == 1:
-                break
-            pos = np.unique(pos // 2)
+        """Set leaves ``idx`` to ``values`` (later duplicates win) and refresh their ancestors.
+
+        Each ancestor is recomputed from its two children, level by level from the leaves up
+        (all updated leaves are at the same depth, so they reach the root together). The
+        leaves are deduplicated once; a parent shared by several updated leaves is then
+        computed several times from the same final children, which writes the same value,
+        so no per-level ``np.unique`` is needed. One leaf (every ``add``) takes a scalar path.
+        """
+        pos = np.asarray(idx, dtype=np.int64).reshape(-1) + self.size
+        vals = np.asarray(values, dtype=np.float64).reshape(-1)
+        if pos.shape != vals.shape:
+            raise ValueError(f"{pos.size} indices but {vals.size} values")
+        if pos.size == 0:
+            return
+        sums, mins = self.sums, self.mins
+        if pos.size == 1:
+            p, v = int(pos[0]), float(vals[0])
+            sums[p] = mins[p] = v
+            p >>= 1
+            while p:
+                left = 2 * p
+                sums[p] = sums[left] + sums[left + 1]
+                mins[p] = min(mins[left], mins[left + 1])
+                p >>= 1
+            return
+        # the last value given for each leaf: first occurrence in the reversed order
+        pos, last = np.unique(pos[::-1], return_index=True)
+        sums[pos] = mins[pos] = vals[::-1][last]
+        while pos[0] > 1:
+            pos = pos >> 1
+            left = 2 * pos
+            sums[pos] = sums[left] + sums[left + 1]
+            mins[pos] = np.minimum(mins[left], mins[left + 1])
 
     def find(self, u: np.ndarray) -> np.ndarray:
         """Leaf index ``i`` with ``prefix_sum(i) <= u < prefix_sum(i + 1)`` for each ``u``."""

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from cobelrun.io.run_folder import RunFolder
-from cobelrun.run_summary import LAST_TRIALS, summary_of_file
+from cobelrun.run_summary import LAST_TRIALS, read_phase_rows
 
 
 def _console() -> Any:
@@ -39,7 +39,7 @@ def run_summary_table(run_dir: str | Path) -> Any:
     folder = RunFolder(run_dir)
     if not folder.table("trials").is_file():
         return None
-    frame = summary_of_file(folder.table("trials"))
+    rows = read_phase_rows(folder.table("trials"))
     manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
     times = manifest.get("phase_wall_time_s") or {}
     table = Table(
@@ -50,11 +50,11 @@ def run_summary_table(run_dir: str | Path) -> Any:
     table.add_column("phase", style="bold cyan")
     table.add_column("runs", justify="right")
     table.add_column("trials", justify="right")
-    measures = [c for c in ("reward", "latency", "response") if c in frame]
+    measures = [c for c in ("reward", "latency", "response") if rows and c in rows[0]]
     for c in measures:
         table.add_column(f"mean {c}" if c != "latency" else "latency \\[steps]", justify="right")
     table.add_column("wall \\[s]", justify="right")
-    for row in frame.to_dict("records"):
+    for row in rows:
         table.add_row(
             row["phase"],
             str(row["runs"]),

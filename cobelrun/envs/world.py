@@ -212,6 +212,7 @@ class World:
         ``next_state`` table; everything else is copied. Nothing is re-validated: the source
         is a valid world, which keeps :meth:`copy` cheap (it runs once per run).
         """
+        _ = self.next_state  # computed once here, so that every copy shares it
         new = object.__new__(World)
         state = dict(self.__dict__)
         for name in ("rewards", "terminal", "starts", "coords", "blocked"):

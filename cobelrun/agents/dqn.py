@@ -59,6 +59,24 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
     "linear": torch.nn.Identity,
 }
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
+
+
+def keras_init(net: torch.nn.Module) -> None:
+    """Keras' layer defaults in place: Glorot-uniform weights, zero biases (dense and conv)."""
+    with torch.no_grad():
+        for layer in net.modules():
+            if isinstance(layer, torch.nn.Linear | torch.nn.Conv2d):
+                torch.nn.init.xavier_uniform_(layer.weight)
+                if layer.bias is not None:
+                    torch.nn.init.zeros_(layer.bias)
+
+
+#: Q-network initialisations by config name: PyTorch's layer defaults (as built) or Keras'
+INITS: dict[str, Callable[[torch.nn.Module], None]] = {
+    "torch": lambda net: None,
+    "keras": keras_init,
+}
+
 #: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
@@ -193,6 +211,10 @@ class DQNAgent(Agent):
         and so CoBeL-RL's: its ``delta_clip`` is infinite by default).
     max_grad_norm
         Gradient-norm clipping (SB3's default 10; ``None``: no clipping, as keras-rl).
+    init
+        Weight initialisation of the Q network: ``"torch"`` (PyTorch's layer defaults, default)
+        or ``"keras"`` (Keras' defaults, so CoBeL-RL's: Glorot-uniform weights and zero biases
+        in every dense and conv layer). The target network starts as a copy either way.
     policy
         ``"auto"`` (``MultiInputPolicy`` for Dict, ``CnnPolicy`` for images, else
         ``MlpPolicy``) or one of those names.
@@ -243,6 +265,7 @@ class DQNAgent(Agent):
         target_update_interval: int = 1,
         loss: str = "huber",
         max_grad_norm: float | None = 10.0,
+        init: str = "torch",
         policy: str = "auto",
         net_arch: Sequence[int] | None = None,
         activation: str = "tanh",
@@ -295,6 +318,11 @@ class DQNAgent(Agent):
             raise ConfigError(
                 f"agent.loss {loss!r} is not known{suggest(loss, list(LOSSES))}; "
                 f"allowed: {allowed_list(list(LOSSES))}"
+            )
+        if init not in INITS:
+            raise ConfigError(
+                f"agent.init {init!r} is not known{suggest(str(init), list(INITS))}; "
+                f"allowed: {allowed_list(list(INITS))}"
             )
         if activation not in ACTIVATIONS:
             raise ConfigError(
@@ -361,7 +389,7 @@ class DQNAgent(Agent):
             "target_update_interval": target_update_interval, "policy": policy,
             "net_arch": policy_kwargs["net_arch"], "activation": activation,
             "prioritized": self.prioritized, "loss": loss, "max_grad_norm": max_grad_norm,
-            "trial_end_updates": trial_end_updates, "dropout": dropout,
+            "trial_end_updates": trial_end_updates, "dropout": dropout, "init": init,
         }  # fmt: skip
 
         np_seed, torch_seed, space_seed, per_seed = self.seed_sequence.generate_state(4)
@@ -401,6 +429,8 @@ class DQNAgent(Agent):
                 seed=None,  # seeded through _rng_scope; SB3's seed= would also reseed the env
                 **kwargs,
             )
+            INITS[init](self.model.q_net)  # seeded: inside the agent's torch generator scope
+        self.model.q_net_target.load_state_dict(self.model.q_net.state_dict())
         self.model.td_loss = LOSSES[loss]
         self.model.trial_end_updates = int(trial_end_updates)
         # a private action space: its sampler is the agent's, not the environment's

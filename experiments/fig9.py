@@ -9,13 +9,18 @@ With training epsilon 0.3 and two actions the expected training reward is capped
 1 - 0.3 / 2 = 0.85, so the figure also draws that ceiling and the greedy probe
 (``greedy_correct``: after every trial, the fraction of the four displays on which the greedy
 action is correct; measured without learning or environment draws, see
-``cobelrun/monitors/probe.py``), which shows what the agents have learnt.
+``cobelrun/monitors/probe.py``), which shows what the agents have learnt. Black bars: the
+original's means over trials 6-10 and 41-50 (``choice/simulation_choice.py`` of the paper's
+simulations on CoBeL-RL v2.0.0 with keras-rl2, 200 agents, run here; docs/two_afc.md).
 """
 
 from __future__ import annotations
 
 from cobelrun.figures.choice import epsilon_of, plot_mean_reward
 from cobelrun.figures.registry import Figure, FigureData
+
+#: the original's means (trials, training reward, greedy choice correct), 200 agents
+ORIGINAL = (((6, 10), 0.616, 0.699), ((41, 50), 0.839, 0.961))
 
 
 def draw(data: FigureData):
@@ -25,6 +30,12 @@ def draw(data: FigureData):
     eps = epsilon_of(data.run_dirs("dqn")[0])
     fig, ax = plt.subplots(figsize=(5.2, 3.4), constrained_layout=True)
     table = plot_mean_reward(trials, ax, epsilon=eps)
+    for k, ((lo, hi), reward, greedy) in enumerate(ORIGINAL):
+        for value, ls in ((reward, "-"), (greedy, "--")):
+            ax.hlines(value, lo - 0.4, hi + 0.4, color="k", lw=2.2, ls=ls,
+                      label=("original (CoBeL-RL v2, 200 agents): reward" if ls == "-" else
+                             "original: greedy") if k == 0 else None)  # fmt: skip
+    ax.legend(frameon=False, fontsize=6.5, loc="lower right")
     early, late = trials[trials["trial"].between(6, 10)], trials[trials["trial"].between(41, 50)]
     note = f"reward: trials 6-10 {early['reward'].mean():.3f}, 41-50 {late['reward'].mean():.3f}"
     if "greedy_correct" in late:

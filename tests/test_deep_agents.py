@@ -20,6 +20,7 @@ from cobelrun.io.run_folder import RunFolder
 
 pytest.importorskip("torch")
 pytest.importorskip("stable_baselines3")
+import torch
 
 from cobelrun.agents import MFEC, DQNAgent, DynaDQN, DynaDSR, DynaQ
 from cobelrun.agents.per import PrioritizedReplayBuffer, SumTree
@@ -58,6 +59,13 @@ def make(name: str, seed: int = 3, env_seed: int = 0, **extra):
     cls, kwargs, env_cls = AGENTS[name]
     env = grid_env(env_cls, env_seed)
     return env, cls(env, seed=np.random.SeedSequence(seed), **{**kwargs, **extra})
+
+
+class ImageBoxEnv(gym.Env):
+    """A uint8 36 x 36 x 3 image observation (enough to build a CnnPolicy; never stepped)."""
+
+    observation_space = spaces.Box(0, 255, (36, 36, 3), np.uint8)
+    action_space = spaces.Discrete(3)
 
 
 class TupleObsEnv(gym.Env):
@@ -159,6 +167,35 @@ def test_dqn_paper_options_errors() -> None:
         DQNAgent(env, trial_end_updates=-1)
     with pytest.raises(ConfigError, match=r"agent\.conv_padding 'full' is not known"):
         DQNAgent(env, conv_padding="full")
+    with pytest.raises(ConfigError, match=r"agent\.init 'glorot' is not known; allowed"):
+        DQNAgent(env, init="glorot")
+
+
+@pytest.mark.parametrize("policy", ["MlpPolicy", "CnnPolicy"])
+def test_dqn_keras_init_glorot_uniform_zero_bias_seeded(policy: str) -> None:
+    """``init: keras``: every dense and conv layer Glorot-uniform (within +-sqrt(6 / (fan_in +
+    fan_out)), spread like it) with zero biases, the target a copy, the same for the same seed;
+    ``init: torch`` keeps PyTorch's defaults (non-zero biases, narrower weights)."""
+    env = ImageBoxEnv() if policy == "CnnPolicy" else grid_env()
+
+    def layers(agent: DQNAgent) -> list[torch.nn.Module]:
+        return [m for m in agent.model.q_net.modules()
+                if isinstance(m, torch.nn.Linear | torch.nn.Conv2d)]  # fmt: skip
+
+    a, b = (DQNAgent(env, policy=policy, init="keras", seed=7) for _ in range(2))
+    torch_init = DQNAgent(env, policy=policy, seed=7)
+    for layer, twin, default in zip(layers(a), layers(b), layers(torch_init), strict=True):
+        w = layer.weight.detach()
+        fan_in, fan_out = w[0].numel(), w.shape[0] * w[0, 0].numel()  # conv: x kernel area
+        bound = float(np.sqrt(6.0 / (fan_in + fan_out)))
+        assert float(w.abs().max()) <= bound
+        assert abs(float(w.std()) - bound / np.sqrt(3.0)) <= 0.15 * bound / np.sqrt(3.0)
+        assert float(layer.bias.detach().abs().max()) == 0.0
+        assert torch.equal(w, twin.weight)  # seeded
+        assert float(default.bias.detach().abs().max()) > 0.0
+    for online, target in zip(a.model.q_net.parameters(), a.model.q_net_target.parameters(),
+                              strict=True):  # fmt: skip
+        assert torch.equal(online, target)
 
 
 def test_dqn_same_padding_takes_small_images() -> None:
@@ -413,11 +450,25 @@ def two_afc_rewards(runs: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(train), np.array(greedy)
 
 
+#: The original (paper-simulations choice/simulation_choice.py on CoBeL-RL v2.0.0 with keras-rl2
+#: 1.0.5 and TensorFlow 2.15, 200 agents; docs/two_afc.md): mean training reward and greedy
+#: choice correct over trials 6-10 and 41-50 (standard errors 0.019 and 0.009 for the rewards).
+ORIGINAL_2AFC = {
+    "reward_6_10": 0.62,
+    "reward_41_50": 0.84,
+    "greedy_6_10": 0.70,
+    "greedy_41_50": 0.96,
+}
+
+
 def check_two_afc(train: np.ndarray, greedy: np.ndarray, tol: float) -> None:
     ceiling = 1 - 0.3 / 2  # epsilon 0.3, two actions: 0.7 + 0.3 / 2
     assert 0.5 - tol <= train[:, :3].mean() <= 0.5 + tol  # chance at the start
+    # the original's early rise (needs Keras' init: PyTorch's gives greedy 0.53-0.55 over 6-10)
+    assert abs(train[:, 5:10].mean() - ORIGINAL_2AFC["reward_6_10"]) <= tol
+    assert abs(greedy[:, 5:10].mean() - ORIGINAL_2AFC["greedy_6_10"]) <= tol
     assert abs(train[:, 40:50].mean() - ceiling) <= 0.05 + tol / 2  # at the epsilon ceiling
-    assert greedy[:, 40:50].mean() >= 0.95  # greedy choice: learnt
+    assert greedy[:, 40:50].mean() >= ORIGINAL_2AFC["greedy_41_50"] - tol  # greedy choice: learnt
     assert greedy[:, :1].mean() < greedy[:, 20:30].mean()
 
 
@@ -427,7 +478,7 @@ def test_two_afc_learns_to_the_epsilon_ceiling() -> None:
 
 @pytest.mark.slow
 def test_two_afc_learns_to_the_epsilon_ceiling_100_agents() -> None:
-    check_two_afc(*two_afc_rewards(100), tol=0.05)
+    check_two_afc(*two_afc_rewards(100), tol=0.08)
 
 
 def latent_vs_direct(runs: int, explore: int = 100, rewarded: int = 10) -> tuple[float, float]:

@@ -104,9 +104,12 @@ def test_no_render_mode_hands_out_the_offline_views_read_only(tmp_path):
     rng = np.random.default_rng(0)
     for node, heading in ((0, 0), (5, 3), (11, 1)):
         np.testing.assert_array_equal(a.observe(node, heading, rng), b.observe(node, heading, rng))
-    view = b.observe(3, 2, rng)
-    assert not view.flags.writeable and np.shares_memory(view, b.observe(3, 2, rng))
-    assert not np.shares_memory(a.observe(3, 2, rng), a.observe(3, 2, rng))  # offline copies
+    for module in (a, b):  # neither the baseline nor the offline path copies a frame
+        view = module.observe(3, 2, rng)
+        assert not view.flags.writeable and np.shares_memory(view, module.observe(3, 2, rng))
+        with pytest.raises(ValueError):
+            view[0, 0, 0] = 1  # read-only: a consumer cannot change the cached frames
+    assert not np.shares_memory(a.observe(3, 2, rng), b.observe(3, 2, rng))  # separate tables
     off.close()
     none.close()
 

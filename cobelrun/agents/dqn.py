@@ -59,15 +59,30 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
     "linear": torch.nn.Identity,
 }
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
+
+
+def keras_init(net: torch.nn.Module) -> None:
+    """Keras' layer defaults in place: Glorot-uniform weights, zero biases (dense and conv)."""
+    with torch.no_grad():
+        for layer in net.modules():
+            if isinstance(layer, torch.nn.Linear | torch.nn.Conv2d):
+                torch.nn.init.xavier_uniform_(layer.weight)
+                if layer.bias is not None:
+                    torch.nn.init.zeros_(layer.bias)
+
+
+#: Q-network initialisations by config name: PyTorch's layer defaults (as built) or Keras'
+INITS: dict[str, Callable[[torch.nn.Module], None]] = {
+    "torch": lambda net: None,
+    "keras": keras_init,
+}
+
 #: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
 #: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
 DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 #: SB3's NatureCNN (used for image inputs of a Dict observation by MultiInputPolicy)
 NATURE_CONVS = ((32, 8, 4), (64, 4, 2), (64, 3, 1))
-#: Weight initialisations by config name: PyTorch's layer defaults, or Keras' (Glorot-uniform
-#: weights, zero biases: what CoBeL-RL's keras-rl networks started from)
-INITS = ("torch", "keras")
 #: Layer name aliases of the CNN network: ``analysis`` is the dense ReLU layer after the
 #: convolutions (Fig. 8's "analysis" layer, recorded for place-cell maps).
 CNN_LAYER_ALIASES = {"analysis": "features_extractor.linear.1"}
@@ -171,16 +186,6 @@ class ConvFeatures(BaseFeaturesExtractor):
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         return self.linear(self.cnn(observations))
-
-
-def keras_init(net: torch.nn.Module) -> None:
-    """Keras' default initialisation in place: Glorot-uniform weights, zero biases, for every
-    dense and convolutional layer of ``net`` (draws from torch's global generator)."""
-    for mod in net.modules():
-        if isinstance(mod, torch.nn.Linear | torch.nn.Conv2d):
-            torch.nn.init.xavier_uniform_(mod.weight)
-            if mod.bias is not None:
-                torch.nn.init.zeros_(mod.bias)
 
 
 class DQNAgent(Agent):
@@ -337,7 +342,7 @@ class DQNAgent(Agent):
             raise ConfigError(f"agent.max_grad_norm must be > 0 or null, got {max_grad_norm}")
         if init not in INITS:
             raise ConfigError(
-                f"agent.init {init!r} is not known{suggest(init, list(INITS))}; "
+                f"agent.init {init!r} is not known{suggest(str(init), list(INITS))}; "
                 f"allowed: {allowed_list(list(INITS))}"
             )
         if loss not in LOSSES:
@@ -451,15 +456,13 @@ class DQNAgent(Agent):
                 seed=None,  # seeded through _rng_scope; SB3's seed= would also reseed the env
                 **kwargs,
             )
-            q_net = self.model.policy.q_net
-            if init == "keras":
-                keras_init(q_net)
+            q_net = self.model.q_net
+            INITS[init](q_net)  # seeded: inside the agent's torch generator scope
             if q_init is not None:
                 out = [m for m in q_net.q_net.modules() if isinstance(m, torch.nn.Linear)][-1]
                 with torch.no_grad():
                     out.bias.fill_(float(q_init))
-            if init == "keras" or q_init is not None:
-                self.model.policy.q_net_target.load_state_dict(q_net.state_dict())
+        self.model.q_net_target.load_state_dict(self.model.q_net.state_dict())
         self.model.td_loss = LOSSES[loss]
         self.model.trial_end_updates = int(trial_end_updates)
         # a private action space: its sampler is the agent's, not the environment's

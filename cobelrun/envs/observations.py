@@ -253,11 +253,14 @@ class ImageObservation(ObservationModule):
                 self._load_offline()
 
     def _load_offline(self) -> None:
-        """Load this module's pre-rendered views and process them into the observation table."""
+        """Load this module's pre-rendered views (every frame block checked against its checksum
+        once, here) and process them into the read-only observation table that :meth:`observe`
+        hands out views of."""
         from cobelrun.render import cache
 
         self._images = cache.load(self.cache_request())
         self._obs_table = self.process(self._images)
+        self._obs_table.setflags(write=False)
 
     def cache_request(
         self, positions: np.ndarray | None = None, headings_rad: np.ndarray | None = None
@@ -380,12 +383,14 @@ class ImageObservation(ObservationModule):
         return obs
 
     def observe(self, node: int, heading: int, rng: np.random.Generator) -> np.ndarray:
+        """Online: render and process the view. Offline: a read-only view into the loaded table
+        (no copy: a step costs an index, at any image size; writing into it raises)."""
         if self._obs_table is not None:
-            return self._obs_table[node, heading].copy()
+            return self._obs_table[node, heading]
         if self.render == "offline":  # bound while the cache was being built
             self._load_offline()
             assert self._obs_table is not None
-            return self._obs_table[node, heading].copy()
+            return self._obs_table[node, heading]
         return self.process(self.render_raw(node, heading))
 
     def image_modules(self) -> list[ImageObservation]:

@@ -224,6 +224,7 @@ class DQNAgent(Agent):
 
     observation_spaces = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.Dict)
     action_spaces = (gym.spaces.Discrete,)
+    batchable = True
 
     def __init__(
         self,
@@ -309,6 +310,7 @@ class DQNAgent(Agent):
         set_torch_threads(torch_threads)
         self.epsilon, self.test_epsilon = float(epsilon), float(test_epsilon)
         self.prioritized = bool(prioritized)
+        self.device = str(device)
         obs_space = env.observation_space
         image = is_image_space(obs_space)
         if policy == "auto":
@@ -407,6 +409,18 @@ class DQNAgent(Agent):
         self.model.action_space = gym.spaces.Discrete(int(env.action_space.n))
         self.model.action_space.seed(int(space_seed))
         self.n_actions = int(env.action_space.n)
+
+    # -- batched runs ----------------------------------------------------------------------
+    def batch_unsupported(self) -> str | None:
+        from cobelrun.agents.batched_dqn import unsupported
+
+        return unsupported(self)
+
+    def batch_learner(self, seeds: Sequence[np.random.SeedSequence], steps: int) -> Any:
+        """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` for one run per seed."""
+        from cobelrun.agents.batched_dqn import BatchedDQN
+
+        return BatchedDQN(self, seeds, capacity=steps, device=self.device)
 
     # -- rng bookkeeping -----------------------------------------------------------------
     @contextlib.contextmanager

@@ -72,7 +72,7 @@ def batch_plan(setting: Any, task: Any, template_factory: Callable[[], Any]) -> 
     if why is not None:
         if setting == "auto":
             return 0, why
-        raise ConfigError(f"task.batch_runs={setting}: cannot batch this task: {why}")
+        raise ConfigError(f"task.batch_runs={str(setting).lower()}: cannot batch this task: {why}")
     return min(chunk, task.runs), None
 
 

@@ -148,7 +148,7 @@ def _plan_batches(task: Task, setting: Any) -> None:
         if setting not in (False, "auto"):
             name = getattr(agent_class, "__name__", "this agent")
             raise ConfigError(
-                f"task.batch_runs={setting}: agent {name} has no batched implementation "
+                f"task.batch_runs={str(setting).lower()}: agent {name} has no batched implementation "
                 "(batchable: DQNAgent); use task.batch_runs=auto or false"
             )
         task.batch_note = (

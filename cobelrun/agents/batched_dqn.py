@@ -37,6 +37,7 @@ sequentially; :func:`unsupported` says why.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -161,13 +162,19 @@ class BatchedDQN:
                 weights[i].append(layer.weight.detach().T)
                 biases[i].append(layer.bias.detach()[None])
         dev = self.device
-        self.W = [torch.stack(w).contiguous().to(dev).requires_grad_() for w in weights]
-        self.b = [torch.stack(b).contiguous().to(dev).requires_grad_() for b in biases]
-        self.params: list[torch.Tensor] = [p for pair in zip(self.W, self.b, strict=True) for p in pair]
+        # every run's parameters in one (R, P) tensor; the layers are views into it, so the
+        # backward pass, the clipping and Adam each work on one tensor
+        pieces = [torch.stack(t).reshape(R, -1)
+                  for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
+        self.shapes = [tuple(torch.stack(t).shape[1:])
+                       for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
+        self.flat = torch.cat(pieces, dim=1).to(dev).requires_grad_()
         with torch.no_grad():
-            self.target = [p.detach().clone() for p in self.params]
-        self.exp_avg = [torch.zeros_like(p) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+            self.flat_target = self.flat.detach().clone()
+        self.exp_avg = torch.zeros_like(self.flat, requires_grad=False)
+        self.exp_avg_sq = torch.zeros_like(self.flat, requires_grad=False)
+        self.version = 0  # bumped at every parameter change (caches of predictions)
+        self._cache: tuple[int, bytes, np.ndarray] | None = None
         self.adam_steps = np.zeros(R, np.int64)  # per run (a waiting run does not step)
         self.num_timesteps = np.zeros(R, np.int64)
         self.n_calls = np.zeros(R, np.int64)
@@ -194,6 +201,21 @@ class BatchedDQN:
             return v
         return np.asarray(obs, np.float32).reshape(self.obs_dim)
 
+    def layers(self, flat: torch.Tensor) -> list[torch.Tensor]:
+        """``[W0, b0, W1, b1, ...]`` as views of a ``(R', P)`` parameter tensor: ``W`` is
+        ``(R', in, out)`` (``nn.Linear``'s weight transposed), ``b`` is ``(R', 1, out)``."""
+        out, start = [], 0
+        for shape in self.shapes:
+            size = math.prod(shape)
+            out.append(flat[:, start : start + size].view(flat.shape[0], *shape))
+            start += size
+        return out
+
+    @property
+    def params(self) -> list[torch.Tensor]:
+        """The online networks' layers (views of :attr:`flat`)."""
+        return self.layers(self.flat)
+
     def forward(
         self, params: Sequence[torch.Tensor], x: torch.Tensor, keep: list[torch.Tensor] | None = None
     ) -> torch.Tensor:
@@ -212,10 +234,18 @@ class BatchedDQN:
 
     def run_forward(self, run: int, x: np.ndarray, keep: list[torch.Tensor] | None = None) -> np.ndarray:
         """Q values ``(n, A)`` of run ``run`` for observation vectors ``x`` ``(n, obs_dim)``."""
-        xt = torch.as_tensor(np.asarray(x, np.float32), device=self.device)[None]
+        x = np.ascontiguousarray(x, np.float32)
+        if keep is None:  # every run's values at once, kept until the parameters change
+            key = x.tobytes()
+            if self._cache is None or self._cache[0] != self.version or self._cache[1] != key:
+                xt = torch.as_tensor(x, device=self.device)[None].expand(self.R, -1, -1)
+                with torch.no_grad():
+                    q = self.forward(self.params, xt).cpu().numpy()
+                self._cache = (self.version, key, q)
+            return self._cache[2][run].copy()
+        xt = torch.as_tensor(x, device=self.device)[None]
         with torch.no_grad():
-            params = [p[run : run + 1] for p in self.params]
-            return self.forward(params, xt, keep)[0].cpu().numpy()
+            return self.forward(self.layers(self.flat[run : run + 1]), xt, keep)[0].cpu().numpy()
 
     # -- learning ----------------------------------------------------------------------------
     def _store(self, runs: np.ndarray, obs: np.ndarray, nxt: np.ndarray, actions: np.ndarray,
@@ -238,14 +268,13 @@ class BatchedDQN:
 
     def _target_update(self, runs: np.ndarray) -> None:
         """Polyak update ``target <- (1 - tau) target + tau online`` of the runs in ``runs``."""
+        t, p = self.flat_target, self.flat.detach()
         with torch.no_grad():
             if len(runs) == self.R:
-                for t, p in zip(self.target, self.params, strict=True):
-                    t.mul_(1 - self.tau).add_(p, alpha=self.tau)
+                t.mul_(1 - self.tau).add_(p, alpha=self.tau)
                 return
             idx = torch.as_tensor(runs, device=self.device)
-            for t, p in zip(self.target, self.params, strict=True):
-                t[idx] = t[idx] * (1 - self.tau) + p[idx] * self.tau
+            t[idx] = t[idx] * (1 - self.tau) + p[idx] * self.tau
 
     def _gradient_step(self, train: np.ndarray) -> None:
         """One Adam step of every run with ``train[r]`` (the others are left exactly as they
@@ -261,7 +290,7 @@ class BatchedDQN:
         obs, nxt = self.buf_obs[rows, ii], self.buf_next[rows, ii]
         act, rew, done = self.buf_action[rows, ii], self.buf_reward[rows, ii], self.buf_done[rows, ii]
         with torch.no_grad():
-            next_q = self.forward(self.target, nxt).max(dim=2).values
+            next_q = self.forward(self.layers(self.flat_target), nxt).max(dim=2).values
             target = rew + (1 - done) * self.gamma * next_q
         current = self.forward(self.params, obs).gather(2, act[..., None])[..., 0]
         if self.huber:
@@ -270,41 +299,37 @@ class BatchedDQN:
             per = F.mse_loss(current, target, reduction="none")
         mask = torch.as_tensor(train, device=self.device)
         loss = (per.mean(dim=1) * mask).sum()  # each run's mean loss; runs are independent
-        grads = torch.autograd.grad(loss, self.params)
+        (grad,) = torch.autograd.grad(loss, [self.flat])
         with torch.no_grad():
-            if self.max_grad_norm is not None:  # clip_grad_norm_, per run
-                norms = torch.stack([torch.linalg.vector_norm(g.reshape(R, -1), dim=1) for g in grads])
-                total = torch.linalg.vector_norm(norms, dim=0)
-                coef = torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0)
-                grads = tuple(g * coef.view(R, *([1] * (g.dim() - 1))) for g in grads)
-            self._adam(grads, train)
+            if self.max_grad_norm is not None:  # clip_grad_norm_ over all of a run's gradients
+                total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+                grad.mul_(torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0))
+            self._adam(grad, train)
 
-    def _adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
-        """torch.optim.Adam's update (single-tensor formula) with a step count per run; runs
-        not in ``train`` keep their parameters and moments."""
+    def _adam(self, grad: torch.Tensor, train: np.ndarray) -> None:
+        """torch.optim.Adam's update (its single-tensor formula) with a step count per run;
+        runs not in ``train`` keep their parameters and moments exactly."""
         b1, b2 = self.betas
         self.adam_steps[train] += 1
         step = np.maximum(self.adam_steps, 1).astype(np.float64)
-        step_size = self.lr / (1 - b1**step)
-        bc2_sqrt = np.sqrt(1 - b2**step)
-        all_train = bool(train.all())
         dev = self.device
-        for p, g, m, v in zip(self.params, grads, self.exp_avg, self.exp_avg_sq, strict=True):
-            shape = (self.R, *([1] * (p.dim() - 1)))
-            ss = torch.as_tensor(step_size, dtype=torch.float32, device=dev).view(shape)
-            bc = torch.as_tensor(bc2_sqrt, dtype=torch.float32, device=dev).view(shape)
-            m_new = torch.lerp(m, g, 1 - b1)
-            v_new = v * b2 + (g * g) * (1 - b2)
-            p_new = p - ss * m_new / (v_new.sqrt() / bc + self.adam_eps)
-            if all_train:
-                m.copy_(m_new)
-                v.copy_(v_new)
-                p.copy_(p_new)
-            else:
-                keep = torch.as_tensor(train, device=dev).view(shape)
-                m.copy_(torch.where(keep, m_new, m))
-                v.copy_(torch.where(keep, v_new, v))
-                p.copy_(torch.where(keep, p_new, p))
+        step_size = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)
+        bc2_sqrt = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)
+        p, m, v = self.flat.detach(), self.exp_avg, self.exp_avg_sq
+        self.version += 1
+        if train.all():
+            m.lerp_(grad, 1 - b1)
+            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+            denom = v.sqrt().div_(bc2_sqrt[:, None]).add_(self.adam_eps)
+            p.addcdiv_(m * step_size[:, None], denom, value=-1.0)
+            return
+        keep = torch.as_tensor(train, device=dev)[:, None]
+        m_new = torch.lerp(m, grad, 1 - b1)
+        v_new = v * b2 + (grad * grad) * (1 - b2)
+        p_new = p - (m_new * step_size[:, None]) / (v_new.sqrt() / bc2_sqrt[:, None] + self.adam_eps)
+        m.copy_(torch.where(keep, m_new, m))
+        v.copy_(torch.where(keep, v_new, v))
+        p.copy_(torch.where(keep, p_new, p))
 
     # -- trials ----------------------------------------------------------------------------
     def run_phase(
@@ -456,12 +481,14 @@ class DQNRunView:
     def get_state(self) -> dict[str, np.ndarray]:
         b, r = self.batch, self.run
         arrays: dict[str, np.ndarray] = {}
-        for prefix, params in (("policy.q_net.q_net", b.params), ("policy.q_net_target.q_net", b.target)):
+        for prefix, params in (("policy.q_net.q_net", b.params),
+                               ("policy.q_net_target.q_net", b.layers(b.flat_target))):  # fmt: skip
             for i in range(len(params) // 2):
                 w = params[2 * i][r].detach().cpu().numpy().T.copy()
                 arrays[f"{prefix}.{2 * i}.weight"] = w
                 arrays[f"{prefix}.{2 * i}.bias"] = params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
-        for j, (m, v) in enumerate(zip(b.exp_avg, b.exp_avg_sq, strict=True)):
+        moments = zip(b.layers(b.exp_avg), b.layers(b.exp_avg_sq), strict=True)
+        for j, (m, v) in enumerate(moments):
             tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])
             arrays[f"optimizer.{j}.step"] = np.array(float(b.adam_steps[r]), np.float32)
             arrays[f"optimizer.{j}.exp_avg"] = tr(m[r].detach().cpu().numpy()).copy()

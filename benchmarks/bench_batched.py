@@ -8,7 +8,8 @@ For each task it runs the real CLI twice with the same settings and seed, once w
 ``task.batch_runs=false`` (one run after another, the sequential SB3 path) and once with
 ``task.batch_runs=true`` (all runs as one batched computation), each as a whole process
 (``cobel run ...``: start-up, composing, training, writing the run folder), and prints both
-wall times and their ratio, plus the training phase times the manifests record. Repeats
+wall times and their ratio, the CPU time of each process (less sensitive to other load on
+a shared machine) and the training phase times the manifests record. Repeats
 alternate the two sides (the machine is shared) and the best of each is kept. It also checks
 that the two folders hold the same trials table schema and how many runs are identical
 trial for trial (a batched run follows its sequential twin until a rounding difference
@@ -21,6 +22,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import subprocess
 import sys
@@ -45,10 +47,13 @@ def run_once(overrides: list[str], batch: str, folder: Path) -> tuple[float, dic
     if folder.exists():
         shutil.rmtree(folder)
     cmd = [*cobel(), "run", *overrides, f"task.batch_runs={batch}", f"hydra.run.dir={folder}"]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     manifest = json.loads((folder / "manifest.json").read_text())
+    manifest["cpu_s"] = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, manifest
 
 
@@ -87,6 +92,9 @@ def main() -> None:
                 "task": name, "label": label, "runs": args.runs,
                 "sequential_s": round(seq[0], 2), "batched_s": round(bat[0], 2),
                 "ratio": round(seq[0] / bat[0], 2),
+                "sequential_cpu_s": round(seq[1]["cpu_s"], 2),
+                "batched_cpu_s": round(bat[1]["cpu_s"], 2),
+                "cpu_ratio": round(seq[1]["cpu_s"] / bat[1]["cpu_s"], 2),
                 "sequential_training_s": seq[1].get("phase_wall_time_s"),
                 "batched_training_s": bat[1].get("phase_wall_time_s"),
                 "runs_at_once": bat[1].get("batch_runs", {}).get("runs_at_once"),
@@ -94,7 +102,9 @@ def main() -> None:
             }  # fmt: skip
             rows.append(row)
             print(f"{label}, {args.runs} runs: sequential {row['sequential_s']:.1f} s, batched "
-                  f"{row['batched_s']:.1f} s, ratio {row['ratio']:.1f}x end to end "
+                  f"{row['batched_s']:.1f} s, ratio {row['ratio']:.1f}x end to end (CPU time "
+                  f"{row['sequential_cpu_s']:.1f} s vs {row['batched_cpu_s']:.1f} s: "
+                  f"{row['cpu_ratio']:.1f}x) "
                   f"(training phases {seq[1].get('phase_wall_time_s')} vs "
                   f"{bat[1].get('phase_wall_time_s')}); runs identical trial for trial: "
                   f"{same}/{n}; same trials schema: {schema}")  # fmt: skip

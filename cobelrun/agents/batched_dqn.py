@@ -162,17 +162,17 @@ class BatchedDQN:
                 weights[i].append(layer.weight.detach().T)
                 biases[i].append(layer.bias.detach()[None])
         dev = self.device
-        # every run's parameters in one (R, P) tensor; the layers are views into it, so the
-        # backward pass, the clipping and Adam each work on one tensor
+        # every run's parameters in one (R, P) tensor; the layers are leaf views into it (the
+        # backward pass fills one gradient per layer), clipping and Adam work on it whole
         pieces = [torch.stack(t).reshape(R, -1)
                   for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
         self.shapes = [tuple(torch.stack(t).shape[1:])
                        for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
-        self.flat = torch.cat(pieces, dim=1).to(dev).requires_grad_()
-        with torch.no_grad():
-            self.flat_target = self.flat.detach().clone()
-        self.exp_avg = torch.zeros_like(self.flat, requires_grad=False)
-        self.exp_avg_sq = torch.zeros_like(self.flat, requires_grad=False)
+        self.flat = torch.cat(pieces, dim=1).to(dev)
+        self.flat_target = self.flat.clone()
+        self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
         self.version = 0  # bumped at every parameter change (caches of predictions)
         self._cache: tuple[int, bytes, np.ndarray] | None = None
         self.adam_steps = np.zeros(R, np.int64)  # per run (a waiting run does not step)
@@ -213,8 +213,8 @@ class BatchedDQN:
 
     @property
     def params(self) -> list[torch.Tensor]:
-        """The online networks' layers (views of :attr:`flat`)."""
-        return self.layers(self.flat)
+        """The online networks' layers (leaf views of :attr:`flat`)."""
+        return self._leaves
 
     def forward(
         self, params: Sequence[torch.Tensor], x: torch.Tensor, keep: list[torch.Tensor] | None = None
@@ -268,7 +268,7 @@ class BatchedDQN:
 
     def _target_update(self, runs: np.ndarray) -> None:
         """Polyak update ``target <- (1 - tau) target + tau online`` of the runs in ``runs``."""
-        t, p = self.flat_target, self.flat.detach()
+        t, p = self.flat_target, self.flat
         with torch.no_grad():
             if len(runs) == self.R:
                 t.mul_(1 - self.tau).add_(p, alpha=self.tau)
@@ -290,8 +290,11 @@ class BatchedDQN:
         obs, nxt = self.buf_obs[rows, ii], self.buf_next[rows, ii]
         act, rew, done = self.buf_action[rows, ii], self.buf_reward[rows, ii], self.buf_done[rows, ii]
         with torch.no_grad():
-            next_q = self.forward(self.layers(self.flat_target), nxt).max(dim=2).values
-            target = rew + (1 - done) * self.gamma * next_q
+            if bool((done[torch.as_tensor(train, device=self.device)] == 1).all()):
+                target = rew  # every sampled transition ends its trial: no bootstrap term
+            else:
+                next_q = self.forward(self.layers(self.flat_target), nxt).max(dim=2).values
+                target = rew + (1 - done) * self.gamma * next_q
         current = self.forward(self.params, obs).gather(2, act[..., None])[..., 0]
         if self.huber:
             per = F.smooth_l1_loss(current, target, reduction="none")
@@ -299,8 +302,9 @@ class BatchedDQN:
             per = F.mse_loss(current, target, reduction="none")
         mask = torch.as_tensor(train, device=self.device)
         loss = (per.mean(dim=1) * mask).sum()  # each run's mean loss; runs are independent
-        (grad,) = torch.autograd.grad(loss, [self.flat])
+        grads = torch.autograd.grad(loss, self._leaves)
         with torch.no_grad():
+            grad = torch.cat([g.reshape(R, -1) for g in grads], dim=1)
             if self.max_grad_norm is not None:  # clip_grad_norm_ over all of a run's gradients
                 total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
                 grad.mul_(torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0))
@@ -315,7 +319,7 @@ class BatchedDQN:
         dev = self.device
         step_size = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)
         bc2_sqrt = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)
-        p, m, v = self.flat.detach(), self.exp_avg, self.exp_avg_sq
+        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
         self.version += 1
         if train.all():
             m.lerp_(grad, 1 - b1)

@@ -115,7 +115,7 @@ def execute_batched(
         if supports(base, Changeable):
             base.reset_world()
         template = task.make_agent(seed=seeds[0])
-        learner = template.batch_learner(seeds, steps)
+        learner = template.batch_learner(seeds, steps, task.make_agent)
         views = [learner.view(i) for i in range(len(runs))]
         forks = [recorder.fork(r) for r in runs]
         for fork, view in zip(forks, views, strict=True):

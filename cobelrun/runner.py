@@ -149,7 +149,7 @@ def _plan_batches(task: Task, setting: Any) -> None:
             name = getattr(agent_class, "__name__", "this agent")
             raise ConfigError(
                 f"task.batch_runs={str(setting).lower()}: agent {name} has no batched implementation "
-                "(batchable: DQNAgent); use task.batch_runs=auto or false"
+                "(batchable: DQNAgent, DynaDQN, DynaDSR); use task.batch_runs=auto or false"
             )
         task.batch_note = (
             "task.batch_runs=false" if setting is False else "the agent has no batched implementation"

@@ -335,11 +335,14 @@ class Agent(abc.ABC):
         """Why this agent's settings cannot be batched (one phrase), or None."""
         return None if self.batchable else f"agent {type(self).__name__} is not batchable"
 
-    def batch_learner(self, seeds: Sequence[np.random.SeedSequence], steps: int) -> Any:
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
         """A learner training one run per seed in ``seeds`` at once with this agent's settings
         (``run_phase(envs, n_trials, max_steps, learn, callbacks, views)`` and ``view(i)``, see
         :mod:`cobelrun.batched`); ``steps`` bounds the environment steps of a run's learning
-        phases. Only :attr:`batchable` agents implement it."""
+        phases and ``make(seed=...)`` builds another agent with these settings. Only
+        :attr:`batchable` agents implement it."""
         raise NotImplementedError(f"agent {type(self).__name__} is not batchable")
 
     # -- inference -------------------------------------------------------------------------------

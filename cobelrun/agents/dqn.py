@@ -416,7 +416,9 @@ class DQNAgent(Agent):
 
         return unsupported(self)
 
-    def batch_learner(self, seeds: Sequence[np.random.SeedSequence], steps: int) -> Any:
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
         """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` for one run per seed."""
         from cobelrun.agents.batched_dqn import BatchedDQN
 

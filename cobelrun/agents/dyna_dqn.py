@@ -85,6 +85,7 @@ class DynaDeepAgent(Agent):
     observation_spaces = (gym.spaces.Discrete, gym.spaces.Box)
     action_spaces = (gym.spaces.Discrete,)
     requires = ("tabular_model",)
+    batchable = True
 
     def __init__(
         self,
@@ -210,6 +211,24 @@ class DynaDeepAgent(Agent):
         S = np.concatenate([[s], rs]).astype(np.int64)
         A = np.concatenate([[a], ra]).astype(np.int64)
         self.update(S, A, mem.reward[S, A], mem.next_state[S, A], mem.terminal[S, A], mask)
+
+    # -- batched runs ----------------------------------------------------------------------------
+    def batch_unsupported(self) -> str | None:
+        from cobelrun.agents.batched_dyna import unsupported
+
+        return unsupported(self)
+
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
+        """:class:`~cobelrun.agents.batched_dyna.BatchedDyna`: one agent per seed (built with
+        ``make``), networks stacked."""
+        from cobelrun.agents.batched_dyna import BatchedDyna
+
+        if make is None:
+            raise ValueError("batched Dyna runs need make(seed=...) to build each run's agent")
+        return BatchedDyna([self if i == 0 and s is self.seed_sequence else make(seed=s)
+                            for i, s in enumerate(seeds)])  # fmt: skip
 
     # -- inference -------------------------------------------------------------------------------
     def _states_of(self, observations: np.ndarray) -> np.ndarray | None:

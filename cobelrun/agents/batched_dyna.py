@@ -44,6 +44,22 @@ def unsupported(agent: DynaDeepAgent) -> str | None:
     return None
 
 
+def group_by_head(actions: np.ndarray, heads: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices grouped by head: ``idx[r, h, m]`` is the ``m``-th sample of run ``r``
+    with ``actions[r, i] == h`` (padded with index 0 where ``valid`` is False), ``M`` the
+    largest group."""
+    R, n = actions.shape
+    order = np.argsort(actions, axis=1, kind="stable")
+    counts = (actions[:, :, None] == np.arange(heads)).sum(axis=1)  # (R, H)
+    m = max(int(counts.max()), 1)
+    starts = np.cumsum(counts, axis=1) - counts
+    j = np.arange(m)
+    valid = j < counts[:, :, None]
+    pos = np.where(valid, starts[:, :, None] + j, 0)
+    idx = order[np.arange(R)[:, None, None], pos]
+    return idx, valid.astype(np.float32)
+
+
 class StackedMLP:
     """The same :class:`~cobelrun.agents.networks.TorchMLP` shape for R runs, stacked.
 
@@ -91,9 +107,14 @@ class StackedMLP:
 
     def forward(self, layers: Sequence[torch.Tensor], x: torch.Tensor,
                 keep: dict[str, torch.Tensor] | None = None) -> torch.Tensor:  # fmt: skip
-        """Outputs ``(R', H, n, out)`` of inputs ``x`` ``(R', n, in)``."""
-        rows, n = x.shape[0], x.shape[1]
-        h = x[:, None].expand(rows, self.H, n, x.shape[2]).reshape(rows * self.H, n, x.shape[2])
+        """Outputs ``(R', H, n, out)`` of inputs ``x`` ``(R', n, in)`` (every head sees every
+        input) or ``(R', H, n, in)`` (each head its own inputs)."""
+        if x.dim() == 4:
+            rows, n = x.shape[0], x.shape[2]
+            h = x.reshape(rows * self.H, n, x.shape[3])
+        else:
+            rows, n = x.shape[0], x.shape[1]
+            h = x[:, None].expand(rows, self.H, n, x.shape[2]).reshape(rows * self.H, n, x.shape[2])
         step = 2 if self.has_bias else 1
         for i in range(self.n_layers):
             w = layers[step * i].reshape(rows * self.H, *layers[step * i].shape[2:])
@@ -128,28 +149,23 @@ class StackedMLP:
         bc = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)[:, None]
         p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
         with torch.no_grad():
-            if train.all():
-                m.lerp_(grad, 1 - b1)
-                v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-                p.addcdiv_(m * ss, v.sqrt().div_(bc).add_(self.eps), value=-1.0)
-                return
-            keep = torch.as_tensor(train, device=dev)[:, None]
-            m_new = torch.lerp(m, grad, 1 - b1)
-            v_new = v * b2 + (grad * grad) * (1 - b2)
-            p_new = p - (m_new * ss) / (v_new.sqrt() / bc + self.eps)
-            m.copy_(torch.where(keep, m_new, m))
-            v.copy_(torch.where(keep, v_new, v))
-            p.copy_(torch.where(keep, p_new, p))
+            idle = torch.as_tensor(np.flatnonzero(~train), device=dev)
+            saved = [t[idle].clone() for t in (p, m, v)] if len(idle) else None
+            m.lerp_(grad, 1 - b1)
+            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+            p.addcdiv_(m * ss, v.sqrt().div_(bc).add_(self.eps), value=-1.0)
+            if saved is not None:  # runs that wait keep parameters and moments exactly
+                for t, old in zip((p, m, v), saved, strict=True):
+                    t[idle] = old
 
     def blend_target(self, tau: float, train: np.ndarray) -> None:
         """``target <- target + tau (online - target)`` (``TorchMLP.blend_from``) per run."""
         with torch.no_grad():
-            new = torch.lerp(self.target, self.flat, tau)
-            if train.all():
-                self.target.copy_(new)
-            else:
-                keep = torch.as_tensor(train, device=self.device)[:, None]
-                self.target.copy_(torch.where(keep, new, self.target))
+            idle = torch.as_tensor(np.flatnonzero(~train), device=self.device)
+            saved = self.target[idle].clone() if len(idle) else None
+            self.target.lerp_(self.flat, tau)
+            if saved is not None:
+                self.target[idle] = saved
 
 
 class BatchedDyna:
@@ -252,9 +268,14 @@ class BatchedDyna:
             b_t = torch.as_tensor(best)
             m_best = nxt[rows, b_t, torch.arange(n)[None]]  # (R, n, d)
             target = x2 + self.gamma * torch.as_tensor(cont, dtype=torch.float32)[..., None] * m_best
-            out = net.forward(net.leaves, x)  # (R, H, n, d)
-            pred = out[rows, a_t, torch.arange(n)[None]]  # (R, n, d)
-            loss_sr = ((pred - target) ** 2).mean(dim=(1, 2))
+            # only the taken action's head is trained on a sample: each head runs on its own
+            # samples (padded to the largest group) instead of all heads on all samples
+            idx, valid = group_by_head(A, net.H)  # (R, H, M)
+            rows3 = torch.arange(R)[:, None, None]
+            idx_t = torch.as_tensor(idx)
+            out = net.forward(net.leaves, x[rows3, idx_t])  # (R, H, M, d)
+            err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
+            loss_sr = err.sum(dim=(1, 2)) / (n * out.shape[-1])
             rw = self.reward
             assert rw is not None
             pr = rw.forward(rw.leaves, x2)[:, 0, :, 0]  # (R, n)

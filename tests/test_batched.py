@@ -164,3 +164,42 @@ def test_bad_batch_settings_are_one_line_errors():
                                   "task.batch_runs=true"]))  # fmt: skip
     task = build_task(compose(None, ["task=two_afc", "agent.prioritized=true"]))
     assert task.batch == 0 and "prioritized" in task.batch_note
+
+
+#: Fig. 7's task, shortened: exploration then reward, SR snapshots every 2 trials, steps of run 0
+FIG7 = [
+    "task=latent_learning", "task.protocol.phases.0.trials=3", "task.protocol.phases.1.trials=3",
+    "task.protocol.max_steps=40", "task.monitors.activity.every=2", "task.save_agents=all",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("agent", ["dyna_dsr", pytest.param("dyna_dqn", marks=pytest.mark.slow)])
+def test_dyna_batched_runs_match_sequential(tmp_path, agent):
+    """Batched Dyna agents draw what their sequential twins draw: same trials, activity
+    within rounding, steps of run 0, saved agents loadable; chunks of 2 give the same."""
+    from cobelrun.io.agents_archive import read_agent
+
+    extra = [f"agent={agent}", "task.runs=3"]
+    if agent == "dyna_dqn":
+        extra.append("task.monitors.activity.layers=[q/output]")
+    seq, _, f_seq = run_task(tmp_path, "seq", [*FIG7, *extra, "task.batch_runs=false"])
+    bat, task, f_bat = run_task(tmp_path, "bat", [*FIG7, *extra, "task.batch_runs=true"])
+    two, task2, _ = run_task(tmp_path, "two", [*FIG7, *extra, "task.batch_runs=2"])
+    assert task.batch == 3 and task2.batch == 2
+    pd.testing.assert_frame_equal(bat, two)
+    assert identical_runs(seq, bat) >= 2
+    act_s, act_b = (pd.read_parquet(f / "activity.parquet") for f in (f_seq, f_bat))
+    keys = ["run", "trial", "layer", "unit", "probe"]
+    pd.testing.assert_frame_equal(act_s[keys], act_b[keys])
+    same = [r for r in range(3) if seq[seq.run == r].reset_index(drop=True)
+            .equals(bat[bat.run == r].reset_index(drop=True))]  # fmt: skip
+    close = act_s.run.isin(same)
+    np.testing.assert_allclose(act_b.value[close], act_s.value[close], rtol=1e-3, atol=1e-4)
+    steps_s, steps_b = (pd.read_parquet(f / "steps.parquet") for f in (f_seq, f_bat))
+    assert list(steps_s.columns) == list(steps_b.columns)
+    if 0 in same:
+        pd.testing.assert_frame_equal(steps_s, steps_b)
+    agent_obj = task.make_agent(seed=run_seed(0, 1)[0])
+    arrays, meta = read_agent(f_bat / "agents.npz", 1)
+    agent_obj.load_state(arrays, meta, source="batched")
+    assert int(agent_obj.memory.n_visited[0]) > 0

@@ -35,6 +35,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 #: figure settings: (label, cobel run overrides)
 TASKS = {
     "two_afc": ("Fig. 9 (task=two_afc, agent=dqn_paper)", ["task=two_afc"]),
+    # Fig. 7's latent group with Dyna-DSR; --fig7-trials shortens both phases (the full
+    # 100 + 100 trials take ~10-30 min sequentially on the 2 shared cores)
+    "latent_learning": ("Fig. 7 latent group (task=latent_learning, Dyna-DSR)",
+                        ["task=latent_learning"]),
 }
 
 
@@ -73,13 +77,23 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=100)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--task", action="append", choices=sorted(TASKS))
+    ap.add_argument("--fig7-runs", type=int, default=20)
+    ap.add_argument("--fig7-trials", type=int, default=10,
+                    help="trials of each Fig. 7 phase (the paper: 100)")
     args = ap.parse_args()
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench_batched_"))
     try:
         for name in args.task or list(TASKS):
             label, overrides = TASKS[name]
-            overrides = [*overrides, f"task.runs={args.runs}"]
+            runs = args.runs
+            if name == "latent_learning":
+                runs = args.fig7_runs
+                t = args.fig7_trials
+                overrides = [*overrides, f"task.protocol.phases.0.trials={t}",
+                             f"task.protocol.phases.1.trials={t}"]  # fmt: skip
+                label += f", {t} + {t} trials"
+            overrides = [*overrides, f"task.runs={runs}"]
             best: dict[str, tuple[float, dict]] = {}
             for _ in range(args.repeat):
                 for batch in ("false", "true"):
@@ -89,7 +103,7 @@ def main() -> None:
             same, n, schema = identical_runs(tmp / f"{name}_false", tmp / f"{name}_true")
             seq, bat = best["false"], best["true"]
             row = {
-                "task": name, "label": label, "runs": args.runs,
+                "task": name, "label": label, "runs": runs,
                 "sequential_s": round(seq[0], 2), "batched_s": round(bat[0], 2),
                 "ratio": round(seq[0] / bat[0], 2),
                 "sequential_cpu_s": round(seq[1]["cpu_s"], 2),
@@ -101,7 +115,7 @@ def main() -> None:
                 "identical_runs": f"{same}/{n}", "same_schema": schema,
             }  # fmt: skip
             rows.append(row)
-            print(f"{label}, {args.runs} runs: sequential {row['sequential_s']:.1f} s, batched "
+            print(f"{label}, {runs} runs: sequential {row['sequential_s']:.1f} s, batched "
                   f"{row['batched_s']:.1f} s, ratio {row['ratio']:.1f}x end to end (CPU time "
                   f"{row['sequential_cpu_s']:.1f} s vs {row['batched_cpu_s']:.1f} s: "
                   f"{row['cpu_ratio']:.1f}x) "

@@ -106,17 +106,36 @@ class StackedMLP:
         return out
 
     def forward(self, layers: Sequence[torch.Tensor], x: torch.Tensor,
-                keep: dict[str, torch.Tensor] | None = None) -> torch.Tensor:  # fmt: skip
+                keep: dict[str, torch.Tensor] | None = None, *,
+                states: bool = False) -> torch.Tensor:  # fmt: skip
         """Outputs ``(R', H, n, out)`` of inputs ``x`` ``(R', n, in)`` (every head sees every
-        input) or ``(R', H, n, in)`` (each head its own inputs)."""
-        if x.dim() == 4:
-            rows, n = x.shape[0], x.shape[2]
+        input) or ``(R', H, n, in)`` (each head its own inputs). With ``states``, ``x`` holds
+        indices ``(R', n)`` or ``(R', H, n)`` of one-hot inputs: the first layer is then a row
+        lookup, which equals the matrix product with a one-hot vector exactly."""
+        rows = x.shape[0]
+        per_head = x.dim() == (3 if states else 4)
+        n = x.shape[2] if per_head else x.shape[1]
+        step = 2 if self.has_bias else 1
+        first = 0
+        if states:
+            w0 = layers[0]  # (R', H, in, out)
+            r_i = torch.arange(rows, device=x.device)[:, None, None]
+            h_i = torch.arange(self.H, device=x.device)[None, :, None]
+            s_i = x if per_head else x[:, None, :]
+            h = w0[r_i, h_i, s_i]  # (R', H, n, out)
+            if self.has_bias:
+                h = h + layers[1]
+            h = h.reshape(rows * self.H, n, h.shape[-1])
+            first = 1
+            if self.n_layers > 1:
+                h = self.act(h)
+                if keep is not None:
+                    keep["layer1"] = h
+        elif per_head:
             h = x.reshape(rows * self.H, n, x.shape[3])
         else:
-            rows, n = x.shape[0], x.shape[1]
             h = x[:, None].expand(rows, self.H, n, x.shape[2]).reshape(rows * self.H, n, x.shape[2])
-        step = 2 if self.has_bias else 1
-        for i in range(self.n_layers):
+        for i in range(first, self.n_layers):
             w = layers[step * i].reshape(rows * self.H, *layers[step * i].shape[2:])
             if self.has_bias:
                 b = layers[step * i + 1].reshape(rows * self.H, 1, -1)
@@ -195,6 +214,9 @@ class BatchedDyna:
             self.reward = None
         self.gamma, self.tau = a0.gamma, a0.target_tau
         self.obs = torch.as_tensor(np.stack([a.obs for a in agents]), device=self.device)  # (R, S, d)
+        # one-hot observations (Fig. 7's): first layers are row lookups by state index
+        eye = np.eye(a0.n_states, dtype=np.float32)
+        self.onehot = all(a.obs.shape == eye.shape and np.array_equal(a.obs, eye) for a in agents)
 
     def view(self, run: int) -> DynaRunView:
         return DynaRunView(self, run)
@@ -222,12 +244,22 @@ class BatchedDyna:
 
     def q_of_states(self, states: np.ndarray) -> np.ndarray:
         """Action values ``(R, A)`` of one state per run."""
-        x = self.obs[torch.arange(self.R), torch.as_tensor(states)][:, None]  # (R, 1, d)
         with torch.no_grad():
-            out = self.net.forward(self.net.layers(self.net.flat), x)  # (R, H, 1, out)
+            out = self._net(self.net, self.net.layers(self.net.flat), states[:, None])  # (R, H, 1, out)
             if self.dsr:
                 return torch.einsum("rhd,rd->rh", out[:, :, 0], self._w()).numpy()
             return out[:, 0, 0].numpy()
+
+    def _net(self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray) -> torch.Tensor:
+        """``net`` on the observations of ``states`` ``(R, n)`` or ``(R, H, n)``."""
+        s_t = torch.as_tensor(states, device=self.device)
+        if self.onehot:
+            return net.forward(layers, s_t, states=True)
+        if s_t.dim() == 2:
+            x = self.obs[torch.arange(self.R)[:, None], s_t]
+        else:
+            x = self.obs[torch.arange(self.R)[:, None, None], s_t]
+        return net.forward(layers, x)
 
     # -- learning ------------------------------------------------------------------------------
     def update(self, S: np.ndarray, A: np.ndarray, rew: np.ndarray, S2: np.ndarray,
@@ -236,14 +268,14 @@ class BatchedDyna:
         ``S, A, ...``; rows of other runs are ignored)."""
         R, net = self.R, self.net
         rows = torch.arange(R)[:, None]
-        s_t, s2_t = torch.as_tensor(S), torch.as_tensor(S2)
-        x, x2 = self.obs[rows, s_t], self.obs[rows, s2_t]  # (R, n, d)
+        s2_t = torch.as_tensor(S2)
+        x2 = self.obs[rows, s2_t]  # (R, n, d)
         a_t = torch.as_tensor(A)
         n = S.shape[1]
         mask = torch.as_tensor(train, dtype=torch.float32)
         agents = self.agents
         with torch.no_grad():
-            nxt = net.forward(net.layers(net.target), x2)  # (R, H, n, out)
+            nxt = self._net(net, net.layers(net.target), S2)  # (R, H, n, out)
         if self.dsr:
             w = self._w()
             q_next = torch.einsum("rhnd,rd->rnh", nxt, w).numpy()
@@ -273,18 +305,18 @@ class BatchedDyna:
             idx, valid = group_by_head(A, net.H)  # (R, H, M)
             rows3 = torch.arange(R)[:, None, None]
             idx_t = torch.as_tensor(idx)
-            out = net.forward(net.leaves, x[rows3, idx_t])  # (R, H, M, d)
+            out = self._net(net, net.leaves, S[np.arange(R)[:, None, None], idx])  # (R, H, M, d)
             err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
             loss_sr = err.sum(dim=(1, 2)) / (n * out.shape[-1])
             rw = self.reward
             assert rw is not None
-            pr = rw.forward(rw.leaves, x2)[:, 0, :, 0]  # (R, n)
+            pr = self._net(rw, rw.leaves, S2)[:, 0, :, 0]  # (R, n)
             loss_r = ((pr - torch.as_tensor(rew, dtype=torch.float32)) ** 2).mean(dim=1)
             grads = torch.autograd.grad(((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves])
             net.adam(grads[: len(net.leaves)], train)
             rw.adam(grads[len(net.leaves) :], train)
         else:
-            out = net.forward(net.leaves, x)[:, 0]  # (R, n, A)
+            out = self._net(net, net.leaves, S)[:, 0]  # (R, n, A)
             pred = out.gather(2, a_t[..., None])[..., 0]
             d_out = out.shape[-1]
             loss = ((pred - torch.as_tensor(y)) ** 2).sum(dim=1) / (n * d_out)

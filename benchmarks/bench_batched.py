@@ -37,8 +37,10 @@ TASKS = {
     "two_afc": ("Fig. 9 (task=two_afc, agent=dqn_paper)", ["task=two_afc"]),
     # Fig. 7's latent group with Dyna-DSR; --fig7-trials shortens both phases (the full
     # 100 + 100 trials take ~10-30 min sequentially on the 2 shared cores)
-    "latent_learning": ("Fig. 7 latent group (task=latent_learning, Dyna-DSR)",
-                        ["task=latent_learning"]),
+    "latent_learning": (
+        "Fig. 7 latent group (task=latent_learning, Dyna-DSR)",
+        ["task=latent_learning"],
+    ),
 }
 
 
@@ -78,8 +80,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--task", action="append", choices=sorted(TASKS))
     ap.add_argument("--fig7-runs", type=int, default=20)
-    ap.add_argument("--fig7-trials", type=int, default=10,
-                    help="trials of each Fig. 7 phase (the paper: 100)")
+    ap.add_argument(
+        "--fig7-trials", type=int, default=10, help="trials of each Fig. 7 phase (the paper: 100)"
+    )
     args = ap.parse_args()
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench_batched_"))

@@ -59,7 +59,9 @@ def why_sequential(task: Any, template: Any) -> str | None:
     return template.batch_unsupported()
 
 
-def batch_plan(setting: Any, task: Any, template_factory: Callable[[], Any]) -> tuple[int, str | None]:
+def batch_plan(
+    setting: Any, task: Any, template_factory: Callable[[], Any]
+) -> tuple[int, str | None]:
     """``(runs at once, why not batched)`` for ``task.batch_runs = setting``; 0 runs at once
     means sequential. An explicit request that cannot be met is a ConfigError."""
     if setting is False:

@@ -152,7 +152,9 @@ def _plan_batches(task: Task, setting: Any) -> None:
                 "(batchable: DQNAgent, DynaDQN, DynaDSR); use task.batch_runs=auto or false"
             )
         task.batch_note = (
-            "task.batch_runs=false" if setting is False else "the agent has no batched implementation"
+            "task.batch_runs=false"
+            if setting is False
+            else "the agent has no batched implementation"
         )
         return
 

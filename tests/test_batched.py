@@ -15,9 +15,9 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from cobelrun.api import compose  # noqa: E402
-from cobelrun.errors import ConfigError  # noqa: E402
-from cobelrun.runner import build_task, execute, run_seed  # noqa: E402
+from cobelrun.api import compose
+from cobelrun.errors import ConfigError
+from cobelrun.runner import build_task, execute, run_seed
 
 
 def run_task(tmp_path, name: str, overrides: list[str]) -> pd.DataFrame:
@@ -125,7 +125,7 @@ def test_batched_agents_load_into_the_sequential_agent(tmp_path):
 
     _, task, folder = run_task(tmp_path, "a", [*GRID, "task.runs=3", "task.batch_runs=true",
                                                 "task.save_agents=all"])  # fmt: skip
-    _, task_seq, folder_seq = run_task(tmp_path, "s", [*GRID, "task.runs=3",
+    _, _task_seq, folder_seq = run_task(tmp_path, "s", [*GRID, "task.runs=3",
                                                        "task.batch_runs=false",
                                                        "task.save_agents=all"])  # fmt: skip
     for run in range(3):
@@ -149,17 +149,19 @@ def test_fig9_learning_curves_agree_statistically(tmp_path):
         df["block"] = (df["trial"] - 1) // 10
     blocks = seq.groupby("block")["reward"].mean() - bat.groupby("block")["reward"].mean()
     assert blocks.abs().max() <= 0.05
-    p = stats.ttest_ind(seq.groupby("run")["reward"].mean(), bat.groupby("run")["reward"].mean()).pvalue
+    p = stats.ttest_ind(
+        seq.groupby("run")["reward"].mean(), bat.groupby("run")["reward"].mean()
+    ).pvalue
     assert p > 0.05
     assert identical_runs(seq, bat) >= 30
 
 
 def test_bad_batch_settings_are_one_line_errors():
-    with pytest.raises(ConfigError, match="batch_runs=true: agent DynaQ.* no batched"):
+    with pytest.raises(ConfigError, match=r"batch_runs=true: agent DynaQ.* no batched"):
         build_task(compose(None, ["task=gridworld", "task.batch_runs=true"]))
     with pytest.raises(ConfigError, match="batch_runs"):
         build_task(compose(None, ["task=two_afc", "task.batch_runs=0"]))
-    with pytest.raises(ConfigError, match="cannot batch this task: agent.prioritized"):
+    with pytest.raises(ConfigError, match=r"cannot batch this task: agent\.prioritized"):
         build_task(compose(None, ["task=two_afc", "agent.prioritized=true",
                                   "task.batch_runs=true"]))  # fmt: skip
     task = build_task(compose(None, ["task=two_afc", "agent.prioritized=true"]))

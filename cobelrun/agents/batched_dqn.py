@@ -37,6 +37,7 @@ sequentially; :func:`unsupported` says why.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -157,7 +158,7 @@ class BatchedDQN:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(int(torch_seed))
                 # SB3's q_net: Linear layers created in order with torch's default init
-                layers = [torch.nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
+                layers = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
             for i, layer in enumerate(layers):
                 weights[i].append(layer.weight.detach().T)
                 biases[i].append(layer.bias.detach()[None])
@@ -217,7 +218,10 @@ class BatchedDQN:
         return self._leaves
 
     def forward(
-        self, params: Sequence[torch.Tensor], x: torch.Tensor, keep: list[torch.Tensor] | None = None
+        self,
+        params: Sequence[torch.Tensor],
+        x: torch.Tensor,
+        keep: list[torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Q values ``(R, n, A)`` of inputs ``x`` ``(R, n, obs_dim)`` for every run at once."""
         h = x
@@ -232,7 +236,9 @@ class BatchedDQN:
                     keep.append(h)
         return h
 
-    def run_forward(self, run: int, x: np.ndarray, keep: list[torch.Tensor] | None = None) -> np.ndarray:
+    def run_forward(
+        self, run: int, x: np.ndarray, keep: list[torch.Tensor] | None = None
+    ) -> np.ndarray:
         """Q values ``(n, A)`` of run ``run`` for observation vectors ``x`` ``(n, obs_dim)``."""
         x = np.ascontiguousarray(x, np.float32)
         if keep is None:  # every run's values at once, kept until the parameters change
@@ -288,7 +294,11 @@ class BatchedDQN:
         ii = torch.as_tensor(idx, device=self.device)
         rows = self._rows[:, None]
         obs, nxt = self.buf_obs[rows, ii], self.buf_next[rows, ii]
-        act, rew, done = self.buf_action[rows, ii], self.buf_reward[rows, ii], self.buf_done[rows, ii]
+        act, rew, done = (
+            self.buf_action[rows, ii],
+            self.buf_reward[rows, ii],
+            self.buf_done[rows, ii],
+        )
         with torch.no_grad():
             if bool((done[torch.as_tensor(train, device=self.device)] == 1).all()):
                 target = rew  # every sampled transition ends its trial: no bootstrap term
@@ -330,7 +340,9 @@ class BatchedDQN:
         keep = torch.as_tensor(train, device=dev)[:, None]
         m_new = torch.lerp(m, grad, 1 - b1)
         v_new = v * b2 + (grad * grad) * (1 - b2)
-        p_new = p - (m_new * step_size[:, None]) / (v_new.sqrt() / bc2_sqrt[:, None] + self.adam_eps)
+        p_new = p - (m_new * step_size[:, None]) / (
+            v_new.sqrt() / bc2_sqrt[:, None] + self.adam_eps
+        )
         m.copy_(torch.where(keep, m_new, m))
         v.copy_(torch.where(keep, v_new, v))
         p.copy_(torch.where(keep, p_new, p))
@@ -490,7 +502,9 @@ class DQNRunView:
             for i in range(len(params) // 2):
                 w = params[2 * i][r].detach().cpu().numpy().T.copy()
                 arrays[f"{prefix}.{2 * i}.weight"] = w
-                arrays[f"{prefix}.{2 * i}.bias"] = params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
+                arrays[f"{prefix}.{2 * i}.bias"] = (
+                    params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
+                )
         moments = zip(b.layers(b.exp_avg), b.layers(b.exp_avg_sq), strict=True)
         for j, (m, v) in enumerate(moments):
             tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])
@@ -501,7 +515,9 @@ class DQNRunView:
         arrays["n_calls"] = np.array(b.n_calls[r], np.int64)
         schema = self.state_schema()
         if set(arrays) != set(schema):  # the SB3 policy's layout changed under us
-            raise RuntimeError(f"batched DQN state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}")
+            raise RuntimeError(
+                f"batched DQN state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}"
+            )
         return arrays
 
     def hyperparameters(self) -> dict[str, Any]:
@@ -514,4 +530,3 @@ class DQNRunView:
 def steps_budget(phases: Sequence[Any], default_max_steps: int) -> int:
     """Environment steps a run can take in the learning phases (replay slots it can fill)."""
     return sum(int(p.trials) * int(p.max_steps or default_max_steps) for p in phases if p.learning)
-

@@ -48,7 +48,7 @@ def group_by_head(actions: np.ndarray, heads: int) -> tuple[np.ndarray, np.ndarr
     """Sample indices grouped by head: ``idx[r, h, m]`` is the ``m``-th sample of run ``r``
     with ``actions[r, i] == h`` (padded with index 0 where ``valid`` is False), ``M`` the
     largest group."""
-    R, n = actions.shape
+    R, _n = actions.shape
     order = np.argsort(actions, axis=1, kind="stable")
     counts = (actions[:, :, None] == np.arange(heads)).sum(axis=1)  # (R, H)
     m = max(int(counts.max()), 1)
@@ -81,7 +81,9 @@ class StackedMLP:
         self.n_layers = len(first.weights)
         per_run = [[torch.as_tensor(n.get_weights()[k]) for k in self._order()] for n in nets]
         self.shapes = [tuple(t.shape) for t in per_run[0]]  # (H, in, out) / (H, 1, out)
-        self.flat = torch.stack([torch.cat([t.reshape(-1) for t in ts]) for ts in per_run]).to(device)
+        self.flat = torch.stack([torch.cat([t.reshape(-1) for t in ts]) for ts in per_run]).to(
+            device
+        )
         self.target = self.flat.clone()
         self.leaves = [v.requires_grad_() for v in self.layers(self.flat)]
         self.exp_avg = torch.zeros_like(self.flat)
@@ -155,7 +157,9 @@ class StackedMLP:
         """Run ``run``'s weights as ``TorchMLP.get_weights`` names them."""
         src = (self.flat if flat is None else flat)[run : run + 1]
         views = self.layers(src)
-        return {k: v[0].detach().cpu().numpy().copy() for k, v in zip(self._order(), views, strict=True)}
+        return {
+            k: v[0].detach().cpu().numpy().copy() for k, v in zip(self._order(), views, strict=True)
+        }
 
     def adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
         """One Adam step of the runs in ``train`` (the others keep parameters and moments)."""
@@ -213,7 +217,9 @@ class BatchedDyna:
             self.net = StackedMLP([a.q_net for a in agents], self.device)
             self.reward = None
         self.gamma, self.tau = a0.gamma, a0.target_tau
-        self.obs = torch.as_tensor(np.stack([a.obs for a in agents]), device=self.device)  # (R, S, d)
+        self.obs = torch.as_tensor(
+            np.stack([a.obs for a in agents]), device=self.device
+        )  # (R, S, d)
         # one-hot observations (Fig. 7's): first layers are row lookups by state index
         eye = np.eye(a0.n_states, dtype=np.float32)
         self.onehot = all(a.obs.shape == eye.shape and np.array_equal(a.obs, eye) for a in agents)
@@ -245,12 +251,16 @@ class BatchedDyna:
     def q_of_states(self, states: np.ndarray) -> np.ndarray:
         """Action values ``(R, A)`` of one state per run."""
         with torch.no_grad():
-            out = self._net(self.net, self.net.layers(self.net.flat), states[:, None])  # (R, H, 1, out)
+            out = self._net(
+                self.net, self.net.layers(self.net.flat), states[:, None]
+            )  # (R, H, 1, out)
             if self.dsr:
                 return torch.einsum("rhd,rd->rh", out[:, :, 0], self._w()).numpy()
             return out[:, 0, 0].numpy()
 
-    def _net(self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray) -> torch.Tensor:
+    def _net(
+        self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray
+    ) -> torch.Tensor:
         """``net`` on the observations of ``states`` ``(R, n)`` or ``(R, H, n)``."""
         s_t = torch.as_tensor(states, device=self.device)
         if self.onehot:
@@ -299,7 +309,9 @@ class BatchedDyna:
                              for r in range(R)])  # fmt: skip
             b_t = torch.as_tensor(best)
             m_best = nxt[rows, b_t, torch.arange(n)[None]]  # (R, n, d)
-            target = x2 + self.gamma * torch.as_tensor(cont, dtype=torch.float32)[..., None] * m_best
+            target = (
+                x2 + self.gamma * torch.as_tensor(cont, dtype=torch.float32)[..., None] * m_best
+            )
             # only the taken action's head is trained on a sample: each head runs on its own
             # samples (padded to the largest group) instead of all heads on all samples
             idx, valid = group_by_head(A, net.H)  # (R, H, M)
@@ -312,7 +324,9 @@ class BatchedDyna:
             assert rw is not None
             pr = self._net(rw, rw.leaves, S2)[:, 0, :, 0]  # (R, n)
             loss_r = ((pr - torch.as_tensor(rew, dtype=torch.float32)) ** 2).mean(dim=1)
-            grads = torch.autograd.grad(((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves])
+            grads = torch.autograd.grad(
+                ((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves]
+            )
             net.adam(grads[: len(net.leaves)], train)
             rw.adam(grads[len(net.leaves) :], train)
         else:
@@ -442,5 +456,3 @@ class DynaRunView:
 
     def saved_meta(self) -> dict[str, Any]:
         return self._agent().saved_meta()
-
-

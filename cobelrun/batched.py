@@ -78,10 +78,11 @@ def batch_plan(
     return min(chunk, task.runs), None
 
 
-def _make_envs(task: Any, runs: Sequence[int]) -> tuple[list[Any], list[np.random.SeedSequence]]:
+def _make_envs(
+    task: Any, runs: Sequence[int], run_seed: Callable[[int, int], Any]
+) -> tuple[list[Any], list[np.random.SeedSequence]]:
     """One environment per run, restored and seeded as the sequential runner does."""
     from cobelrun.envs.base import Changeable, supports
-    from cobelrun.runner import run_seed
 
     envs, agent_seeds = [], []
     for r in runs:
@@ -102,8 +103,12 @@ def execute_batched(
     chunk: int,
     progress: Any = None,
     phase_times: dict[str, float] | None = None,
+    *,
+    run_seed: Callable[[int, int], Any],
 ) -> None:
-    """Every run of ``task``, ``chunk`` runs at a time, recorded run by run."""
+    """Every run of ``task``, ``chunk`` runs at a time, recorded run by run; ``run_seed(seed,
+    run)`` gives a run's (agent, environment) seed sequences
+    (:func:`cobelrun.runner.run_seed`)."""
     from cobelrun.envs.base import Changeable, supports
 
     protocol = task.protocol
@@ -112,7 +117,7 @@ def execute_batched(
                 for p in protocol.phases if p.learning)  # fmt: skip
     for start in range(0, task.runs, chunk):
         runs = list(range(start, min(start + chunk, task.runs)))
-        envs, seeds = _make_envs(task, runs)
+        envs, seeds = _make_envs(task, runs, run_seed)
         base = task.env.unwrapped  # the recorder's env: phases apply to it as well
         if supports(base, Changeable):
             base.reset_world()

@@ -309,7 +309,7 @@ def execute(
         if task.batch:
             from cobelrun.batched import execute_batched
 
-            execute_batched(task, recorder, task.batch, progress, phase_times)
+            execute_batched(task, recorder, task.batch, progress, phase_times, run_seed=run_seed)
             return None
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)

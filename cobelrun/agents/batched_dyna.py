@@ -27,16 +27,15 @@ import numpy as np
 import torch
 
 from cobelrun.agents.base import TrialCallback, state_of
-from cobelrun.agents.dyna_dqn import DynaDeepAgent, allowed_next
 from cobelrun.agents.networks import ACTIVATIONS, TorchMLP
-from cobelrun.agents.policy import select
+from cobelrun.agents.policy import allowed_next, select
 from cobelrun.envs.base import Posed
 from cobelrun.records import TrialBatch
 
 __all__ = ["BatchedDyna", "DynaRunView", "StackedMLP", "unsupported"]
 
 
-def unsupported(agent: DynaDeepAgent) -> str | None:
+def unsupported(agent: Any) -> str | None:
     """Why a built Dyna agent cannot be batched, or None."""
     nets = agent._all_networks()
     if not all(isinstance(n, TorchMLP) for n in nets.values()):
@@ -197,15 +196,16 @@ class BatchedDyna:
     Parameters
     ----------
     agents
-        One agent per run, each built from its run's seed.
+        One :class:`~cobelrun.agents.dyna_dqn.DynaDeepAgent` per run, each built from its
+        run's seed.
+    successor
+        Dyna-DSR's successor features and reward model (else Dyna-DQN's Q network).
     """
 
-    def __init__(self, agents: Sequence[DynaDeepAgent]) -> None:
-        from cobelrun.agents.dyna_dsr import DynaDSR
-
+    def __init__(self, agents: Sequence[Any], *, successor: bool) -> None:
         self.agents = list(agents)
         self.R = len(agents)
-        self.dsr = isinstance(agents[0], DynaDSR)
+        self.dsr = bool(successor)
         a0 = agents[0]
         self.device = torch.device("cpu")
         self.version = 0
@@ -228,7 +228,7 @@ class BatchedDyna:
         return DynaRunView(self, run)
 
     # -- weights back into the per-run agents -------------------------------------------------
-    def sync(self, run: int) -> DynaDeepAgent:
+    def sync(self, run: int) -> Any:
         """Run ``run``'s agent with the run's current weights."""
         agent = self.agents[run]
         if self._synced[run] != self.version:
@@ -390,7 +390,7 @@ class BatchedDyna:
                 a = select(ag.rng, q[r], ag.policy, ag.epsilon, ag.beta, allowed)
                 o2, rr, terminated, truncated, info2 = envs[r].step(a)
                 s2, rr = state_of(o2, info2), float(rr)
-                if learn:  # DynaDeepAgent.observe: store, then replay the step + a sample
+                if learn:  # Any.observe: store, then replay the step + a sample
                     mem = ag.memory
                     mem.store(s, a, rr, s2, bool(terminated))
                     rs, ra = mem.sample(ag.rng, ag.replay_batch)
@@ -436,7 +436,7 @@ class DynaRunView:
     def __init__(self, batch: BatchedDyna, run: int) -> None:
         self.batch, self.run = batch, run
 
-    def _agent(self) -> DynaDeepAgent:
+    def _agent(self) -> Any:
         return self.batch.sync(self.run)
 
     def predict(self, observations: np.ndarray) -> np.ndarray:

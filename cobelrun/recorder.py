@@ -400,11 +400,16 @@ class RunRecorder:
         with self.guard.critical():
             self._record(run, phase, first_trial, batch)
 
-    def _batch_monitors(self, steps_recorded: bool) -> list[Monitor]:
+    def _batch_monitors(
+        self, steps_recorded: bool, monitors: Sequence[Monitor] | None = None
+    ) -> list[Monitor]:
         """Monitors whose batch rows are written: a monitor that fills only per-step tables
         is skipped when steps are not recorded (``record.steps=false`` or a run outside
         ``record.runs``); monitors without trial/step tables (event tables, hooks) always run
         (their ``on_batch`` may keep state)."""
+        if monitors is not None and monitors is not self.monitors:
+            own = self._batch_monitors(steps_recorded)
+            return [m for m, mine in zip(monitors, self.monitors, strict=True) if mine in own]
         key = steps_recorded
         if key not in self._active:
             active = []
@@ -422,12 +427,21 @@ class RunRecorder:
         return self._active[key]
 
     def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
+        rows = self._rows(run, phase, first_trial, batch, self.monitors)
+        if rows is not None:
+            self._commit_rows(*rows)
+
+    def _rows(
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch, monitors: Sequence[Monitor]
+    ) -> tuple[list[tuple[str, dict[str, Any], int]], Any, Any] | None:
+        """The monitors' rows of a batch: ``([(table, columns, n_rows)], mcap arguments,
+        (batch, info) for the joinable monitors' bulk-built step rows or None)``."""
         n = batch.n_trials
         if n == 0:
-            return
+            return None
         info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
         merged: dict[str, dict[str, Any]] = {}
-        for m in self._batch_monitors(self.record_cfg.records_run(run)):
+        for m in self._batch_monitors(self.record_cfg.records_run(run), monitors):
             for table, cols in m.on_batch(batch, info).items():
                 if table not in self.tables or self.tables[table][0] == "event":
                     raise ConfigError(
@@ -440,6 +454,7 @@ class RunRecorder:
         keep = None if every == 1 else (trial - 1) % every == 0
         records_run = self.record_cfg.records_run(run)
         step_keep = None if keep is None else np.repeat(keep, batch.steps)
+        adds = []
         for table, cols in merged.items():
             if table not in self._sinks:
                 continue
@@ -448,22 +463,48 @@ class RunRecorder:
                     continue
                 if step_keep is not None:
                     cols = {k: np.asarray(v)[step_keep] for k, v in cols.items()}
-                    rows = int(step_keep.sum())
+                    count = int(step_keep.sum())
                 else:
-                    rows = batch.n_steps
+                    count = batch.n_steps
             else:
-                rows = n
-            self._add(table, cols, rows)
+                count = n
+            adds.append((table, cols, count))
         per_trial = {k: v for name, cols in merged.items() if self.tables[name][0] == "trial"
                      for k, v in cols.items()}  # fmt: skip
-        self._write_mcap(run, phase, trial, batch, per_trial)
-        if self._joinable and records_run:
-            self._joined.append((batch, info))
-            self._joined_steps += batch.n_steps
+        joined = (batch, info) if self._joinable and records_run else None
+        return adds, (run, phase, trial, batch, per_trial), joined
+
+    def _commit_rows(
+        self, adds: list[tuple[str, dict[str, Any], int]], mcap: Any,
+        joined: tuple[TrialBatch, BatchInfo] | None,
+    ) -> None:  # fmt: skip
+        for table, cols, count in adds:
+            self._add(table, cols, count)
+        self._write_mcap(*mcap)
+        if joined is not None:  # step rows of joinable monitors, built in bulk later
+            self._joined.append(joined)
+            self._joined_steps += joined[0].n_steps
             if self._joined_steps >= self.JOIN_STEPS:
                 self._flush_joined()
         if time.monotonic() - self._last_pending >= self.record_cfg.flush_seconds:
             self._flush_pending()
+
+    def fork(self, run: int) -> ForkedRun:
+        """Run ``run`` recorded while other runs advance at the same time (batched runs): its
+        own copies of the monitors (:meth:`Monitor.fork`), whose rows and events are kept
+        until :meth:`commit` writes them, so that the run folder holds the same rows in the
+        same order as when the runs are recorded one after another."""
+        return ForkedRun(self, run)
+
+    def commit(self, fork: ForkedRun) -> None:
+        """Write what a forked run recorded (call in run order)."""
+        with self.guard.critical():
+            for kind, payload in fork.pending:
+                if kind == "event":
+                    self._emit(*payload)
+                else:
+                    self._commit_rows(*payload)
+            fork.pending = []
 
     def _flush_joined(self) -> None:
         batches, self._joined, self._joined_steps = self._joined, [], 0
@@ -569,3 +610,36 @@ class RunRecorder:
                     first = first or exc
             if first is not None:
                 raise first
+
+
+class ForkedRun:
+    """One run of a batch, recorded through its own monitor copies (see
+    :meth:`RunRecorder.fork`): the recorder's run lifecycle for this run, with every row and
+    event held until :meth:`RunRecorder.commit`."""
+
+    def __init__(self, recorder: RunRecorder, run: int) -> None:
+        self.recorder, self.run = recorder, run
+        self.pending: list[tuple[str, Any]] = []
+        shared = [recorder.env, getattr(recorder.env, "unwrapped", None)]
+        self.monitors = [m.fork(self._event, shared=shared) for m in recorder.monitors]
+
+    def _event(self, table: str, columns: Mapping[str, Any]) -> None:
+        if table not in self.recorder.tables:
+            raise ConfigError(f"a monitor wrote to undeclared table '{table}'")
+        self.pending.append(("event", (table, columns)))
+
+    def start_run(self, agent: Any) -> None:
+        for m in self.monitors:
+            m.start_run(self.run, agent)
+
+    def phase_callbacks(self, first_trial: int) -> list[Any]:
+        return [cb for m in self.monitors for cb in m.callbacks(first_trial)]
+
+    def record(self, phase: str, first_trial: int, batch: TrialBatch) -> None:
+        rows = self.recorder._rows(self.run, phase, first_trial, batch, self.monitors)
+        if rows is not None:
+            self.pending.append(("rows", rows))
+
+    def end_run(self, agent: Any, last_trial: int) -> None:
+        for m in self.monitors:
+            m.end_run(self.run, agent, last_trial)

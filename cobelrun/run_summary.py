@@ -118,12 +118,16 @@ def read_phase_rows(path: str | Path, last: int = LAST_TRIALS,
             counts = np.bincount(run[sel])
             old = per_run.get(name, np.zeros(0, np.int64))
             size = max(old.size, counts.size)
-            per_run[name] = np.pad(old, (0, size - old.size)) + np.pad(counts, (0, size - counts.size))
+            per_run[name] = np.pad(old, (0, size - old.size)) + np.pad(
+                counts, (0, size - counts.size)
+            )
         seen += batch.num_rows
     sums = {name: dict.fromkeys(measures, 0.0) for name in first}
     ns = {name: dict.fromkeys(measures, 0) for name in first}
     if measures:
-        for batch in file.iter_batches(batch_size=batch_rows, columns=["phase", "trial", *measures]):
+        for batch in file.iter_batches(
+            batch_size=batch_rows, columns=["phase", "trial", *measures]
+        ):
             trial = _column(batch.column("trial")).astype(np.int64)
             values = {c: _floats(_column(batch.column(c))) for c in measures}
             for name, sel in _phases(batch.column("phase")):

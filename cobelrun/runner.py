@@ -57,6 +57,12 @@ class Task:
     config: Any = None
     #: ``task.objective``: ``objective(trials) -> float``, stored in the manifest
     objective: Any = None
+    #: builds another instance of the task's environment (batched runs need one per run)
+    make_env: Callable[[], Any] | None = None
+    #: runs trained at once (``task.batch_runs``, :mod:`cobelrun.batched`); 0: one by one
+    batch: int = 0
+    #: why the runs are not batched (None when they are)
+    batch_note: str | None = None
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -119,7 +125,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
             "task.record.images needs an env that renders camera images (render_mode "
             "rgb_array: the 3D mazes with +env.render_mode=rgb_array)"
         )
-    return Task(
+    task = Task(
         name=spec.task.name,
         env=env,
         make_agent=make_agent,
@@ -131,7 +137,43 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
         load_from=None if load_from is None else str(load_from),
         save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
         objective=objective,
+        make_env=functools.partial(instantiate, "env", cfg.env),
     )
+    _plan_batches(task, spec.task.batch_runs)
+    return task
+
+
+def _plan_batches(task: Task, setting: Any) -> None:
+    """Decide ``task.batch`` / ``task.batch_note`` from ``task.batch_runs`` (building one agent
+    only for agents that have a batched implementation)."""
+    from cobelrun.batched import batch_plan
+
+    agent_class = getattr(task.make_agent, "func", None)
+    if setting is False or not getattr(agent_class, "batchable", False):
+        if setting not in (False, "auto"):
+            name = getattr(agent_class, "__name__", "this agent")
+            raise ConfigError(
+                f"task.batch_runs={str(setting).lower()}: agent {name} has no batched implementation "
+                "(batchable: DQNAgent, DynaDQN, DynaDSR); use task.batch_runs=auto or false"
+            )
+        task.batch_note = (
+            "task.batch_runs=false"
+            if setting is False
+            else "the agent has no batched implementation"
+        )
+        return
+
+    def template() -> Any:
+        try:
+            return task.make_agent(seed=run_seed(task.seed, 0)[0])
+        except CobelError:
+            raise
+        except Exception as exc:
+            raise ConfigError(
+                f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
+            ) from exc
+
+    task.batch, task.batch_note = batch_plan(setting, task, template)
 
 
 def _check_resolves(cfg: Any) -> None:
@@ -279,6 +321,11 @@ def execute(
                            save_agents=bool(task.save_agents))  # fmt: skip
     cpu0 = time.thread_time()
     try:
+        if task.batch:
+            from cobelrun.batched import execute_batched
+
+            execute_batched(task, recorder, task.batch, progress, phase_times, run_seed=run_seed)
+            return None
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
             if supports(base, Changeable):
@@ -373,8 +420,9 @@ def run(
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
-        else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task)}
-    )
+        else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task),
+              "batch_runs": {"runs_at_once": task.batch, "why_not": task.batch_note}}
+    )  # fmt: skip
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(folder.config, OmegaConf.to_yaml(OmegaConf.create(resolved)))

@@ -155,6 +155,12 @@ class TaskSpec(Spec):
         Literal["all", "last", "none"] | bool | list[Annotated[int, Field(ge=0)]] | None,
         Expect("all, last, none or a list of run indices"),
     ] = "all"
+    #: train the runs of a batchable deep agent as one batched computation (cobelrun.batched):
+    #: auto (when the agent and task allow it), true, false, or N runs at a time
+    batch_runs: Annotated[
+        Literal["auto"] | bool | Annotated[int, Field(ge=1, le=INT32_MAX)],
+        Expect("auto, true, false or a number of runs >= 1"),
+    ] = "auto"
     #: a custom job (``_target_`` node) that replaces the protocol loop
     job: Annotated[dict[str, Any] | None, Expect("a config node with a _target_")] = None
     #: the run's objective (``_target_`` node, see :mod:`cobelrun.objectives`), in the manifest

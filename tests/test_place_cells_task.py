@@ -102,9 +102,9 @@ def test_keras_init_and_q_init():
     assert torch.count_nonzero(torch_agent.model.q_net.q_net[0].bias) > 0
     again = DQNAgent(env, init="keras", q_init=-5.0, seed=0, **kw)
     assert np.array_equal(again.predict(obs), q)
-    with pytest.raises(ConfigError, match="agent.init 'glorot' is not known.*allowed"):
+    with pytest.raises(ConfigError, match=r"agent\.init 'glorot' is not known.*allowed"):
         DQNAgent(env, init="glorot", seed=0, **kw)
-    with pytest.raises(ConfigError, match="agent.q_init must be a finite number"):
+    with pytest.raises(ConfigError, match=r"agent\.q_init must be a finite number"):
         DQNAgent(env, q_init=float("nan"), seed=0, **kw)
 
 

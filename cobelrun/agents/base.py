@@ -226,6 +226,9 @@ class Agent(abc.ABC):
     requires: ClassVar[tuple[str, ...]] = ()
     #: Version of the agent's :meth:`state_schema`; a saved file of another version is refused.
     state_version: ClassVar[int] = 1
+    #: Whether the agent can train many runs as one batched computation (``task.batch_runs``,
+    #: :mod:`cobelrun.batched`): it then implements :meth:`batch_learner`.
+    batchable: ClassVar[bool] = False
 
     def __init__(self, env: gym.Env, *, seed: SeedLike = None) -> None:
         self.check_spaces(env)
@@ -326,6 +329,21 @@ class Agent(abc.ABC):
     def end_trial(self, learn: bool) -> None:
         """Called when a trial ends, before the callbacks' ``on_trial_end`` (default: nothing)."""
         return None  # a hook: nothing by default
+
+    # -- batched runs ----------------------------------------------------------------------------
+    def batch_unsupported(self) -> str | None:
+        """Why this agent's settings cannot be batched (one phrase), or None."""
+        return None if self.batchable else f"agent {type(self).__name__} is not batchable"
+
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
+        """A learner training one run per seed in ``seeds`` at once with this agent's settings
+        (``run_phase(envs, n_trials, max_steps, learn, callbacks, views)`` and ``view(i)``, see
+        :mod:`cobelrun.batched`); ``steps`` bounds the environment steps of a run's learning
+        phases and ``make(seed=...)`` builds another agent with these settings. Only
+        :attr:`batchable` agents implement it."""
+        raise NotImplementedError(f"agent {type(self).__name__} is not batchable")
 
     # -- inference -------------------------------------------------------------------------------
     @abc.abstractmethod

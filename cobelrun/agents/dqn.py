@@ -47,6 +47,7 @@ from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback
 from cobelrun.agents.networks import set_torch_threads
 from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
 from cobelrun.agents.sb3 import TrialDQN, TrialRecorder
+from cobelrun.agents.torch_init import INITS
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
 
@@ -60,22 +61,6 @@ ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
 }
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
 
-
-def keras_init(net: torch.nn.Module) -> None:
-    """Keras' layer defaults in place: Glorot-uniform weights, zero biases (dense and conv)."""
-    with torch.no_grad():
-        for layer in net.modules():
-            if isinstance(layer, torch.nn.Linear | torch.nn.Conv2d):
-                torch.nn.init.xavier_uniform_(layer.weight)
-                if layer.bias is not None:
-                    torch.nn.init.zeros_(layer.bias)
-
-
-#: Q-network initialisations by config name: PyTorch's layer defaults (as built) or Keras'
-INITS: dict[str, Callable[[torch.nn.Module], None]] = {
-    "torch": lambda net: None,
-    "keras": keras_init,
-}
 
 #: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
@@ -267,6 +252,7 @@ class DQNAgent(Agent):
 
     observation_spaces = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.Dict)
     action_spaces = (gym.spaces.Discrete,)
+    batchable = True
 
     def __init__(
         self,
@@ -329,7 +315,9 @@ class DQNAgent(Agent):
             if isinstance(value, bool) or not isinstance(value, int) or value < lo:
                 raise ConfigError(f"agent.{name} must be an integer >= {lo}, got {value!r}")
         if q_init is not None and (
-            isinstance(q_init, bool) or not isinstance(q_init, int | float) or not np.isfinite(q_init)
+            isinstance(q_init, bool)
+            or not isinstance(q_init, int | float)
+            or not np.isfinite(q_init)
         ):
             raise ConfigError(f"agent.q_init must be a finite number or null, got {q_init!r}")
         if learning_rate <= 0:
@@ -363,6 +351,7 @@ class DQNAgent(Agent):
         set_torch_threads(torch_threads)
         self.epsilon, self.test_epsilon = float(epsilon), float(test_epsilon)
         self.prioritized = bool(prioritized)
+        self.device = str(device)
         obs_space = env.observation_space
         image = is_image_space(obs_space)
         if policy == "auto":
@@ -469,6 +458,20 @@ class DQNAgent(Agent):
         self.model.action_space = gym.spaces.Discrete(int(env.action_space.n))
         self.model.action_space.seed(int(space_seed))
         self.n_actions = int(env.action_space.n)
+
+    # -- batched runs ----------------------------------------------------------------------
+    def batch_unsupported(self) -> str | None:
+        from cobelrun.agents.batched_dqn import unsupported
+
+        return unsupported(self)
+
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
+        """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` for one run per seed."""
+        from cobelrun.agents.batched_dqn import BatchedDQN
+
+        return BatchedDQN(self, seeds, capacity=steps, device=self.device)
 
     # -- rng bookkeeping -----------------------------------------------------------------
     @contextlib.contextmanager

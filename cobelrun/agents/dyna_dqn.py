@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -34,16 +34,10 @@ import numpy as np
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.networks import Network, build_network, set_torch_threads
-from cobelrun.agents.policy import check_policy, select
+from cobelrun.agents.policy import allowed_next, check_policy, select
 from cobelrun.envs.base import StateObservations
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
-
-
-def allowed_next(mask: np.ndarray, states: np.ndarray) -> np.ndarray:
-    """Allowed actions of ``states`` for the max; a state with none (a wall cell) allows all."""
-    rows = mask[states]
-    return rows | ~rows.any(axis=1, keepdims=True)
 
 
 class DynaDeepAgent(Agent):
@@ -85,6 +79,10 @@ class DynaDeepAgent(Agent):
     observation_spaces = (gym.spaces.Discrete, gym.spaces.Box)
     action_spaces = (gym.spaces.Discrete,)
     requires = ("tabular_model",)
+    batchable = True
+    #: what the batched learner stacks (:mod:`cobelrun.agents.batched_dyna`): a Q network
+    #: (``"q"``) or successor features plus a reward model (``"successor"``)
+    batched_kind: ClassVar[str] = "q"
 
     def __init__(
         self,
@@ -210,6 +208,25 @@ class DynaDeepAgent(Agent):
         S = np.concatenate([[s], rs]).astype(np.int64)
         A = np.concatenate([[a], ra]).astype(np.int64)
         self.update(S, A, mem.reward[S, A], mem.next_state[S, A], mem.terminal[S, A], mask)
+
+    # -- batched runs ----------------------------------------------------------------------------
+    def batch_unsupported(self) -> str | None:
+        from cobelrun.agents.batched_dyna import unsupported
+
+        return unsupported(self)
+
+    def batch_learner(
+        self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
+    ) -> Any:
+        """:class:`~cobelrun.agents.batched_dyna.BatchedDyna`: one agent per seed (built with
+        ``make``), networks stacked."""
+        from cobelrun.agents.batched_dyna import BatchedDyna
+
+        if make is None:
+            raise ValueError("batched Dyna runs need make(seed=...) to build each run's agent")
+        agents = [self if i == 0 and s is self.seed_sequence else make(seed=s)
+                  for i, s in enumerate(seeds)]  # fmt: skip
+        return BatchedDyna(agents, successor=self.batched_kind == "successor")
 
     # -- inference -------------------------------------------------------------------------------
     def _states_of(self, observations: np.ndarray) -> np.ndarray | None:

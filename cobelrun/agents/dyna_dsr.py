@@ -46,6 +46,8 @@ class DynaDSR(DynaDeepAgent):
         The parameters of :class:`DynaDeepAgent`.
     """
 
+    batched_kind = "successor"
+
     def __init__(self, env: gym.Env, *, reward_learning_rate: float = 0.1, **kwargs: Any) -> None:
         # keys and types of **kwargs are checked against DynaDeepAgent's signature by
         # cobelrun.config.validate_node (it follows **kwargs into the base class)

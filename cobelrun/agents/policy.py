@@ -92,3 +92,9 @@ def select(
     if policy == "softmax":
         return softmax(rng, q, beta, allowed)
     raise ValueError(f"unknown policy {policy!r}; allowed: {', '.join(POLICIES)}")
+
+
+def allowed_next(mask: np.ndarray, states: np.ndarray) -> np.ndarray:
+    """Allowed actions of ``states`` for the max; a state with none (a wall cell) allows all."""
+    rows = mask[states]
+    return rows | ~rows.any(axis=1, keepdims=True)

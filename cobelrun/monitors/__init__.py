@@ -23,6 +23,7 @@ and one YAML entry.
 from __future__ import annotations
 
 import abc
+import copy
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -153,6 +154,18 @@ class Monitor(abc.ABC):
         if self._emit is None:
             raise RuntimeError(f"{type(self).__name__} is not bound to a recorder")
         self._emit(table, columns)
+
+    def fork(self, emit: Emit, shared: Sequence[Any] = ()) -> Monitor:
+        """An independent copy with its own per-run state, bound to ``emit``, for a run that is
+        recorded while other runs of a batch advance (``task.batch_runs``). Objects in
+        ``shared`` (the environment) are referenced, not copied. Override if a monitor holds
+        state that must not be copied."""
+        memo: dict[int, Any] = {id(obj): obj for obj in shared if obj is not None}
+        if self._emit is not None:
+            memo[id(self._emit)] = None
+        twin = copy.deepcopy(self, memo)
+        twin.bind(emit)
+        return twin
 
     def start_run(self, run: int, agent: Any = None) -> None:  # noqa: B027 (optional hook)
         """A new independent agent starts (reset per-run state)."""

@@ -1,0 +1,541 @@
+"""R runs of :class:`~cobelrun.agents.dqn.DQNAgent` trained as one batched computation.
+
+A run of the sequential DQN agent is stable-baselines3's ``DQN`` on one environment: per
+environment step an epsilon-greedy action, one transition into the replay buffer, a soft (or
+hard) target update and ``gradient_steps`` Adam steps on a batch drawn from the buffer (plus
+``trial_end_updates`` when a trial ended). On a CPU each of these is a handful of tiny tensor
+operations, so a run spends most of its time in per-call overhead. :class:`BatchedDQN` keeps
+the R runs' networks as stacked tensors with a leading run axis (``W[l]``: ``(R, in, out)``)
+and performs every step of every run at once with batched matrix products
+(``torch.baddbmm``), one backward pass and one Adam update of the stacked parameters.
+
+Each run is still its own agent, with the sequential agent's update rule read top to bottom
+in :meth:`BatchedDQN._gradient_step`:
+
+- the same random streams as a sequential run of the same seed: the agent's seed sequence
+  gives the numpy stream of exploration and replay sampling (``np.random.RandomState``, which
+  SB3 draws from through numpy's global generator), the torch stream of the weight
+  initialisation and the private action space's sampler, so that run ``r`` draws exactly what
+  a sequential run ``r`` draws, in the same order;
+- its own replay buffer (``(R, capacity, ...)`` tensors with a write position per run), its
+  own step and update counters, learning start, target updates and Adam step count;
+- gradient clipping per run (each run's gradient norm over all its parameters, as
+  ``torch.nn.utils.clip_grad_norm_`` computes it for one run);
+- runs whose trial (or phase) is over wait: their parameters, Adam moments and counters are
+  masked out of the update, so trials of different lengths work and run ``r``'s learning does
+  not depend on the other runs in the batch.
+
+The arithmetic differs from the sequential path only in how floating-point sums are ordered
+(batched instead of single matrix products), so a batched run follows its sequential twin
+until a rounding difference first flips a greedy choice (``tests/test_batched.py`` measures
+how often that happens and checks the learning curves statistically).
+
+Supported: vector (``Box``) or ``Discrete`` observations with the MLP policy, uniform replay,
+``train_freq`` 1. Other settings (CNN, Dict observations, prioritized replay, dropout) run
+sequentially; :func:`unsupported` says why.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from cobelrun.agents.base import ArraySpec, TrialCallback, state_of
+from cobelrun.agents.torch_init import INITS
+from cobelrun.envs.base import Posed
+from cobelrun.errors import ConfigError
+from cobelrun.records import TrialBatch
+
+__all__ = ["BatchedDQN", "DQNRunView", "resolve_device", "unsupported"]
+
+ACTIVATIONS = {
+    "tanh": torch.tanh,
+    "relu": torch.relu,
+    "elu": F.elu,
+    "sigmoid": torch.sigmoid,
+    "linear": lambda x: x,
+}
+
+
+def resolve_device(device: str) -> torch.device:
+    """``"auto"``: CUDA when present, else the CPU; any other name as torch reads it."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def unsupported(agent: Any) -> str | None:
+    """Why ``agent`` (a built :class:`~cobelrun.agents.dqn.DQNAgent`) cannot be batched, or None."""
+    m = agent.model
+    hyper = agent.hyper
+    if hyper["policy"] != "MlpPolicy":
+        return f"agent.policy {hyper['policy']} (batched runs support MlpPolicy networks)"
+    if agent.prioritized:
+        return "agent.prioritized replay (batched runs use uniform replay)"
+    if int(m.train_freq.frequency) != 1 or m.train_freq.unit.value != "step":
+        return "agent.train_freq other than 1 step"
+    space = m.observation_space
+    if isinstance(space, gym.spaces.Box) and len(space.shape) != 1:
+        return f"observations of shape {space.shape} (batched runs take vectors)"
+    if not isinstance(space, gym.spaces.Box | gym.spaces.Discrete):
+        return f"{type(space).__name__} observations"
+    if hyper["activation"] not in ACTIVATIONS:
+        return f"agent.activation {hyper['activation']}"
+    group = m.policy.optimizer.param_groups[0]
+    if group.get("weight_decay", 0) or group.get("amsgrad") or group.get("maximize"):
+        return "an Adam optimizer with weight decay, amsgrad or maximize"
+    return None
+
+
+class BatchedDQN:
+    """R DQN runs with stacked parameters (see the module docstring).
+
+    Parameters
+    ----------
+    template
+        A :class:`~cobelrun.agents.dqn.DQNAgent` built with the task's agent settings (run
+        0's): its validated hyperparameters, layer names and save-file layout are used.
+    seeds
+        Each run's agent seed sequence (:func:`cobelrun.runner.run_seed`).
+    capacity
+        Replay slots per run: ``min(buffer_size, steps the run can take)`` (a ring buffer of
+        ``buffer_size`` behaves the same as long as it never wraps).
+    device
+        torch device (``"auto"``: CUDA when present).
+    """
+
+    def __init__(
+        self,
+        template: Any,
+        seeds: Sequence[np.random.SeedSequence],
+        capacity: int,
+        device: str = "cpu",
+    ) -> None:
+        why = unsupported(template)
+        if why is not None:
+            raise ConfigError(f"task.batch_runs: cannot batch this DQN: {why}")
+        m = template.model
+        self.template = template
+        self.R = R = len(seeds)
+        self.device = resolve_device(device)
+        self.n_actions = int(template.n_actions)
+        space = m.observation_space
+        self.discrete_obs = isinstance(space, gym.spaces.Discrete)
+        self.obs_dim = int(space.n) if self.discrete_obs else int(space.shape[0])
+        self.gamma, self.tau = float(m.gamma), float(m.tau)
+        self.batch_size, self.learning_starts = int(m.batch_size), int(m.learning_starts)
+        self.target_update_interval = max(int(m.target_update_interval), 1)
+        self.gradient_steps = int(m.gradient_steps)
+        self.trial_end_updates = int(m.trial_end_updates)
+        self.max_grad_norm = None if m.max_grad_norm is None else float(m.max_grad_norm)
+        self.huber = m.td_loss is F.smooth_l1_loss
+        self.epsilon, self.test_epsilon = float(template.epsilon), float(template.test_epsilon)
+        group = m.policy.optimizer.param_groups[0]
+        self.lr = float(group["lr"])
+        self.betas = (float(group["betas"][0]), float(group["betas"][1]))
+        self.adam_eps = float(group["eps"])
+        self.act = ACTIVATIONS[template.hyper["activation"]]
+        self.capacity = max(1, min(int(m.buffer_size), int(capacity)))
+
+        # -- per-run streams, exactly those of a sequential DQNAgent with the same seed
+        init, q_init = template.hyper.get("init", "torch"), template.hyper.get("q_init")
+        self.np_rngs: list[np.random.RandomState] = []
+        self.spaces: list[gym.spaces.Discrete] = []
+        sizes = [self.obs_dim, *template.hyper["net_arch"], self.n_actions]
+        weights: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
+        biases: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
+        for seq in seeds:
+            np_seed, torch_seed, space_seed, _per = seq.generate_state(4)
+            self.np_rngs.append(np.random.RandomState(int(np_seed)))
+            sp = gym.spaces.Discrete(self.n_actions)
+            sp.seed(int(space_seed))
+            self.spaces.append(sp)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(int(torch_seed))
+                # SB3's q_net: Linear layers created in order with torch's default init
+                layers = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
+                if init != "torch" or q_init is not None:
+                    # SB3 builds the target network next; DQNAgent re-initialises after it
+                    _target = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
+                    INITS[init](torch.nn.Sequential(*layers))
+                    if q_init is not None:
+                        with torch.no_grad():
+                            layers[-1].bias.fill_(float(q_init))
+            for i, layer in enumerate(layers):
+                weights[i].append(layer.weight.detach().T)
+                biases[i].append(layer.bias.detach()[None])
+        dev = self.device
+        # every run's parameters in one (R, P) tensor; the layers are leaf views into it (the
+        # backward pass fills one gradient per layer), clipping and Adam work on it whole
+        pieces = [torch.stack(t).reshape(R, -1)
+                  for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
+        self.shapes = [tuple(torch.stack(t).shape[1:])
+                       for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
+        self.flat = torch.cat(pieces, dim=1).to(dev)
+        self.flat_target = self.flat.clone()
+        self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
+        self.version = 0  # bumped at every parameter change (caches of predictions)
+        self._cache: tuple[int, bytes, np.ndarray] | None = None
+        self.adam_steps = np.zeros(R, np.int64)  # per run (a waiting run does not step)
+        self.num_timesteps = np.zeros(R, np.int64)
+        self.n_calls = np.zeros(R, np.int64)
+        # replay buffers: (R, capacity, ...) with a write position per run
+        cap = self.capacity
+        self.buf_obs = torch.zeros((R, cap, self.obs_dim), dtype=torch.float32, device=dev)
+        self.buf_next = torch.zeros_like(self.buf_obs)
+        self.buf_action = torch.zeros((R, cap), dtype=torch.long, device=dev)
+        self.buf_reward = torch.zeros((R, cap), dtype=torch.float32, device=dev)
+        self.buf_done = torch.zeros((R, cap), dtype=torch.float32, device=dev)
+        self.pos = np.zeros(R, np.int64)
+        self.full = np.zeros(R, bool)
+        self._rows = torch.arange(R, device=dev)
+
+    def view(self, run: int) -> DQNRunView:
+        """Run ``run`` seen as one agent (for monitors and saving)."""
+        return DQNRunView(self, run)
+
+    # -- networks ----------------------------------------------------------------------------
+    def _obs_array(self, obs: Any) -> np.ndarray:
+        if self.discrete_obs:
+            v = np.zeros(self.obs_dim, np.float32)
+            v[int(np.asarray(obs).reshape(-1)[0])] = 1.0
+            return v
+        return np.asarray(obs, np.float32).reshape(self.obs_dim)
+
+    def layers(self, flat: torch.Tensor) -> list[torch.Tensor]:
+        """``[W0, b0, W1, b1, ...]`` as views of a ``(R', P)`` parameter tensor: ``W`` is
+        ``(R', in, out)`` (``nn.Linear``'s weight transposed), ``b`` is ``(R', 1, out)``."""
+        out, start = [], 0
+        for shape in self.shapes:
+            size = math.prod(shape)
+            out.append(flat[:, start : start + size].view(flat.shape[0], *shape))
+            start += size
+        return out
+
+    @property
+    def params(self) -> list[torch.Tensor]:
+        """The online networks' layers (leaf views of :attr:`flat`)."""
+        return self._leaves
+
+    def forward(
+        self,
+        params: Sequence[torch.Tensor],
+        x: torch.Tensor,
+        keep: list[torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """Q values ``(R, n, A)`` of inputs ``x`` ``(R, n, obs_dim)`` for every run at once."""
+        h = x
+        last = len(params) // 2 - 1
+        for i in range(last + 1):
+            h = torch.baddbmm(params[2 * i + 1], h, params[2 * i])
+            if keep is not None:
+                keep.append(h)
+            if i < last:
+                h = self.act(h)
+                if keep is not None:
+                    keep.append(h)
+        return h
+
+    def run_forward(
+        self, run: int, x: np.ndarray, keep: list[torch.Tensor] | None = None
+    ) -> np.ndarray:
+        """Q values ``(n, A)`` of run ``run`` for observation vectors ``x`` ``(n, obs_dim)``."""
+        x = np.ascontiguousarray(x, np.float32)
+        if keep is None:  # every run's values at once, kept until the parameters change
+            key = x.tobytes()
+            if self._cache is None or self._cache[0] != self.version or self._cache[1] != key:
+                xt = torch.as_tensor(x, device=self.device)[None].expand(self.R, -1, -1)
+                with torch.no_grad():
+                    q = self.forward(self.params, xt).cpu().numpy()
+                self._cache = (self.version, key, q)
+            return self._cache[2][run].copy()
+        xt = torch.as_tensor(x, device=self.device)[None]
+        with torch.no_grad():
+            return self.forward(self.layers(self.flat[run : run + 1]), xt, keep)[0].cpu().numpy()
+
+    # -- learning ----------------------------------------------------------------------------
+    def _store(self, runs: np.ndarray, obs: np.ndarray, nxt: np.ndarray, actions: np.ndarray,
+               rewards: np.ndarray, dones: np.ndarray) -> None:  # fmt: skip
+        """One transition per run in ``runs`` into its buffer (SB3's ReplayBuffer.add)."""
+        pos = self.pos[runs]
+        r_t = torch.as_tensor(runs, device=self.device)
+        p_t = torch.as_tensor(pos, device=self.device)
+        dev = self.device
+        self.buf_obs[r_t, p_t] = torch.as_tensor(obs, device=dev)
+        self.buf_next[r_t, p_t] = torch.as_tensor(nxt, device=dev)
+        self.buf_action[r_t, p_t] = torch.as_tensor(actions, device=dev)
+        self.buf_reward[r_t, p_t] = torch.as_tensor(rewards.astype(np.float32), device=dev)
+        self.buf_done[r_t, p_t] = torch.as_tensor(dones.astype(np.float32), device=dev)
+        pos = pos + 1
+        wrapped = pos == self.capacity
+        self.full[runs[wrapped]] = True
+        pos[wrapped] = 0
+        self.pos[runs] = pos
+
+    def _target_update(self, runs: np.ndarray) -> None:
+        """Polyak update ``target <- (1 - tau) target + tau online`` of the runs in ``runs``."""
+        t, p = self.flat_target, self.flat
+        with torch.no_grad():
+            if len(runs) == self.R:
+                t.mul_(1 - self.tau).add_(p, alpha=self.tau)
+                return
+            idx = torch.as_tensor(runs, device=self.device)
+            t[idx] = t[idx] * (1 - self.tau) + p[idx] * self.tau
+
+    def _gradient_step(self, train: np.ndarray) -> None:
+        """One Adam step of every run with ``train[r]`` (the others are left exactly as they
+        are): SB3's ``DQN.train`` for one gradient step, per run."""
+        R, B = self.R, self.batch_size
+        runs = np.flatnonzero(train)
+        idx = np.zeros((R, B), np.int64)
+        for r in runs:  # SB3: np.random.randint(0, upper_bound, size=batch_size)
+            upper = self.capacity if self.full[r] else self.pos[r]
+            idx[r] = self.np_rngs[r].randint(0, upper, size=B)
+        ii = torch.as_tensor(idx, device=self.device)
+        rows = self._rows[:, None]
+        obs, nxt = self.buf_obs[rows, ii], self.buf_next[rows, ii]
+        act, rew, done = (
+            self.buf_action[rows, ii],
+            self.buf_reward[rows, ii],
+            self.buf_done[rows, ii],
+        )
+        with torch.no_grad():
+            if bool((done[torch.as_tensor(train, device=self.device)] == 1).all()):
+                target = rew  # every sampled transition ends its trial: no bootstrap term
+            else:
+                next_q = self.forward(self.layers(self.flat_target), nxt).max(dim=2).values
+                target = rew + (1 - done) * self.gamma * next_q
+        current = self.forward(self.params, obs).gather(2, act[..., None])[..., 0]
+        if self.huber:
+            per = F.smooth_l1_loss(current, target, reduction="none")
+        else:
+            per = F.mse_loss(current, target, reduction="none")
+        mask = torch.as_tensor(train, device=self.device)
+        loss = (per.mean(dim=1) * mask).sum()  # each run's mean loss; runs are independent
+        grads = torch.autograd.grad(loss, self._leaves)
+        with torch.no_grad():
+            grad = torch.cat([g.reshape(R, -1) for g in grads], dim=1)
+            if self.max_grad_norm is not None:  # clip_grad_norm_ over all of a run's gradients
+                total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+                grad.mul_(torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0))
+            self._adam(grad, train)
+
+    def _adam(self, grad: torch.Tensor, train: np.ndarray) -> None:
+        """torch.optim.Adam's update (its single-tensor formula) with a step count per run;
+        runs not in ``train`` keep their parameters and moments exactly."""
+        b1, b2 = self.betas
+        self.adam_steps[train] += 1
+        step = np.maximum(self.adam_steps, 1).astype(np.float64)
+        dev = self.device
+        step_size = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)
+        bc2_sqrt = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)
+        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
+        self.version += 1
+        if train.all():
+            m.lerp_(grad, 1 - b1)
+            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+            denom = v.sqrt().div_(bc2_sqrt[:, None]).add_(self.adam_eps)
+            p.addcdiv_(m * step_size[:, None], denom, value=-1.0)
+            return
+        keep = torch.as_tensor(train, device=dev)[:, None]
+        m_new = torch.lerp(m, grad, 1 - b1)
+        v_new = v * b2 + (grad * grad) * (1 - b2)
+        p_new = p - (m_new * step_size[:, None]) / (
+            v_new.sqrt() / bc2_sqrt[:, None] + self.adam_eps
+        )
+        m.copy_(torch.where(keep, m_new, m))
+        v.copy_(torch.where(keep, v_new, v))
+        p.copy_(torch.where(keep, p_new, p))
+
+    # -- trials ----------------------------------------------------------------------------
+    def run_phase(
+        self,
+        envs: Sequence[gym.Env],
+        n_trials: int,
+        max_steps: int,
+        learn: bool,
+        callbacks: Sequence[Sequence[TrialCallback]],
+        views: Sequence[Any],
+    ) -> list[TrialBatch]:
+        """``n_trials`` trials (at most ``max_steps`` steps each) of every run in lock-step;
+        one :class:`TrialBatch` per run. ``callbacks[r]`` (trial-end hooks) see ``views[r]``.
+
+        Learning follows the sequential agent's SB3 loop: the phase starts with a reset, after
+        every step come the target update and the gradient steps, an ended trial's env is
+        reset at once (as SB3's vectorised env does) and a run stops after its last trial.
+        Without learning it is the base loop: greedy or ``test_epsilon``-greedy actions.
+        """
+        R = self.R
+        posed = [isinstance(e.unwrapped, Posed) for e in envs]
+        finished: list[list[dict[str, Any]]] = [[] for _ in range(R)]
+        current: list[dict[str, Any] | None] = [None] * R
+        obs = np.zeros((R, self.obs_dim), np.float32)
+        active = np.full(R, n_trials > 0)
+        eps = self.epsilon if learn else self.test_epsilon
+
+        def begin(r: int) -> None:
+            o, info = envs[r].reset()
+            obs[r] = self._obs_array(o)
+            s = state_of(o, info)
+            pose = [np.array(envs[r].unwrapped.agent_pose(), np.float64)] if posed[r] else None
+            current[r] = {"states": [s], "actions": [], "rewards": [], "terminated": False,
+                          "poses": pose}  # fmt: skip
+            for cb in callbacks[r]:
+                cb.on_trial_start(views[r], len(finished[r]), s)
+
+        for r in np.flatnonzero(active):
+            begin(r)
+        while active.any():
+            runs = np.flatnonzero(active)
+            with torch.no_grad():
+                q = self.forward(self.params, torch.as_tensor(obs, device=self.device)[:, None])
+            greedy = q[:, 0].argmax(dim=1).cpu().numpy()
+            actions = np.zeros(R, np.int64)
+            for r in runs:
+                if learn and self.num_timesteps[r] < self.learning_starts:
+                    actions[r] = self.spaces[r].sample()
+                elif (learn or eps > 0) and self.np_rngs[r].rand() < eps:
+                    actions[r] = self.spaces[r].sample()
+                else:
+                    actions[r] = greedy[r]
+            nxt = obs.copy()
+            rewards = np.zeros(R)
+            dones = np.zeros(R, bool)
+            ended = np.zeros(R, bool)
+            for r in runs:
+                o2, rew, term, trunc, info = envs[r].step(int(actions[r]))
+                cur = current[r]
+                assert cur is not None
+                cur["states"].append(state_of(o2, info))
+                cur["actions"].append(int(actions[r]))
+                cur["rewards"].append(float(rew))
+                if cur["poses"] is not None:
+                    cur["poses"].append(np.array(envs[r].unwrapped.agent_pose(), np.float64))
+                trunc = bool(trunc) or len(cur["actions"]) >= max_steps
+                nxt[r] = self._obs_array(o2)
+                rewards[r], dones[r] = float(rew), bool(term)  # SB3: done and not a timeout
+                if term or trunc:
+                    ended[r] = True
+                    cur["terminated"] = bool(term)
+                    finished[r].append(cur)
+                    current[r] = None
+                    for cb in callbacks[r]:  # before this step's update, as in SB3's loop
+                        cb.on_trial_end(views[r], len(finished[r]) - 1, cur)
+            if learn:
+                self.num_timesteps[runs] += 1
+                self._store(runs, obs[runs], nxt[runs], actions[runs], rewards[runs], dones[runs])
+                self.n_calls[runs] += 1
+                due = runs[self.n_calls[runs] % self.target_update_interval == 0]
+                if len(due):
+                    self._target_update(due)
+                train = np.zeros(R, bool)
+                train[runs] = self.num_timesteps[runs] > self.learning_starts
+                n_steps = np.where(train, self.gradient_steps + self.trial_end_updates * ended, 0)
+                for k in range(int(n_steps.max(initial=0))):
+                    self._gradient_step(n_steps > k)
+            obs = np.where(ended[:, None], obs, nxt)
+            for r in np.flatnonzero(ended):
+                last = len(finished[r]) >= n_trials
+                if last:
+                    active[r] = False
+                    if learn:  # SB3's vectorised env resets at once; the reset is not used
+                        envs[r].reset()
+                else:
+                    begin(r)
+        return [TrialBatch.from_trials(f) for f in finished]
+
+
+class DQNRunView:
+    """Run ``run`` of a :class:`BatchedDQN`, seen as one DQN agent: what monitors ask of an
+    agent (``predict``, ``layer_names``, ``activations``) and what the recorder saves
+    (``get_state`` / ``saved_meta``: the same file a sequential ``DQNAgent`` writes, so
+    ``agent.load_from`` continues a batched run with either path)."""
+
+    def __init__(self, batch: BatchedDQN, run: int) -> None:
+        self.batch, self.run = batch, run
+        self._template = batch.template
+
+    def _x(self, observations: Any) -> np.ndarray:
+        b = self.batch
+        obs = np.asarray(observations)
+        if b.discrete_obs:
+            idx = obs.reshape(-1).astype(np.int64)
+            return np.eye(b.obs_dim, dtype=np.float32)[idx]
+        return obs.astype(np.float32).reshape(-1, b.obs_dim)
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """Q values ``(n, n_actions)`` of a batch of observations."""
+        return self.batch.run_forward(self.run, self._x(observations))
+
+    def layer_names(self) -> list[str]:
+        return self._template.layer_names()
+
+    def activations(self, observations: np.ndarray, layers: Sequence[str]) -> dict[str, np.ndarray]:
+        """Outputs of the named layers (``DQNAgent``'s names: ``q_net.K``, the flattened input
+        ``features_extractor.flatten`` and ``q``)."""
+        known = self.layer_names()
+        unknown = [name for name in layers if name not in known]
+        if unknown:
+            raise ConfigError(f"unknown layer(s) {unknown}; this agent has: {', '.join(known)}")
+        x = self._x(observations)
+        keep: list[torch.Tensor] = []
+        q = self.batch.run_forward(self.run, x, keep)
+        out: dict[str, np.ndarray] = {}
+        for name in layers:
+            if name == "q":
+                out[name] = q
+            elif name.startswith("q_net."):
+                out[name] = keep[int(name.split(".")[1])][0].cpu().numpy()
+            else:  # the flatten extractor: the input itself
+                out[name] = x.reshape(len(x), -1)
+        return out
+
+    # -- saving: DQNAgent's file layout --------------------------------------------------------
+    def state_schema(self) -> dict[str, ArraySpec]:
+        return self._template.state_schema()
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        b, r = self.batch, self.run
+        arrays: dict[str, np.ndarray] = {}
+        for prefix, params in (("policy.q_net.q_net", b.params),
+                               ("policy.q_net_target.q_net", b.layers(b.flat_target))):  # fmt: skip
+            for i in range(len(params) // 2):
+                w = params[2 * i][r].detach().cpu().numpy().T.copy()
+                arrays[f"{prefix}.{2 * i}.weight"] = w
+                arrays[f"{prefix}.{2 * i}.bias"] = (
+                    params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
+                )
+        moments = zip(b.layers(b.exp_avg), b.layers(b.exp_avg_sq), strict=True)
+        for j, (m, v) in enumerate(moments):
+            tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])
+            arrays[f"optimizer.{j}.step"] = np.array(float(b.adam_steps[r]), np.float32)
+            arrays[f"optimizer.{j}.exp_avg"] = tr(m[r].detach().cpu().numpy()).copy()
+            arrays[f"optimizer.{j}.exp_avg_sq"] = tr(v[r].detach().cpu().numpy()).copy()
+        arrays["num_timesteps"] = np.array(b.num_timesteps[r], np.int64)
+        arrays["n_calls"] = np.array(b.n_calls[r], np.int64)
+        schema = self.state_schema()
+        if set(arrays) != set(schema):  # the SB3 policy's layout changed under us
+            raise RuntimeError(
+                f"batched DQN state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}"
+            )
+        return arrays
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return self._template.hyperparameters()
+
+    def saved_meta(self) -> dict[str, Any]:
+        return self._template.saved_meta()
+
+
+def steps_budget(phases: Sequence[Any], default_max_steps: int) -> int:
+    """Environment steps a run can take in the learning phases (replay slots it can fill)."""
+    return sum(int(p.trials) * int(p.max_steps or default_max_steps) for p in phases if p.learning)

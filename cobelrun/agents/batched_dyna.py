@@ -1,0 +1,458 @@
+"""R runs of Dyna-DQN or Dyna-DSR (:mod:`cobelrun.agents.dyna_dqn`) as one batched computation.
+
+Each run is a real agent built from its own seed (:class:`~cobelrun.agents.dyna_dqn.DynaDQN`
+or :class:`~cobelrun.agents.dyna_dsr.DynaDSR`): it keeps its random generator, its tabular
+model memory and its observation matrix, and draws exactly what a sequential run draws, in
+the same order (action selection, replay sampling, Dyna-DSR's tie-break noise). Only the
+networks are stacked: :class:`StackedMLP` holds every run's multi-head MLP as one ``(R, P)``
+tensor whose layers are views ``(R * heads, in, out)``, so one ``torch.baddbmm`` per layer
+evaluates all runs and heads, one backward pass gives every run's gradient and one Adam
+update (with a step count per run, runs whose trial is over left exactly as they are)
+trains them all. The update rules are those of ``DynaDQN.update`` / ``DynaDSR.update``, per
+run; the loss of each run is its own mean squared error, so runs do not interact.
+
+The per-run agents double as what monitors and the recorder see
+(:class:`DynaRunView`): before an agent is asked for activations, predictions or its saved
+state, its networks get the run's current weights.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from cobelrun.agents.base import TrialCallback, state_of
+from cobelrun.agents.networks import ACTIVATIONS, TorchMLP
+from cobelrun.agents.policy import allowed_next, select
+from cobelrun.envs.base import Posed
+from cobelrun.records import TrialBatch
+
+__all__ = ["BatchedDyna", "DynaRunView", "StackedMLP", "unsupported"]
+
+
+def unsupported(agent: Any) -> str | None:
+    """Why a built Dyna agent cannot be batched, or None."""
+    nets = agent._all_networks()
+    if not all(isinstance(n, TorchMLP) for n in nets.values()):
+        return f"agent.backend {agent.backend!r} (batched runs use the torch MLP)"
+    return None
+
+
+def group_by_head(actions: np.ndarray, heads: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices grouped by head: ``idx[r, h, m]`` is the ``m``-th sample of run ``r``
+    with ``actions[r, i] == h`` (padded with index 0 where ``valid`` is False), ``M`` the
+    largest group."""
+    R, _n = actions.shape
+    order = np.argsort(actions, axis=1, kind="stable")
+    counts = (actions[:, :, None] == np.arange(heads)).sum(axis=1)  # (R, H)
+    m = max(int(counts.max()), 1)
+    starts = np.cumsum(counts, axis=1) - counts
+    j = np.arange(m)
+    valid = j < counts[:, :, None]
+    pos = np.where(valid, starts[:, :, None] + j, 0)
+    idx = order[np.arange(R)[:, None, None], pos]
+    return idx, valid.astype(np.float32)
+
+
+class StackedMLP:
+    """The same :class:`~cobelrun.agents.networks.TorchMLP` shape for R runs, stacked.
+
+    ``flat`` is ``(R, P)``; :meth:`layers` views it as ``[w0, b0, w1, b1, ...]`` with ``w``
+    ``(R, H, in, out)`` and ``b`` ``(R, H, 1, out)`` (H heads per run). Adam follows
+    ``torch.optim.Adam``'s formula with a step count per run.
+    """
+
+    def __init__(self, nets: Sequence[TorchMLP], device: torch.device) -> None:
+        first = nets[0]
+        self.R, self.H = len(nets), first.n_heads
+        self.act = ACTIVATIONS[first.activation]
+        self.lr = first.learning_rate
+        group = first.optimizer.param_groups[0]
+        self.betas = (float(group["betas"][0]), float(group["betas"][1]))
+        self.eps = float(group["eps"])
+        self.has_bias = first.bias
+        self.keys = list(first.get_weights())  # w0, w1, ..., b0, b1, ...
+        self.n_layers = len(first.weights)
+        per_run = [[torch.as_tensor(n.get_weights()[k]) for k in self._order()] for n in nets]
+        self.shapes = [tuple(t.shape) for t in per_run[0]]  # (H, in, out) / (H, 1, out)
+        self.flat = torch.stack([torch.cat([t.reshape(-1) for t in ts]) for ts in per_run]).to(
+            device
+        )
+        self.target = self.flat.clone()
+        self.leaves = [v.requires_grad_() for v in self.layers(self.flat)]
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
+        self.steps = np.zeros(self.R, np.int64)
+        self.device = device
+
+    def _order(self) -> list[str]:
+        out = []
+        for i in range(self.n_layers):
+            out.append(f"w{i}")
+            if self.has_bias:
+                out.append(f"b{i}")
+        return out
+
+    def layers(self, flat: torch.Tensor) -> list[torch.Tensor]:
+        rows, out, start = flat.shape[0], [], 0
+        for shape in self.shapes:
+            size = math.prod(shape)
+            out.append(flat[:, start : start + size].view(rows, *shape))  # a view, not a copy
+            start += size
+        return out
+
+    def forward(self, layers: Sequence[torch.Tensor], x: torch.Tensor,
+                keep: dict[str, torch.Tensor] | None = None, *,
+                states: bool = False) -> torch.Tensor:  # fmt: skip
+        """Outputs ``(R', H, n, out)`` of inputs ``x`` ``(R', n, in)`` (every head sees every
+        input) or ``(R', H, n, in)`` (each head its own inputs). With ``states``, ``x`` holds
+        indices ``(R', n)`` or ``(R', H, n)`` of one-hot inputs: the first layer is then a row
+        lookup, which equals the matrix product with a one-hot vector exactly."""
+        rows = x.shape[0]
+        per_head = x.dim() == (3 if states else 4)
+        n = x.shape[2] if per_head else x.shape[1]
+        step = 2 if self.has_bias else 1
+        first = 0
+        if states:
+            w0 = layers[0]  # (R', H, in, out)
+            r_i = torch.arange(rows, device=x.device)[:, None, None]
+            h_i = torch.arange(self.H, device=x.device)[None, :, None]
+            s_i = x if per_head else x[:, None, :]
+            h = w0[r_i, h_i, s_i]  # (R', H, n, out)
+            if self.has_bias:
+                h = h + layers[1]
+            h = h.reshape(rows * self.H, n, h.shape[-1])
+            first = 1
+            if self.n_layers > 1:
+                h = self.act(h)
+                if keep is not None:
+                    keep["layer1"] = h
+        elif per_head:
+            h = x.reshape(rows * self.H, n, x.shape[3])
+        else:
+            h = x[:, None].expand(rows, self.H, n, x.shape[2]).reshape(rows * self.H, n, x.shape[2])
+        for i in range(first, self.n_layers):
+            w = layers[step * i].reshape(rows * self.H, *layers[step * i].shape[2:])
+            if self.has_bias:
+                b = layers[step * i + 1].reshape(rows * self.H, 1, -1)
+                h = torch.baddbmm(b, h, w)
+            else:
+                h = torch.bmm(h, w)
+            if i < self.n_layers - 1:
+                h = self.act(h)
+                if keep is not None:
+                    keep[f"layer{i + 1}"] = h
+        h = h.reshape(rows, self.H, n, h.shape[-1])
+        if keep is not None:
+            keep["output"] = h
+        return h
+
+    def weights_of(self, run: int, flat: torch.Tensor | None = None) -> dict[str, np.ndarray]:
+        """Run ``run``'s weights as ``TorchMLP.get_weights`` names them."""
+        src = (self.flat if flat is None else flat)[run : run + 1]
+        views = self.layers(src)
+        return {
+            k: v[0].detach().cpu().numpy().copy() for k, v in zip(self._order(), views, strict=True)
+        }
+
+    def adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
+        """One Adam step of the runs in ``train`` (the others keep parameters and moments)."""
+        b1, b2 = self.betas
+        grad = torch.cat([g.reshape(self.R, -1) for g in grads], dim=1)
+        self.steps[train] += 1
+        step = np.maximum(self.steps, 1).astype(np.float64)
+        dev = self.device
+        ss = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)[:, None]
+        bc = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)[:, None]
+        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
+        with torch.no_grad():
+            idle = torch.as_tensor(np.flatnonzero(~train), device=dev)
+            saved = [t[idle].clone() for t in (p, m, v)] if len(idle) else None
+            m.lerp_(grad, 1 - b1)
+            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+            p.addcdiv_(m * ss, v.sqrt().div_(bc).add_(self.eps), value=-1.0)
+            if saved is not None:  # runs that wait keep parameters and moments exactly
+                for t, old in zip((p, m, v), saved, strict=True):
+                    t[idle] = old
+
+    def blend_target(self, tau: float, train: np.ndarray) -> None:
+        """``target <- target + tau (online - target)`` (``TorchMLP.blend_from``) per run."""
+        with torch.no_grad():
+            idle = torch.as_tensor(np.flatnonzero(~train), device=self.device)
+            saved = self.target[idle].clone() if len(idle) else None
+            self.target.lerp_(self.flat, tau)
+            if saved is not None:
+                self.target[idle] = saved
+
+
+class BatchedDyna:
+    """R Dyna-DQN or Dyna-DSR runs: per-run agents for draws and memory, stacked networks.
+
+    Parameters
+    ----------
+    agents
+        One :class:`~cobelrun.agents.dyna_dqn.DynaDeepAgent` per run, each built from its
+        run's seed.
+    successor
+        Dyna-DSR's successor features and reward model (else Dyna-DQN's Q network).
+    """
+
+    def __init__(self, agents: Sequence[Any], *, successor: bool) -> None:
+        self.agents = list(agents)
+        self.R = len(agents)
+        self.dsr = bool(successor)
+        a0 = agents[0]
+        self.device = torch.device("cpu")
+        self.version = 0
+        self._synced = [-1] * self.R
+        if self.dsr:
+            self.net = StackedMLP([a.sr for a in agents], self.device)
+            self.reward = StackedMLP([a.reward_model for a in agents], self.device)
+        else:
+            self.net = StackedMLP([a.q_net for a in agents], self.device)
+            self.reward = None
+        self.gamma, self.tau = a0.gamma, a0.target_tau
+        self.obs = torch.as_tensor(
+            np.stack([a.obs for a in agents]), device=self.device
+        )  # (R, S, d)
+        # one-hot observations (Fig. 7's): first layers are row lookups by state index
+        eye = np.eye(a0.n_states, dtype=np.float32)
+        self.onehot = all(a.obs.shape == eye.shape and np.array_equal(a.obs, eye) for a in agents)
+
+    def view(self, run: int) -> DynaRunView:
+        return DynaRunView(self, run)
+
+    # -- weights back into the per-run agents -------------------------------------------------
+    def sync(self, run: int) -> Any:
+        """Run ``run``'s agent with the run's current weights."""
+        agent = self.agents[run]
+        if self._synced[run] != self.version:
+            if self.dsr:
+                agent.sr.set_weights(self.net.weights_of(run))
+                agent.sr_target.set_weights(self.net.weights_of(run, self.net.target))
+                agent.reward_model.set_weights(self.reward.weights_of(run))  # type: ignore[union-attr]
+            else:
+                agent.q_net.set_weights(self.net.weights_of(run))
+                agent.q_target.set_weights(self.net.weights_of(run, self.net.target))
+            self._synced[run] = self.version
+        return agent
+
+    # -- values --------------------------------------------------------------------------------
+    def _w(self) -> torch.Tensor:
+        """Dyna-DSR's reward weights ``(R, d)``."""
+        assert self.reward is not None
+        return self.reward.flat.detach()
+
+    def q_of_states(self, states: np.ndarray) -> np.ndarray:
+        """Action values ``(R, A)`` of one state per run."""
+        with torch.no_grad():
+            out = self._net(
+                self.net, self.net.layers(self.net.flat), states[:, None]
+            )  # (R, H, 1, out)
+            if self.dsr:
+                return torch.einsum("rhd,rd->rh", out[:, :, 0], self._w()).numpy()
+            return out[:, 0, 0].numpy()
+
+    def _net(
+        self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray
+    ) -> torch.Tensor:
+        """``net`` on the observations of ``states`` ``(R, n)`` or ``(R, H, n)``."""
+        s_t = torch.as_tensor(states, device=self.device)
+        if self.onehot:
+            return net.forward(layers, s_t, states=True)
+        if s_t.dim() == 2:
+            x = self.obs[torch.arange(self.R)[:, None], s_t]
+        else:
+            x = self.obs[torch.arange(self.R)[:, None, None], s_t]
+        return net.forward(layers, x)
+
+    # -- learning ------------------------------------------------------------------------------
+    def update(self, S: np.ndarray, A: np.ndarray, rew: np.ndarray, S2: np.ndarray,
+               term: np.ndarray, train: np.ndarray) -> None:  # fmt: skip
+        """One replay update of every run in ``train`` on its ``(n,)`` experiences (rows of
+        ``S, A, ...``; rows of other runs are ignored)."""
+        R, net = self.R, self.net
+        rows = torch.arange(R)[:, None]
+        s2_t = torch.as_tensor(S2)
+        x2 = self.obs[rows, s2_t]  # (R, n, d)
+        a_t = torch.as_tensor(A)
+        n = S.shape[1]
+        mask = torch.as_tensor(train, dtype=torch.float32)
+        agents = self.agents
+        with torch.no_grad():
+            nxt = self._net(net, net.layers(net.target), S2)  # (R, H, n, out)
+        if self.dsr:
+            w = self._w()
+            q_next = torch.einsum("rhnd,rd->rnh", nxt, w).numpy()
+        else:
+            q_next = nxt[:, 0].numpy()  # (R, n, A)
+        best = np.zeros((R, n), np.int64)
+        y = np.zeros((R, n), np.float32)
+        for r in np.flatnonzero(train):
+            ag = agents[r]
+            qn = q_next[r]
+            if ag.use_mask:
+                qn = np.where(allowed_next(ag._loop_mask, S2[r]), qn, -np.inf)
+            if self.dsr:  # greedy next action, ties broken at random (DynaDSR.update's draw)
+                noise = ag.rng.random(qn.shape) * 1e-9
+                best[r] = np.argmax(np.where(np.isfinite(qn), qn + noise, -np.inf), axis=1)
+            else:
+                cont = np.ones_like(rew[r]) if ag.always_bootstrap else 1.0 - term[r]
+                y[r] = rew[r] + self.gamma * qn.max(axis=1) * cont
+        if self.dsr:
+            cont = np.stack([np.ones(n) if agents[r].always_bootstrap else 1.0 - term[r]
+                             for r in range(R)])  # fmt: skip
+            b_t = torch.as_tensor(best)
+            m_best = nxt[rows, b_t, torch.arange(n)[None]]  # (R, n, d)
+            target = (
+                x2 + self.gamma * torch.as_tensor(cont, dtype=torch.float32)[..., None] * m_best
+            )
+            # only the taken action's head is trained on a sample: each head runs on its own
+            # samples (padded to the largest group) instead of all heads on all samples
+            idx, valid = group_by_head(A, net.H)  # (R, H, M)
+            rows3 = torch.arange(R)[:, None, None]
+            idx_t = torch.as_tensor(idx)
+            out = self._net(net, net.leaves, S[np.arange(R)[:, None, None], idx])  # (R, H, M, d)
+            err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
+            loss_sr = err.sum(dim=(1, 2)) / (n * out.shape[-1])
+            rw = self.reward
+            assert rw is not None
+            pr = self._net(rw, rw.leaves, S2)[:, 0, :, 0]  # (R, n)
+            loss_r = ((pr - torch.as_tensor(rew, dtype=torch.float32)) ** 2).mean(dim=1)
+            grads = torch.autograd.grad(
+                ((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves]
+            )
+            net.adam(grads[: len(net.leaves)], train)
+            rw.adam(grads[len(net.leaves) :], train)
+        else:
+            out = self._net(net, net.leaves, S)[:, 0]  # (R, n, A)
+            pred = out.gather(2, a_t[..., None])[..., 0]
+            d_out = out.shape[-1]
+            loss = ((pred - torch.as_tensor(y)) ** 2).sum(dim=1) / (n * d_out)
+            grads = torch.autograd.grad((loss * mask).sum(), net.leaves)
+            net.adam(grads, train)
+        net.blend_target(self.tau, train)
+        self.version += 1
+
+    # -- trials ----------------------------------------------------------------------------------
+    def run_phase(
+        self,
+        envs: Sequence[gym.Env],
+        n_trials: int,
+        max_steps: int,
+        learn: bool,
+        callbacks: Sequence[Sequence[TrialCallback]],
+        views: Sequence[Any],
+    ) -> list[TrialBatch]:
+        """The base agent loop (``Agent._run``) for every run in lock-step: per trial a reset,
+        then act, step, store and replay until the trial ends; finished runs wait."""
+        R, agents = self.R, self.agents
+        for ag, env in zip(agents, envs, strict=True):
+            ag.env = env
+            ag._loop_mask = ag._mask()
+        posed = [isinstance(e.unwrapped, Posed) for e in envs]
+        finished: list[list[dict[str, Any]]] = [[] for _ in range(R)]
+        current: list[dict[str, Any] | None] = [None] * R
+        obs: list[Any] = [None] * R
+        infos: list[dict[str, Any]] = [{}] * R
+        states = np.zeros(R, np.int64)
+        active = np.full(R, n_trials > 0)
+        need_reset = active.copy()
+        n = agents[0].replay_batch + 1
+        while active.any():
+            for r in np.flatnonzero(need_reset & active):
+                o, info = envs[r].reset()
+                obs[r], infos[r] = o, info
+                states[r] = state_of(o, info)
+                pose = [np.array(envs[r].unwrapped.agent_pose(), np.float64)] if posed[r] else None
+                current[r] = {"states": [int(states[r])], "actions": [], "rewards": [],
+                              "terminated": False, "poses": pose}  # fmt: skip
+                for cb in callbacks[r]:
+                    cb.on_trial_start(views[r], len(finished[r]), int(states[r]))
+                need_reset[r] = False
+            runs = np.flatnonzero(active)
+            q = self.q_of_states(states)
+            S = np.zeros((R, n), np.int64)
+            A = np.zeros((R, n), np.int64)
+            rew = np.zeros((R, n))
+            S2 = np.zeros((R, n), np.int64)
+            term = np.zeros((R, n))
+            ended = np.zeros(R, bool)
+            for r in runs:
+                ag = agents[r]
+                s = int(states[r])
+                allowed = ag._loop_mask[s] if ag.use_mask else None
+                a = select(ag.rng, q[r], ag.policy, ag.epsilon, ag.beta, allowed)
+                o2, rr, terminated, truncated, info2 = envs[r].step(a)
+                s2, rr = state_of(o2, info2), float(rr)
+                if learn:  # Any.observe: store, then replay the step + a sample
+                    mem = ag.memory
+                    mem.store(s, a, rr, s2, bool(terminated))
+                    rs, ra = mem.sample(ag.rng, ag.replay_batch)
+                    S[r] = np.concatenate([[s], rs])
+                    A[r] = np.concatenate([[a], ra])
+                    rew[r] = mem.reward[S[r], A[r]]
+                    S2[r] = mem.next_state[S[r], A[r]]
+                    term[r] = mem.terminal[S[r], A[r]]
+                cur = current[r]
+                assert cur is not None
+                cur["states"].append(s2)
+                cur["actions"].append(a)
+                cur["rewards"].append(rr)
+                if cur["poses"] is not None:
+                    cur["poses"].append(np.array(envs[r].unwrapped.agent_pose(), np.float64))
+                obs[r], infos[r], states[r] = o2, info2, s2
+                if terminated or truncated or len(cur["actions"]) >= max_steps:
+                    ended[r] = True
+                    cur["terminated"] = bool(terminated)
+            if learn:
+                train = np.zeros(R, bool)
+                train[runs] = True
+                # each run's generator sees act -> sample -> (Dyna-DSR) tie-break noise, as
+                # in the sequential agent, whatever the other runs do
+                self.update(S, A, rew, S2, term, train)
+            for r in np.flatnonzero(ended):
+                cur = current[r]
+                assert cur is not None
+                finished[r].append(cur)
+                current[r] = None
+                for cb in callbacks[r]:
+                    cb.on_trial_end(views[r], len(finished[r]) - 1, cur)
+                if len(finished[r]) >= n_trials:
+                    active[r] = False
+                else:
+                    need_reset[r] = True
+        return [TrialBatch.from_trials(f) for f in finished]
+
+
+class DynaRunView:
+    """Run ``run`` of a :class:`BatchedDyna` as one agent (its per-run agent, synced)."""
+
+    def __init__(self, batch: BatchedDyna, run: int) -> None:
+        self.batch, self.run = batch, run
+
+    def _agent(self) -> Any:
+        return self.batch.sync(self.run)
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        return self._agent().predict(observations)
+
+    def layer_names(self) -> list[str]:
+        return self._agent().layer_names()
+
+    def activations(self, observations: np.ndarray, layers: Sequence[str]) -> dict[str, np.ndarray]:
+        return self._agent().activations(observations, layers)
+
+    def state_schema(self) -> Any:
+        return self._agent().state_schema()
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return self._agent().get_state()
+
+    def saved_meta(self) -> dict[str, Any]:
+        return self._agent().saved_meta()

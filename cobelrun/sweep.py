@@ -113,8 +113,9 @@ def write_job_status(run_dir: Path, status: str, **fields: Any) -> dict[str, Any
     overrides, config hash) and add their own.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
-    if status == "queued":
-        data: dict[str, Any] = {"queued_at": _now()}
+    if status == "queued":  # by the launcher: its pid tells `cobel status` if it is gone
+        data: dict[str, Any] = {"queued_at": _now(), "launcher_pid": os.getpid(),
+                                "launcher_host": socket.gethostname()}  # fmt: skip
     else:
         data = read_json(run_dir / JOB_FILE) or {}
         for stale in ("ended_at", "duration_s", "error", "traceback"):
@@ -227,17 +228,37 @@ def read_sweep(sweep_dir: str | os.PathLike[str]) -> dict[str, Any]:
 # -- the index --------------------------------------------------------------------------------
 
 
+#: why a job that was still ``queued`` when its launcher died is ``interrupted``
+NOT_STARTED = "not started: the sweep's launcher (pid {pid}) ended before this job started"
+
+
+def launcher_alive(job: Mapping[str, Any]) -> bool:
+    """True if the launcher that queued ``job`` (its ``job.json``) may still start it: its
+    process runs on this host, or it ran on another host (unknown, so treated as alive), or
+    the record names no launcher (written by an older cobel)."""
+    pid = job.get("launcher_pid")
+    if not isinstance(pid, int) or pid <= 0 or job.get("launcher_host") != socket.gethostname():
+        return True
+    return pid == os.getpid() or pid_alive(pid)
+
+
 def job_state(run_dir: Path) -> dict[str, Any]:
     """Status of one job folder: status, error, config_hash, duration_s, started_at.
 
     A folder left by a killed job is repaired first (tables merged, MCAP finished, manifest
-    marked interrupted; :func:`cobelrun.io.repair.repair_run`)."""
+    marked interrupted; :func:`cobelrun.io.repair.repair_run`). A job still ``queued`` whose
+    launcher has died (SIGKILL, a crash) is marked ``interrupted`` with :data:`NOT_STARTED`:
+    nothing will start it until the sweep is run again."""
     from cobelrun.io.repair import repair_run
 
     repaired = repair_run(run_dir)
     job = read_json(run_dir / JOB_FILE) or {}
     if repaired.get("status") == "interrupted" and job.get("status") == "running":
         job = write_job_status(run_dir, "interrupted")
+    if job.get("status") == "queued" and not launcher_alive(job):
+        # the launcher that queued it is gone (SIGKILL, a crash): it will never start
+        job = write_job_status(run_dir, "interrupted", error=NOT_STARTED.format(
+            pid=job.get("launcher_pid")))  # fmt: skip
     manifest = read_json(RunFolder(run_dir).manifest) or {}
     if job.get("status") == "queued":
         status = "queued"
@@ -251,7 +272,11 @@ def job_state(run_dir: Path) -> dict[str, Any]:
         status = "running"
     else:
         status = "missing"
-    error = (job.get("error") or manifest.get("error")) if status == "failed" else None
+    error = None
+    if status == "failed":
+        error = job.get("error") or manifest.get("error")
+    elif status == "interrupted" and not manifest:  # never started: say why
+        error = job.get("error")
     return {
         "status": status,
         "error": error,

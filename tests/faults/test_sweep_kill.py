@@ -146,8 +146,11 @@ def check_statuses(root: Path, reference: dict[str, pd.DataFrame]) -> dict[str, 
                     if (jd / f"{t}.parquet").exists():
                         frame = pd.read_parquet(jd / f"{t}.parquet")
                         check_prefix(frame, ref[t], f"job {job} {t}")
-        else:
-            assert state == "queued" and manifest is None, (job, state)
+            else:  # it never started: `cobel status` says why, whatever stopped the launcher
+                error = json.loads((jd / "job.json").read_text()).get("error", "")
+                assert "started" in error, (job, error)
+        else:  # nothing stays `queued` once the launcher is gone (SIGKILL included)
+            raise AssertionError(f"job {job} is {state!r} after the sweep's launcher ended")
     return counts
 
 
@@ -224,3 +227,42 @@ def test_second_sweep_into_the_same_folder_is_refused(tmp_path):
     assert first.returncode == 130
     job = json.loads((sweep_dir(root) / "0" / "job.json").read_text())
     assert job["status"] in ("interrupted", "completed")
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+@pytest.mark.parametrize("launcher", ["dead", "alive"])
+def test_queued_job_of_a_dead_launcher_is_reported_not_started(tmp_path, launcher):
+    """A job still ``queued`` when its launcher was SIGKILLed never starts: ``cobel status``
+    says ``interrupted`` (not started) once the launcher is gone, ``queued`` while it lives."""
+    from cobelrun import sweep
+
+    d = tmp_path / "sweep"
+    sweep.write_sweep(d, command="cobel run -m seed=1,2", swept=["seed"],
+                      jobs=[{"job": 0, "overrides": ["seed=1"], "params": {"seed": 1}}])  # fmt: skip
+    sweep.write_job_status(d / "0", "queued", job=0, overrides=["seed=1"])
+    holder = subprocess.Popen(["sleep", "60"])
+    try:
+        pid = _dead_pid() if launcher == "dead" else holder.pid
+        job = json.loads((d / "0" / "job.json").read_text())
+        (d / "0" / "job.json").write_text(json.dumps({**job, "launcher_pid": pid}))
+        status = subprocess.run([*cobel_exe(), "status", str(d)], capture_output=True, text=True,
+                                timeout=120)  # fmt: skip
+        [row] = sweep.job_rows(d, write=False)
+        state = json.loads((d / "0" / "job.json").read_text())
+    finally:
+        holder.kill()
+        holder.wait()
+    assert status.returncode == 1 and "Traceback" not in status.stderr, status.stderr
+    if launcher == "dead":
+        assert row["status"] == "interrupted" and state["status"] == "interrupted"
+        assert row["error"] == (
+            f"not started: the sweep's launcher (pid {pid}) ended before this job started"
+        )
+        assert "not started" in status.stdout and "interrupted" in status.stdout
+    else:
+        assert row["status"] == "queued" and state["status"] == "queued"

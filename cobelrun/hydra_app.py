@@ -360,7 +360,7 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
         # (in-process launchers run them in this process), and the launcher reports it
         status(run_dir, "interrupted", **fields)
         sweep.request_stop(sweep_dir, "a job was interrupted")
-        if sweep._PARENT_PID is not None and os.getppid() != sweep._PARENT_PID:
+        if sweep.launcher_gone():
             os._exit(130)  # the launcher is gone: this worker must not linger
         return float("nan") if wants_number else "interrupted"
     except Exception as exc:

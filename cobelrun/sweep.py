@@ -242,6 +242,14 @@ def launcher_alive(job: Mapping[str, Any]) -> bool:
     return pid == os.getpid() or pid_alive(pid)
 
 
+def _job_process_alive(job: Mapping[str, Any]) -> bool:
+    """True if the process of a ``running`` job record may still run (as :func:`launcher_alive`)."""
+    pid = job.get("pid")
+    if not isinstance(pid, int) or pid <= 0 or job.get("host") != socket.gethostname():
+        return True
+    return pid == os.getpid() or pid_alive(pid)
+
+
 def job_state(run_dir: Path) -> dict[str, Any]:
     """Status of one job folder: status, error, config_hash, duration_s, started_at.
 
@@ -253,7 +261,9 @@ def job_state(run_dir: Path) -> dict[str, Any]:
 
     repaired = repair_run(run_dir)
     job = read_json(run_dir / JOB_FILE) or {}
-    if repaired.get("status") == "interrupted" and job.get("status") == "running":
+    if job.get("status") == "running" and (
+        repaired.get("status") == "interrupted" or not _job_process_alive(job)
+    ):  # killed (its manifest repaired, or killed before it had one)
         job = write_job_status(run_dir, "interrupted")
     if job.get("status") == "queued" and not launcher_alive(job):
         # the launcher that queued it is gone (SIGKILL, a crash): it will never start
@@ -557,7 +567,15 @@ def mark_not_started(sweep_dir: Path, jobs: Iterable[int], reason: str) -> int:
     return n
 
 
+#: the environment variable through which a sweep's launcher tells its workers its pid
+LAUNCHER_ENV = "COBEL_SWEEP_LAUNCHER"
+#: the launcher's pid, in a worker process (set by :func:`worker_init`)
 _PARENT_PID: int | None = None
+
+
+def launcher_gone() -> bool:
+    """In a sweep worker: True once the launcher that started it has ended."""
+    return _PARENT_PID is not None and os.getppid() != _PARENT_PID
 
 
 def worker_init() -> None:
@@ -567,16 +585,26 @@ def worker_init() -> None:
       of the group, and a worker that died of it between jobs would make the pool kill the
       others while they finish their files. A running job takes the signals itself
       (:class:`cobelrun.recorder.SignalGuard`) and stops cleanly.
-    * On Linux the worker gets SIGTERM when the launcher dies (even of SIGKILL): its running job
-      stops cleanly, and an idle worker whose launcher is gone exits, so none is orphaned.
+    * The worker stops when the launcher ends, however it ends (even SIGKILL), so none is
+      orphaned: the launcher's pid comes from :data:`LAUNCHER_ENV` (set before the pool starts),
+      so a worker whose launcher died while the worker was still starting exits at once;
+      on Linux the kernel sends SIGTERM when the launcher dies (``PR_SET_PDEATHSIG``), and a
+      watchdog thread sends it too once the worker's parent is no longer the launcher (the
+      kernel's signal is tied to the thread that spawned the worker, and is not sent when that
+      thread ends before the launcher). A running job then stops cleanly and its worker exits;
+      an idle worker exits at once.
     """
     import signal
+    import threading
 
     global _PARENT_PID
-    _PARENT_PID = os.getppid()
+    try:
+        _PARENT_PID = int(os.environ[LAUNCHER_ENV])
+    except (KeyError, ValueError):
+        _PARENT_PID = os.getppid()
 
     def idle(signum: int, frame: Any) -> None:
-        if os.getppid() != _PARENT_PID:  # the launcher is gone: do not linger as an orphan
+        if launcher_gone():  # the launcher is gone: do not linger as an orphan
             os._exit(128 + signum)
 
     signal.signal(signal.SIGINT, idle)
@@ -589,5 +617,19 @@ def worker_init() -> None:
         libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
     except (OSError, AttributeError):
         pass
-    if os.getppid() != _PARENT_PID:  # the launcher died before prctl took effect
+    if launcher_gone():  # the launcher died before the worker got here
         os._exit(1)
+    threading.Thread(target=_watch_launcher, name="cobel-launcher-watch", daemon=True).start()
+
+
+def _watch_launcher(poll: float = 0.5, grace: float = 300.0) -> None:
+    """Worker thread: once the launcher is gone, SIGTERM this process (a running job closes
+    its files, an idle worker exits); if it still lives ``grace`` seconds later, end it."""
+    import signal
+    import time
+
+    while not launcher_gone():
+        time.sleep(poll)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(grace)
+    os._exit(143)

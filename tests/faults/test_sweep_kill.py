@@ -8,6 +8,7 @@ the launcher only (as ``kill PID`` or a scheduler does). The default suite runs 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -266,3 +267,66 @@ def test_queued_job_of_a_dead_launcher_is_reported_not_started(tmp_path, launche
         assert "not started" in status.stdout and "interrupted" in status.stdout
     else:
         assert row["status"] == "queued" and state["status"] == "queued"
+
+
+def test_job_running_in_a_dead_process_is_interrupted(tmp_path):
+    """A job killed before it wrote a manifest (its job.json says ``running``) is not reported
+    ``running`` forever."""
+    from cobelrun import sweep
+
+    d = tmp_path / "sweep"
+    sweep.write_sweep(d, command="cobel run -m seed=1,2", swept=["seed"],
+                      jobs=[{"job": 0, "overrides": ["seed=1"], "params": {"seed": 1}}])  # fmt: skip
+    sweep.write_job_status(d / "0", "queued", job=0, overrides=["seed=1"])
+    sweep.write_job_status(d / "0", "running")
+    job = json.loads((d / "0" / "job.json").read_text())
+    (d / "0" / "job.json").write_text(json.dumps({**job, "pid": _dead_pid()}))
+    [row] = sweep.job_rows(d, write=False)
+    assert row["status"] == "interrupted"
+    assert json.loads((d / "0" / "job.json").read_text())["status"] == "interrupted"
+
+
+WORKER = """
+import os, sys, time
+time.sleep(float(sys.argv[1]))  # a worker still importing when its launcher dies
+from cobelrun.sweep import worker_init
+worker_init()
+time.sleep(120)
+"""
+LAUNCHER = """
+import os, subprocess, sys, time
+env = {**os.environ, "COBEL_SWEEP_LAUNCHER": str(os.getpid())}
+child = subprocess.Popen([sys.executable, "-c", sys.argv[1], sys.argv[2]], env=env)
+print(child.pid, flush=True)
+time.sleep(float(sys.argv[3]))  # then the launcher ends (as if SIGKILLed) without a word
+os._exit(0)
+"""
+
+
+def _gone(pid: int, within: float) -> bool:
+    deadline = time.time() + within
+    while time.time() < deadline:
+        try:
+            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+                return True
+        except psutil.NoSuchProcess:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.mark.parametrize(("starting", "launcher_lives"), [(1.5, 0.0), (0.0, 3.0)],
+                         ids=["launcher_dies_while_worker_starts", "launcher_dies_later"])  # fmt: skip
+def test_worker_does_not_outlive_its_launcher(starting, launcher_lives):
+    """A sweep worker exits once its launcher is gone, also when the launcher died while the
+    worker was still starting (before its initializer could ask the kernel for a signal)."""
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", LAUNCHER, WORKER, str(starting),
+                           str(launcher_lives)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    worker = int(proc.stdout.split()[0])
+    try:
+        assert _gone(worker, within=30), "the worker outlived its launcher"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(worker, signal.SIGKILL)

@@ -623,13 +623,21 @@ def worker_init() -> None:
 
 
 def _watch_launcher(poll: float = 0.5, grace: float = 300.0) -> None:
-    """Worker thread: once the launcher is gone, SIGTERM this process (a running job closes
-    its files, an idle worker exits); if it still lives ``grace`` seconds later, end it."""
+    """Worker thread: once the launcher is gone, SIGTERM this process each second (a running
+    job closes its files, an idle worker exits); if it still lives ``grace`` seconds later,
+    end it.
+
+    Once is not enough: a signal that lands while a job finishes its files is ignored by
+    design (:meth:`cobelrun.signals.SignalGuard.closing`), and the job then completes and
+    hands its worker back to a pool whose launcher is gone (it would wait for its next job
+    until loky's idle timeout, holding the sweep's stdout open)."""
     import signal
     import time
 
     while not launcher_gone():
         time.sleep(poll)
-    os.kill(os.getpid(), signal.SIGTERM)
-    time.sleep(grace)
+    deadline = time.monotonic() + grace
+    while time.monotonic() < deadline:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1.0)
     os._exit(143)

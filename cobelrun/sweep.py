@@ -263,8 +263,8 @@ def job_state(run_dir: Path) -> dict[str, Any]:
     job = read_json(run_dir / JOB_FILE) or {}
     if job.get("status") == "running" and (
         repaired.get("status") == "interrupted" or not _job_process_alive(job)
-    ):  # killed (its manifest repaired, or killed before it had one)
-        job = write_job_status(run_dir, "interrupted")
+    ):  # killed: after its last file (then it is complete), or before (its manifest repaired)
+        job = write_job_status(run_dir, "completed" if is_complete(run_dir) else "interrupted")
     if job.get("status") == "queued" and not launcher_alive(job):
         # the launcher that queued it is gone (SIGKILL, a crash): it will never start
         job = write_job_status(run_dir, "interrupted", error=NOT_STARTED.format(
@@ -571,6 +571,9 @@ def mark_not_started(sweep_dir: Path, jobs: Iterable[int], reason: str) -> int:
 LAUNCHER_ENV = "COBEL_SWEEP_LAUNCHER"
 #: the launcher's pid, in a worker process (set by :func:`worker_init`)
 _PARENT_PID: int | None = None
+#: True while a worker runs a job (:func:`cobelrun.hydra_app.sweep_job`): a signal then is the
+#: job's to handle, and the worker does not exit between its files and its ``job.json``
+IN_JOB = False
 
 
 def launcher_gone() -> bool:
@@ -604,7 +607,7 @@ def worker_init() -> None:
         _PARENT_PID = os.getppid()
 
     def idle(signum: int, frame: Any) -> None:
-        if launcher_gone():  # the launcher is gone: do not linger as an orphan
+        if launcher_gone() and not IN_JOB:  # the launcher is gone: do not linger as an orphan
             os._exit(128 + signum)
 
     signal.signal(signal.SIGINT, idle)

@@ -268,9 +268,11 @@ def test_queued_job_of_a_dead_launcher_is_reported_not_started(tmp_path, launche
         assert row["status"] == "queued" and state["status"] == "queued"
 
 
-def test_job_running_in_a_dead_process_is_interrupted(tmp_path):
+@pytest.mark.parametrize("finished", [False, True])
+def test_job_running_in_a_dead_process_is_interrupted(tmp_path, finished):
     """A job killed before it wrote a manifest (its job.json says ``running``) is not reported
-    ``running`` forever."""
+    ``running`` forever; one killed after its last file but before its job.json said so is
+    ``completed`` (a SIGKILLed sweep of seed 1000 left one marked interrupted)."""
     from cobelrun import sweep
 
     d = tmp_path / "sweep"
@@ -280,9 +282,13 @@ def test_job_running_in_a_dead_process_is_interrupted(tmp_path):
     sweep.write_job_status(d / "0", "running")
     job = json.loads((d / "0" / "job.json").read_text())
     (d / "0" / "job.json").write_text(json.dumps({**job, "pid": _dead_pid()}))
+    if finished:
+        (d / "0" / "manifest.json").write_text(json.dumps({"status": "completed"}))
+        (d / "0" / ".done").write_text("")
     [row] = sweep.job_rows(d, write=False)
-    assert row["status"] == "interrupted"
-    assert json.loads((d / "0" / "job.json").read_text())["status"] == "interrupted"
+    assert row["status"] == ("done" if finished else "interrupted")
+    state = json.loads((d / "0" / "job.json").read_text())["status"]
+    assert state == ("completed" if finished else "interrupted")
 
 
 WORKER = """

@@ -95,8 +95,8 @@ CASES = {
     "sigterm": [signal.SIGTERM],
     "sigkill": [signal.SIGKILL],
 }
-#: seeded kill points per signal (4 signals x 17 = 68 single-run kill points)
-SEEDS = int(os.environ.get("RUN_KILL_SEEDS", "17"))
+#: seeded kill points per signal (4 signals x 21 = 84 single-run kill points)
+SEEDS = int(os.environ.get("RUN_KILL_SEEDS", "21"))
 DEFAULT_SEEDS = 2  # per signal, in the default run
 slow = pytest.mark.slow
 POINTS = [

@@ -7,7 +7,7 @@ scheduler does). No process the sweep started may outlive it: every process of i
 found by a token in its environment, so workers started after the signal or re-parented when
 the launcher died are found too. The default suite runs the lock test and the status and
 worker checks; ``-m slow`` runs the seeded kill points (``SWEEP_KILL_SEEDS`` per signal,
-default 8: 32 kill points).
+default 4: 16 kill points).
 """
 
 from __future__ import annotations
@@ -193,8 +193,8 @@ def run_case(tmp_path: Path, reference, case: str, seed: int) -> None:
                    statuses=counts)  # fmt: skip
 
 
-#: seeded kill points per signal (4 signals x 8 = 32 sweep kill points)
-SEEDS = int(os.environ.get("SWEEP_KILL_SEEDS", "8"))
+#: seeded kill points per signal (4 signals x 4 = 16 sweep kill points)
+SEEDS = int(os.environ.get("SWEEP_KILL_SEEDS", "4"))
 
 
 @pytest.mark.slow  # about a minute each on a loaded 2-core machine

@@ -225,7 +225,7 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
         cause = exc.__cause__
         while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
             cause = cause.__cause__
-        if isinstance(cause, CobelError):
+        if isinstance(cause, CobelError | MemoryError):  # MemoryError: a missing estimate
             raise cause from None
         msg = str(cause or exc).strip().splitlines()
         raise ConfigError(f"cannot build {where}: {msg[-1] if msg else exc}") from exc

@@ -375,3 +375,20 @@ def test_component_estimates_add_up():
     with memory_plan(), pytest.raises(ConfigError, match=r"with the 600 B planned before it"):
         check_allocation("a", 600, "a thing", limit=1000)
         check_allocation("b", 600, "another thing", limit=1000)
+
+
+@pytest.mark.parametrize("target", ["..", "/.", ".", ".x", "x.", "a..b"])
+def test_target_that_is_no_dotted_path_is_one_line(target):
+    """Found by the 2,000-example fuzz: ``_target_`` values like ``..`` made importlib raise
+    TypeError/ValueError (a traceback) instead of a config error."""
+    from omegaconf import OmegaConf
+
+    from cobelrun.runner import build_task
+
+    with composer() as compose:
+        cfg = compose(TINY)
+    OmegaConf.update(cfg, "env._target_", target, merge=False)
+    with pytest.raises(
+        ConfigError, match=r"env._target_ must name a class or function as a dotted"
+    ):
+        build_task(cfg, probe_agent=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import re
 import secrets
 import types
 import typing
@@ -92,14 +93,21 @@ def register_resolvers() -> None:
 _SCALARS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
 
 
+#: a ``_target_``: a dotted Python path (``package.module.Name``), nothing relative or empty
+_TARGET_PATH = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+")
+
+
 def _target(where: str, node: Mapping[str, Any]) -> Any:
     path = node.get("_target_")
-    if not isinstance(path, str) or "." not in path:
-        raise ConfigError(f"{where}._target_ must name a class or function, got {path!r}")
+    if not isinstance(path, str) or not _TARGET_PATH.fullmatch(path):
+        raise ConfigError(
+            f"{where}._target_ must name a class or function as a dotted path "
+            f"(package.module.Name), got {path!r}"
+        )
     module, _, attr = path.rpartition(".")
     try:
         obj = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
+    except (ImportError, AttributeError, ValueError, TypeError) as exc:
         raise ConfigError(f"{where}._target_ {path!r} cannot be imported: {exc}") from None
     return obj
 
@@ -225,7 +233,7 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
         cause = exc.__cause__
         while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
             cause = cause.__cause__
-        if isinstance(cause, CobelError):
+        if isinstance(cause, CobelError | MemoryError):  # MemoryError: a missing estimate
             raise cause from None
         msg = str(cause or exc).strip().splitlines()
         raise ConfigError(f"cannot build {where}: {msg[-1] if msg else exc}") from exc

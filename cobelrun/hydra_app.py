@@ -330,6 +330,22 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     interrupted. Errors are recorded and the function returns normally, so the launcher runs
     every other job; ``cobel run`` then reports how many failed.
     """
+    import cobelrun.sweep as sweep
+
+    subdir = str(hc.sweep.subdir)
+    num = int(subdir) if subdir.isdigit() else int(hc.job.num)
+    fields = {"job": num, "overrides": list(hc.overrides.task)}
+    sweep_dir = Path(str(hc.sweep.dir))
+    wants_number = cfg.task.get("objective") is not None  # optimising sweepers need a float
+    sweep.IN_JOB = True
+    try:
+        return _sweep_job(cfg, run_dir, sweep_dir, num, fields, wants_number)
+    finally:
+        sweep.IN_JOB = False
+
+
+def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields: dict,
+               wants_number: bool) -> Any:  # fmt: skip
     import traceback
 
     import cobelrun.sweep as sweep
@@ -337,11 +353,6 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
     from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
     from cobelrun.sweep import write_job_status as status
 
-    subdir = str(hc.sweep.subdir)
-    num = int(subdir) if subdir.isdigit() else int(hc.job.num)
-    fields = {"job": num, "overrides": list(hc.overrides.task)}
-    sweep_dir = Path(str(hc.sweep.dir))
-    wants_number = cfg.task.get("objective") is not None  # optimising sweepers need a float
     try:
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
@@ -358,7 +369,7 @@ def sweep_job(cfg: DictConfig, hc: Any, run_dir: Path) -> str:
         # (in-process launchers run them in this process), and the launcher reports it
         status(run_dir, "interrupted", **fields)
         sweep.request_stop(sweep_dir, "a job was interrupted")
-        if sweep._PARENT_PID is not None and os.getppid() != sweep._PARENT_PID:
+        if sweep.launcher_gone():
             os._exit(130)  # the launcher is gone: this worker must not linger
         return float("nan") if wants_number else "interrupted"
     except Exception as exc:

@@ -27,7 +27,7 @@ from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
-from cobelrun.safety import check_memory, check_name
+from cobelrun.safety import check_memory, check_name, memory_plan
 from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
@@ -69,8 +69,15 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     """Instantiate a composed config's parts, validating everything before any run starts.
 
     With ``probe_agent`` one agent is constructed and dropped, so that errors in the agent's
-    parameters are reported before anything is written.
+    parameters are reported before anything is written. The memory each part estimates for
+    itself before allocating (:func:`cobelrun.safety.check_allocation`) adds up to the run's
+    estimate, checked against the memory available.
     """
+    with memory_plan():
+        return _build_task(cfg, probe_agent=probe_agent)
+
+
+def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
     _check_resolves(cfg)
     spec = validate_run(cfg)
     check_name("task.name", spec.task.name)  # it names the output folder
@@ -109,7 +116,7 @@ def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
     if probe_agent or record.training_log:
         try:  # constructor errors surface here, before any output
             probe = make_agent(seed=run_seed(spec.seed, 0)[0])
-        except CobelError:
+        except (CobelError, MemoryError):  # a MemoryError is a missing memory estimate
             raise
         except Exception as exc:  # a value the agent's own checks did not anticipate
             raise ConfigError(

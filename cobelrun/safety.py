@@ -10,14 +10,20 @@ line:
   is refused rather than writing to ``/``), absolute after resolution, and a run folder must stay
   inside it, also through symlinks;
 * :func:`estimate_memory` / :func:`check_memory`: what a task's largest batch of trial records
-  would allocate, refused with the estimate and the limit when it exceeds the memory available.
+  would allocate, refused with the estimate and the limit when it exceeds the memory available;
+* :func:`check_allocation`: the same for a component's own large arrays (a world's transition
+  matrix, a network's weights, a replay memory, a cell population), called by the component
+  with its estimate *before* it allocates them. While :func:`memory_plan` is active (the
+  up-front validation of a run) the estimates add up, so the run's total is checked too.
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +33,13 @@ __all__ = [
     "BYTES_PER_STEP",
     "SAFE_NAME",
     "available_memory",
+    "check_allocation",
     "check_inside",
     "check_memory",
     "check_name",
     "estimate_memory",
     "format_bytes",
+    "memory_plan",
     "results_root",
 ]
 
@@ -162,12 +170,46 @@ def estimate_memory(protocol: Any) -> tuple[int, str]:
 def check_memory(protocol: Any, limit: int | None = None) -> None:
     """Refuse a protocol whose largest trial batch would not fit the memory available."""
     need, what = estimate_memory(protocol)
+    check_allocation(what, need, "its trial records",
+                     "lower the trials or max_steps, or split the phase into several",
+                     limit=limit)  # fmt: skip
+
+
+#: bytes planned so far by the components of the run being validated (see memory_plan)
+_PLAN: list[int] | None = None
+
+
+@contextlib.contextmanager
+def memory_plan() -> Iterator[None]:
+    """Add up the estimates of :func:`check_allocation` made inside (one run's components:
+    its trial records, world, agent, monitors); each new one is checked with the total."""
+    global _PLAN
+    outer, _PLAN = _PLAN, [0]
+    try:
+        yield
+    finally:
+        _PLAN = outer
+
+
+def check_allocation(
+    where: str, nbytes: float, what: str, fix: str = "", limit: int | None = None
+) -> None:
+    """Refuse, before anything is allocated, an allocation of about ``nbytes`` for ``what``
+    (set by the config key ``where``) that exceeds the share of memory a run may use.
+
+    One line: the estimate, the limit, and ``fix`` (what to lower). Inside :func:`memory_plan`
+    the run's earlier estimates count too.
+    """
+    need = max(0, int(nbytes)) if math.isfinite(nbytes) else 2**63
+    planned = _PLAN[0] if _PLAN is not None else 0
     limit = available_memory() if limit is None else limit
-    if limit is None or need <= MEMORY_SHARE * limit:
-        return
-    raise ConfigError(
-        f"{what} would allocate about {format_bytes(need)} for its trial records, more than "
-        f"the {format_bytes(MEMORY_SHARE * limit)} this run may use ({int(MEMORY_SHARE * 100)}% "
-        f"of {format_bytes(limit)} available); lower the trials or max_steps, or split the "
-        "phase into several"
-    )
+    if limit is not None and need + planned > MEMORY_SHARE * limit:
+        total = f" (with the {format_bytes(planned)} planned before it)" if planned else ""
+        raise ConfigError(
+            f"{where} would allocate about {format_bytes(need)} for {what}{total}, more than "
+            f"the {format_bytes(MEMORY_SHARE * limit)} this run may use "
+            f"({int(MEMORY_SHARE * 100)}% of {format_bytes(limit)} available)"
+            + (f"; {fix}" if fix else "")
+        )
+    if _PLAN is not None:
+        _PLAN[0] += need

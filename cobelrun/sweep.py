@@ -113,8 +113,9 @@ def write_job_status(run_dir: Path, status: str, **fields: Any) -> dict[str, Any
     overrides, config hash) and add their own.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
-    if status == "queued":
-        data: dict[str, Any] = {"queued_at": _now()}
+    if status == "queued":  # by the launcher: its pid tells `cobel status` if it is gone
+        data: dict[str, Any] = {"queued_at": _now(), "launcher_pid": os.getpid(),
+                                "launcher_host": socket.gethostname()}  # fmt: skip
     else:
         data = read_json(run_dir / JOB_FILE) or {}
         for stale in ("ended_at", "duration_s", "error", "traceback"):
@@ -227,17 +228,47 @@ def read_sweep(sweep_dir: str | os.PathLike[str]) -> dict[str, Any]:
 # -- the index --------------------------------------------------------------------------------
 
 
+#: why a job that was still ``queued`` when its launcher died is ``interrupted``
+NOT_STARTED = "not started: the sweep's launcher (pid {pid}) ended before this job started"
+
+
+def launcher_alive(job: Mapping[str, Any]) -> bool:
+    """True if the launcher that queued ``job`` (its ``job.json``) may still start it: its
+    process runs on this host, or it ran on another host (unknown, so treated as alive), or
+    the record names no launcher (written by an older cobel)."""
+    pid = job.get("launcher_pid")
+    if not isinstance(pid, int) or pid <= 0 or job.get("launcher_host") != socket.gethostname():
+        return True
+    return pid == os.getpid() or pid_alive(pid)
+
+
+def _job_process_alive(job: Mapping[str, Any]) -> bool:
+    """True if the process of a ``running`` job record may still run (as :func:`launcher_alive`)."""
+    pid = job.get("pid")
+    if not isinstance(pid, int) or pid <= 0 or job.get("host") != socket.gethostname():
+        return True
+    return pid == os.getpid() or pid_alive(pid)
+
+
 def job_state(run_dir: Path) -> dict[str, Any]:
     """Status of one job folder: status, error, config_hash, duration_s, started_at.
 
     A folder left by a killed job is repaired first (tables merged, MCAP finished, manifest
-    marked interrupted; :func:`cobelrun.io.repair.repair_run`)."""
+    marked interrupted; :func:`cobelrun.io.repair.repair_run`). A job still ``queued`` whose
+    launcher has died (SIGKILL, a crash) is marked ``interrupted`` with :data:`NOT_STARTED`:
+    nothing will start it until the sweep is run again."""
     from cobelrun.io.repair import repair_run
 
     repaired = repair_run(run_dir)
     job = read_json(run_dir / JOB_FILE) or {}
-    if repaired.get("status") == "interrupted" and job.get("status") == "running":
-        job = write_job_status(run_dir, "interrupted")
+    if job.get("status") == "running" and (
+        repaired.get("status") == "interrupted" or not _job_process_alive(job)
+    ):  # killed: after its last file (then it is complete), or before (its manifest repaired)
+        job = write_job_status(run_dir, "completed" if is_complete(run_dir) else "interrupted")
+    if job.get("status") == "queued" and not launcher_alive(job):
+        # the launcher that queued it is gone (SIGKILL, a crash): it will never start
+        job = write_job_status(run_dir, "interrupted", error=NOT_STARTED.format(
+            pid=job.get("launcher_pid")))  # fmt: skip
     manifest = read_json(RunFolder(run_dir).manifest) or {}
     if job.get("status") == "queued":
         status = "queued"
@@ -251,7 +282,11 @@ def job_state(run_dir: Path) -> dict[str, Any]:
         status = "running"
     else:
         status = "missing"
-    error = (job.get("error") or manifest.get("error")) if status == "failed" else None
+    error = None
+    if status == "failed":
+        error = job.get("error") or manifest.get("error")
+    elif status == "interrupted" and not manifest:  # never started: say why
+        error = job.get("error")
     return {
         "status": status,
         "error": error,
@@ -532,7 +567,18 @@ def mark_not_started(sweep_dir: Path, jobs: Iterable[int], reason: str) -> int:
     return n
 
 
+#: the environment variable through which a sweep's launcher tells its workers its pid
+LAUNCHER_ENV = "COBEL_SWEEP_LAUNCHER"
+#: the launcher's pid, in a worker process (set by :func:`worker_init`)
 _PARENT_PID: int | None = None
+#: True while a worker runs a job (:func:`cobelrun.hydra_app.sweep_job`): a signal then is the
+#: job's to handle, and the worker does not exit between its files and its ``job.json``
+IN_JOB = False
+
+
+def launcher_gone() -> bool:
+    """In a sweep worker: True once the launcher that started it has ended."""
+    return _PARENT_PID is not None and os.getppid() != _PARENT_PID
 
 
 def worker_init() -> None:
@@ -542,16 +588,26 @@ def worker_init() -> None:
       of the group, and a worker that died of it between jobs would make the pool kill the
       others while they finish their files. A running job takes the signals itself
       (:class:`cobelrun.recorder.SignalGuard`) and stops cleanly.
-    * On Linux the worker gets SIGTERM when the launcher dies (even of SIGKILL): its running job
-      stops cleanly, and an idle worker whose launcher is gone exits, so none is orphaned.
+    * The worker stops when the launcher ends, however it ends (even SIGKILL), so none is
+      orphaned: the launcher's pid comes from :data:`LAUNCHER_ENV` (set before the pool starts),
+      so a worker whose launcher died while the worker was still starting exits at once;
+      on Linux the kernel sends SIGTERM when the launcher dies (``PR_SET_PDEATHSIG``), and a
+      watchdog thread sends it too once the worker's parent is no longer the launcher (the
+      kernel's signal is tied to the thread that spawned the worker, and is not sent when that
+      thread ends before the launcher). A running job then stops cleanly and its worker exits;
+      an idle worker exits at once.
     """
     import signal
+    import threading
 
     global _PARENT_PID
-    _PARENT_PID = os.getppid()
+    try:
+        _PARENT_PID = int(os.environ[LAUNCHER_ENV])
+    except (KeyError, ValueError):
+        _PARENT_PID = os.getppid()
 
     def idle(signum: int, frame: Any) -> None:
-        if os.getppid() != _PARENT_PID:  # the launcher is gone: do not linger as an orphan
+        if launcher_gone() and not IN_JOB:  # the launcher is gone: do not linger as an orphan
             os._exit(128 + signum)
 
     signal.signal(signal.SIGINT, idle)
@@ -564,5 +620,27 @@ def worker_init() -> None:
         libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
     except (OSError, AttributeError):
         pass
-    if os.getppid() != _PARENT_PID:  # the launcher died before prctl took effect
+    if launcher_gone():  # the launcher died before the worker got here
         os._exit(1)
+    threading.Thread(target=_watch_launcher, name="cobel-launcher-watch", daemon=True).start()
+
+
+def _watch_launcher(poll: float = 0.5, grace: float = 300.0) -> None:
+    """Worker thread: once the launcher is gone, SIGTERM this process each second (a running
+    job closes its files, an idle worker exits); if it still lives ``grace`` seconds later,
+    end it.
+
+    Once is not enough: a signal that lands while a job finishes its files is ignored by
+    design (:meth:`cobelrun.signals.SignalGuard.closing`), and the job then completes and
+    hands its worker back to a pool whose launcher is gone (it would wait for its next job
+    until loky's idle timeout, holding the sweep's stdout open)."""
+    import signal
+    import time
+
+    while not launcher_gone():
+        time.sleep(poll)
+    deadline = time.monotonic() + grace
+    while time.monotonic() < deadline:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1.0)
+    os._exit(143)

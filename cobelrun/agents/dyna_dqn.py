@@ -32,12 +32,14 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
+from cobelrun.agents.dyna_q import TABLE_BYTES_PER_PAIR
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.networks import Network, build_network, set_torch_threads
 from cobelrun.agents.policy import allowed_next, check_policy, select
 from cobelrun.envs.base import StateObservations
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
+from cobelrun.safety import check_allocation
 
 
 class DynaDeepAgent(Agent):
@@ -127,12 +129,20 @@ class DynaDeepAgent(Agent):
         self.backend = backend
         self.n_states = int(base.world.n_states)
         self.n_actions = int(env.action_space.n)
+        check_allocation("agent", self.n_states * self.n_actions * TABLE_BYTES_PER_PAIR,
+                         f"its model memory ({self.n_states:,} states x {self.n_actions} actions)",
+                         "use a smaller env")  # fmt: skip
         self.obs = self._observation_matrix(env, observations)
         self.memory = TabularMemory(
             self.n_states, self.n_actions, reward_rate=memory_reward_rate, sampling=memory_sampling
         )
         self._net_seeds = [int(s) for s in self.seed_sequence.generate_state(4)]
         self.build_networks()
+        width = self.obs.shape[1] + sum(self.hidden) + self.n_actions
+        check_allocation("agent.replay_batch", (self.replay_batch + 1) * width * 4 * 6,
+                         f"a batch of {self.replay_batch + 1:,} replayed experiences through "
+                         f"layers of {width:,} units (observations, activations, gradients)",
+                         "lower agent.replay_batch or agent.hidden")  # fmt: skip
 
     # -- construction helpers ----------------------------------------------------------------
     def _observation_matrix(self, env: gym.Env, observations: Any) -> np.ndarray:
@@ -140,6 +150,9 @@ class DynaDeepAgent(Agent):
         if observations is None and isinstance(base, StateObservations):
             observations = base.observations
         if observations is None:
+            check_allocation("agent.observations", self.n_states**2 * 4,
+                             f"one-hot observations of {self.n_states:,} states",
+                             "use a smaller env or give agent.observations")  # fmt: skip
             return np.eye(self.n_states, dtype=np.float32)
         obs = np.asarray(observations, dtype=np.float32)
         if obs.ndim != 2 or obs.shape[0] != self.n_states:

@@ -32,6 +32,7 @@ from cobelrun.agents.memory import TabularMemory
 from cobelrun.envs.base import TabularModel, require, supports
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
+from cobelrun.safety import check_allocation
 from cobelrun.signals import critical
 
 ENGINES = ("auto", "compiled", "python")
@@ -47,6 +48,13 @@ def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
             f"{kind} {value!r} is not known{suggest(value, allowed)}; allowed: {allowed_list(allowed)}"
         )
     return value
+
+
+#: bytes per state-action pair: Q (float64) and the model memory's reward, next state,
+#: terminal and visited arrays
+TABLE_BYTES_PER_PAIR = 8 + 8 + 8 + 1 + 1 + 8
+#: bytes per experience of a replay batch (sampled index, state, action, reward, target)
+REPLAY_BYTES_PER_SAMPLE = 64
 
 
 class DynaQ(Agent):
@@ -131,6 +139,13 @@ class DynaQ(Agent):
             require(env, ("tabular_model",), "agent.engine 'compiled' (use 'auto' or 'python')")
         if self.use_mask:
             require(env, ("tabular_model",), "agent.action_mask")
+        n_pairs = self.n_states * self.n_actions
+        check_allocation("agent", n_pairs * TABLE_BYTES_PER_PAIR,
+                         f"its Q table and model memory ({self.n_states:,} states x "
+                         f"{self.n_actions} actions)", "use a smaller env")  # fmt: skip
+        check_allocation("agent.replay_batch", self.replay_batch * REPLAY_BYTES_PER_SAMPLE,
+                         f"a batch of {self.replay_batch:,} replayed experiences",
+                         "lower agent.replay_batch")  # fmt: skip
         self.Q = np.zeros((self.n_states, self.n_actions))
         self.memory = TabularMemory(
             self.n_states, self.n_actions, reward_rate=memory_reward_rate, sampling=memory_sampling

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.safety import check_allocation
 
 ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "tanh": torch.tanh,
@@ -28,6 +29,11 @@ ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "elu": torch.nn.functional.elu,
     "linear": lambda x: x,
 }
+
+
+#: float32 copies a trained weight has: itself, its gradient, Adam's two moments, and the
+#: temporary of its initialisation
+BYTES_PER_PARAMETER_COPY = 5
 
 
 def set_torch_threads(n: int | None) -> None:
@@ -135,8 +141,12 @@ class TorchMLP(Network):
         self.act = ACTIVATIONS[activation]
         self.learning_rate = float(learning_rate)
         self.bias = bool(bias)
-        gen = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
         sizes = [self.input_dim, *self.hidden, self.output_dim]
+        n_params = n_heads * sum((a + 1) * b for a, b in itertools.pairwise(sizes))
+        check_allocation("agent.hidden", n_params * 4 * BYTES_PER_PARAMETER_COPY,
+                         f"a network of {n_params:,} weights ({' x '.join(map(str, sizes))}, "
+                         "with gradients and Adam's moments)", "use smaller agent.hidden layers")  # fmt: skip
+        gen = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
         self.weights: list[torch.Tensor] = []
         self.biases: list[torch.Tensor | None] = []
         for fan_in, fan_out in itertools.pairwise(sizes):

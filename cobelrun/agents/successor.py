@@ -36,6 +36,7 @@ import numpy as np
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
 from cobelrun.agents.policy import check_policy, select
 from cobelrun.errors import ConfigError
+from cobelrun.safety import check_allocation
 
 
 class SuccessorCore:
@@ -57,6 +58,9 @@ class SuccessorCore:
         self, n_states: int, n_actions: int, gamma: float, learning_rate: float, reward_rate: float
     ) -> None:
         self.gamma, self.learning_rate, self.reward_rate = gamma, learning_rate, reward_rate
+        check_allocation("agent", n_states * n_actions * n_states * 8 * 3,
+                         f"its successor representation and one-step model ({n_states:,} x "
+                         f"{n_actions} x {n_states:,}, float64)", "use a smaller env")  # fmt: skip
         self.M = np.zeros((n_states, n_actions, n_states))
         self.w = np.zeros(n_states)
 

@@ -39,6 +39,7 @@ import numpy as np
 
 from cobelrun.envs.raycast import ray_distances
 from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.safety import check_allocation
 
 __all__ = [
     "KINDS",
@@ -476,9 +477,16 @@ def build_observation(spec: Sequence[Mapping[str, Any]] | None, arena: Any) -> l
 
 
 # ---------------------------------------------------------------------------- helpers
+#: bytes per cell of a population: its centre or parameters, and its activity in the steps
+#: a trial batch holds (float64)
+BYTES_PER_CELL = 256
+
+
 def _count(where: str, n: Any) -> int:
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
         raise ConfigError(f"{where} must be an integer >= 1, got {n!r}")
+    check_allocation(f"env.observation ({where})", int(n) * BYTES_PER_CELL,
+                     f"a population of {int(n):,} cells", f"lower {where}")  # fmt: skip
     return int(n)
 
 

@@ -14,6 +14,7 @@ from cobelrun.envs.base import Geometry, check_action
 from cobelrun.envs.cells import CameraView, SpatialCode, build_observation
 from cobelrun.envs.raycast import move_kernel
 from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.safety import check_allocation
 
 MOVEMENTS = ("directions", "differential", "continuous")
 START_ORDERS = ("random", "shuffled")
@@ -213,6 +214,9 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
                 or n_directions < 2
             ):
                 raise ConfigError(f"n_directions must be an integer >= 2, got {n_directions!r}")
+            check_allocation("env.n_directions", n_directions * 128,
+                             f"{n_directions:,} movement directions (their angles, names and "
+                             "an agent's values for each)", "lower env.n_directions")  # fmt: skip
             self.directions = 2 * np.pi * np.arange(n_directions) / n_directions
             self.action_space: spaces.Space = spaces.Discrete(n_directions)
             self.action_names = tuple(_compass(a) for a in self.directions)

@@ -397,6 +397,23 @@ def _pairs(mapping: Any, what: str) -> list[tuple[Any, Any]]:
     )
 
 
+def world_bytes(width: int, height: int, slip: float = 0.0) -> int:
+    """Bytes a ``width x height`` world allocates: its dense (S, 4, S) float64 transition
+    matrix (three of them while a slip is mixed in), and per-cell arrays."""
+    n = int(width) * int(height)
+    return n * N_ACTIONS * n * 8 * (3 if slip > 0 else 1) + n * 256
+
+
+def check_world_memory(where: str, width: int, height: int, slip: float = 0.0) -> None:
+    """Refuse a grid world too large for memory before any of it is allocated."""
+    from cobelrun.safety import check_allocation
+
+    n = int(width) * int(height)
+    check_allocation(where, world_bytes(width, height, slip),
+                     f"a {width:,} x {height:,} grid world ({n:,} states: a {n:,} x {N_ACTIONS} x "
+                     f"{n:,} transition matrix)", "use a smaller grid")  # fmt: skip
+
+
 def _coords(width: int, height: int) -> np.ndarray:
     rows, cols = np.divmod(np.arange(width * height), width)
     return np.stack([cols, height - 1 - rows], axis=1).astype(np.float64)
@@ -494,10 +511,11 @@ def from_layout(
     rows = _parse_layout(layout)
     height, width = len(rows), len(rows[0])
     n = width * height
-    cells = "".join(rows)
     slip = _finite(slip, "slip")
     if not 0.0 <= slip < 1.0:
         raise LayoutError(f"slip must be in [0, 1), got {slip}")
+    check_world_memory("env.world", width, height, slip)
+    cells = "".join(rows)
     goal_reward = _finite(goal_reward, "goal_reward")
 
     blocked = np.array([ch == "#" for ch in cells])
@@ -625,6 +643,7 @@ def open_field(
     width, height = int(width), int(height)
     if width < 1 or height < 1 or width * height < 2:
         raise LayoutError(f"open_field needs at least 2 cells, got {width} x {height}")
+    check_world_memory("env.world", width, height, 0.0)
     layout = "\n".join("." * width for _ in range(height))
     world = from_layout(layout, starts=[0], goal_reward=goal_reward)
     if goal is not None:

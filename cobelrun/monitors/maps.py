@@ -31,6 +31,7 @@ from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, ProbeGrid, probe_grid
 from cobelrun.errors import ConfigError
 from cobelrun.monitors import Table
 from cobelrun.monitors.activity import ActivityMonitor
+from cobelrun.safety import check_allocation
 
 
 class ActivityMapMonitor(ActivityMonitor):
@@ -70,6 +71,9 @@ class ActivityMapMonitor(ActivityMonitor):
         ):
             raise ConfigError(f"activity maps 'grid' must be [nx, ny] integers >= 2, got {grid!r}")
         self.nx, self.ny = int(grid[0]), int(grid[1])
+        check_allocation("task.monitors (activity maps grid)", self.nx * self.ny * 64 * 8,
+                         f"activity maps on a {self.nx:,} x {self.ny:,} grid",
+                         "use a coarser grid")  # fmt: skip
         if isinstance(headings, int) and not isinstance(headings, bool):
             if headings < 1:
                 raise ConfigError(f"activity maps 'headings' must be >= 1, got {headings}")

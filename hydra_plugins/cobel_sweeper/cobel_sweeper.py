@@ -247,8 +247,9 @@ def _worker_setup(launcher: Any) -> Iterator[None]:
     from joblib import parallel
     from joblib._parallel_backends import LokyBackend
 
-    from cobelrun.sweep import worker_init
+    from cobelrun.sweep import LAUNCHER_ENV, worker_init
 
+    os.environ[LAUNCHER_ENV] = str(os.getpid())  # the workers inherit it (worker_init)
     original = parallel.BACKENDS.get("loky", LokyBackend)
     parallel.register_parallel_backend("loky", functools.partial(original, initializer=worker_init))
     try:

@@ -327,3 +327,68 @@ def test_figure_files_are_written_atomically(tmp_path, monkeypatch):
     with pytest.raises(CobelError, match="the disk is full"):
         save_figure(fig, out)
     assert out.read_bytes() == first and len(list(tmp_path.iterdir())) == 1
+
+
+# -- what the parts of a run allocate -----------------------------------------------------------
+COMPONENT_SIZES = [
+    # key=value that makes a part allocate too much, the line's start, what it names
+    (["task=gridworld", "env=open_field", "env.world.width=100000"],
+     "env.world would allocate about", "grid world (1,000,000 states"),
+    (["task=gridworld", "env=open_field", "env.world.width=400", "env.world.height=400"],
+     "env.world would allocate about", "transition matrix"),
+    (["task=tmaze_extinction", "agent.replay_batch=1000000000"],
+     "agent.replay_batch would allocate about 59.6 GiB", "replayed experiences"),
+    (["task=tmaze_extinction", "agent=dyna_dqn", "agent.hidden=[1000000000]"],
+     "agent.hidden would allocate about", "a network of"),
+    (["task=tmaze_extinction", "agent=dyna_dqn", "agent.replay_batch=100000000"],
+     "agent.replay_batch would allocate about", "replayed experiences"),
+    (["task=morris_water_maze", "env.observation.0.n=1000000000"],
+     "env.observation (place_cells.n) would allocate about", "1,000,000,000 cells"),
+    (["task=morris_water_maze", "env.n_directions=1000000000"],
+     "env.n_directions would allocate about", "movement directions"),
+    (["task=gridworld", "env=tmaze", "env.world.stem_length=100000"],
+     "env.world would allocate about", "grid world"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("overrides", "start", "names"), COMPONENT_SIZES,
+                         ids=[o[-1] for o, _, _ in COMPONENT_SIZES])  # fmt: skip
+def test_component_memory_is_estimated_before_it_is_allocated(monkeypatch, overrides, start,
+                                                               names):  # fmt: skip
+    """A size that makes an env, agent or monitor allocate more than the memory available is
+    refused by its estimate, before the allocation: one line with the estimate and the limit
+    (not a MemoryError from the allocation, nor the kernel's OOM killer)."""
+    monkeypatch.setenv("COBEL_MEMORY_LIMIT", "4G")
+    with pytest.raises(ConfigError) as err:
+        validate([*overrides, "task.runs=1"], multirun=False)
+    msg = str(err.value)
+    assert msg.startswith(start) and names in msg, msg
+    assert "more than the 3.2 GiB this run may use (80% of 4.0 GiB available)" in msg, msg
+    assert "\n" not in msg and "MemoryError" not in msg and "Unable to allocate" not in msg
+
+
+def test_component_estimates_add_up():
+    """The run's parts count together: each fits alone, both together do not."""
+    from cobelrun.safety import check_allocation, memory_plan
+
+    check_allocation("a", 600, "a thing", limit=1000)
+    with memory_plan(), pytest.raises(ConfigError, match=r"with the 600 B planned before it"):
+        check_allocation("a", 600, "a thing", limit=1000)
+        check_allocation("b", 600, "another thing", limit=1000)
+
+
+@pytest.mark.parametrize("target", ["..", "/.", ".", ".x", "x.", "a..b"])
+def test_target_that_is_no_dotted_path_is_one_line(target):
+    """Found by the 2,000-example fuzz: ``_target_`` values like ``..`` made importlib raise
+    TypeError/ValueError (a traceback) instead of a config error."""
+    from omegaconf import OmegaConf
+
+    from cobelrun.runner import build_task
+
+    with composer() as compose:
+        cfg = compose(TINY)
+    OmegaConf.update(cfg, "env._target_", target, merge=False)
+    with pytest.raises(
+        ConfigError, match=r"env._target_ must name a class or function as a dotted"
+    ):
+        build_task(cfg, probe_agent=True)

@@ -7,12 +7,18 @@ composed once per base, a value set on a copy, then :func:`cobelrun.runner.build
 the agent probed): a few milliseconds per example, so the slow run affords 2,000 of them.
 The default suite runs ``COBEL_FUZZ_EXAMPLES`` (default 60); a handful go through the real
 CLI. Errors must be :class:`~cobelrun.errors.CobelError` raised by a check, not the CLI's
-catch-all, so every finding here is a missing check.
+catch-all, so every finding here is a missing check. A size that would not fit in memory must be
+refused by an estimate before it is allocated (``... would allocate about ...``): a MemoryError
+is not caught anywhere on the way and fails the test.
+
+``COBEL_FUZZ_LOG=FILE`` writes the counts (tried, clean errors, of which memory refusals,
+accepted) there after every example.
 """
 
 from __future__ import annotations
 
 import copy
+import json
 import math
 import os
 from functools import cache
@@ -51,7 +57,7 @@ BASES = (
 #: small budgets, so that a value that is accepted builds quickly
 SMALL = ("task.runs=1", "task.save_agents=false")
 
-FIGURES = {"tried": 0, "clean_errors": 0, "accepted": 0}
+FIGURES = {"tried": 0, "clean_errors": 0, "memory_refusals": 0, "accepted": 0, "unreachable": 0}
 
 
 def leaves(node: Any, prefix: str = "") -> list[str]:
@@ -134,7 +140,10 @@ def attempt(cfg: DictConfig, key: str, value: Any) -> str:
     except CobelError as exc:
         msg = str(exc)
         assert msg and "\n" not in msg.strip(), f"{key}={value!r}: multi-line error {msg!r}"
-        return "error"
+        assert "MemoryError" not in msg and "Unable to allocate" not in msg, (
+            f"{key}={value!r}: an allocation failed instead of an estimate refusing it: {msg}"
+        )
+        return "memory" if " would allocate about " in msg else "error"
     return "accepted"
 
 
@@ -149,7 +158,13 @@ def fuzz(data: st.DataObject, tmp_path: Path) -> None:
     outcome = attempt(cfg, key, value)
     assert sorted(tmp_path.iterdir()) == before  # nothing written
     FIGURES["tried"] += 1
-    FIGURES["clean_errors" if outcome == "error" else "accepted"] += outcome != "unreachable"
+    if outcome in ("error", "memory"):
+        FIGURES["clean_errors"] += 1
+        FIGURES["memory_refusals"] += outcome == "memory"
+    else:
+        FIGURES[outcome] += 1
+    if os.environ.get("COBEL_FUZZ_LOG"):
+        Path(os.environ["COBEL_FUZZ_LOG"]).write_text(json.dumps(FIGURES))
 
 
 @pytest.fixture
@@ -169,9 +184,9 @@ def test_fuzzed_overrides_fail_cleanly(quiet_cwd, data):
 
 @pytest.fixture
 def memory_cap():
-    """A 10 GB address-space cap while the slow fuzz runs: an accepted value that sizes a huge
-    allocation then raises MemoryError (reported) instead of waking the OOM killer, which
-    killed this test at ~21 GB without the cap (see docs/reliability.md, Open)."""
+    """A 10 GB address-space cap while the slow fuzz runs, a safety net for the shared machine
+    only: should a size still escape the estimates, its allocation raises MemoryError, which
+    fails the test (with the key and value), instead of waking the kernel's OOM killer."""
     import resource
 
     soft, hard = resource.getrlimit(resource.RLIMIT_AS)

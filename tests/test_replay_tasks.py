@@ -63,3 +63,80 @@ def test_dyna_maze_reward_noise_option_reaches_the_agents():
         rewards.append(r)
     with pytest.raises(ConfigError, match="needs exact rewards"):
         DynaQ(env, seed=0, engine="compiled").train(1, 10)
+
+
+# ------------------------------------------------------------------ per-trial cycles
+def test_a_phase_cycle_changes_the_world_trial_by_trial_for_compiled_agents(tmp_path):
+    """Rewards and starts alternate per trial; compiled Dyna-Q (run one trial per call) sees
+    every change: it is rewarded at the end the cycle pays."""
+    import cobelrun
+
+    proto = ("+task.protocol={max_steps: 50, phases: [{name: a, trials: 3}, {name: laps, "
+             "trials: 6, cycle: [{starts: [3], rewards: {0: 1, 6: 0}}, "
+             "{starts: [2], rewards: {0: 0, 6: 2}}]}]}")  # fmt: skip
+    run = cobelrun.run(
+        "gridworld",
+        ["env=gridworld_layout", "env.world.layout='E..S..E'", "~task.protocol", proto, "agent=dyna_q",
+         "agent.engine=compiled", "task.runs=2", "task.record.mcap=false"],
+        out=tmp_path / "run",
+    )  # fmt: skip
+    t = run.trials.sort_values(["run", "trial"])
+    laps = t[t["phase"] == "laps"]
+    k = (laps["trial"] - 4).to_numpy()
+    assert np.array_equal(laps["start_state"].to_numpy(), np.where(k % 2 == 0, 3, 2))
+    paid = laps["reward"].to_numpy()
+    ends = laps["end_state"].to_numpy()
+    west, east = np.where(k % 2 == 0, 1, 0), np.where(k % 2 == 0, 0, 2)
+    assert np.all(paid == np.where(ends == 0, west, np.where(ends == 6, east, 0)))
+    assert (paid == 2).any() and (paid == 1).any()
+    assert set(t[t["phase"] == "a"]["start_state"]) == {3}  # before the cycle: the layout's start
+
+
+def test_bad_cycle_is_one_line_config_error():
+    from cobelrun.protocol import Protocol
+
+    with pytest.raises(ConfigError, match=r"phases\[0\].cycle must be a non-empty list"):
+        Protocol.from_config({"max_steps": 5, "phases": [{"name": "a", "trials": 2, "cycle": []}]})
+    with pytest.raises(ConfigError, match=r"cycle\[0\].start' \(did you mean 'starts'"):
+        Protocol.from_config(
+            {"max_steps": 5, "phases": [{"name": "a", "trials": 2, "cycle": [{"start": [0]}]}]}
+        )
+
+
+# ------------------------------------------------------------------ linear track
+@pytest.fixture(scope="module")
+def linear_track(tmp_path_factory):
+    import cobelrun
+
+    out = tmp_path_factory.mktemp("lt") / "run"
+    return cobelrun.run(
+        "linear_track", ["task.runs=6", "task.protocol.phases.0.trials=30"], out=out
+    )
+
+
+def test_linear_track_laps_alternate_and_pma_runs_the_shortest_lap(linear_track):
+    t = linear_track.trials.sort_values(["run", "trial"])
+    world = instantiate("env", _compose("task=linear_track").env).unwrapped.world
+    west_e, east_e = world.state("west_eastward"), world.state("east_eastward")
+    east_w, west_w = world.state("east_westward"), world.state("west_westward")
+    odd = (t["trial"] % 2 == 1).to_numpy()
+    assert np.array_equal(t["start_state"].to_numpy(), np.where(odd, west_e, east_w))
+    assert np.array_equal(t["end_state"].to_numpy(), np.where(odd, east_e, west_w))
+    # every lap ends where the next one starts (the same end of the track)
+    xy = world.coords
+    nxt = t.groupby("run")["start_state"].shift(-1).dropna().astype(int).to_numpy()
+    ended = t.groupby("run")["end_state"].apply(lambda s: s.iloc[:-1]).to_numpy()
+    assert np.array_equal(xy[ended, 0], xy[nxt, 0])
+    late = t[t["trial"] > 10]
+    assert (late["steps"] == 9).mean() > 0.95
+    r = t["reward"].to_numpy()  # noisy reward, sd 0.1
+    assert 0.05 < r.std() < 0.15 and abs(r.mean() - 1) < 0.05
+
+
+def test_linear_track_pma_replays_forward_at_the_start_and_reverse_at_the_end(linear_track):
+    from cobelrun.analysis.replay import direction_counts, replay_events
+
+    counts = direction_counts(replay_events(linear_track.table("replays")), 5)
+    assert counts.loc["start", "forward"] > 10 * max(1, counts.loc["start", "reverse"])
+    assert counts.loc["end", "reverse"] > 10 * max(1, counts.loc["end", "forward"])
+    assert counts.loc["end", "reverse"] > 50

@@ -35,6 +35,8 @@ from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
+#: how long a monitor's path (a replay event) stays drawn in the MCAP viewer: 10 steps
+PATH_LIFETIME_NS = 10 * STEP_NS
 #: Parquet key/value metadata schema version of cobel's tables
 SCHEMA_VERSION = "2"
 
@@ -433,6 +435,14 @@ class RunRecorder:
                 batch.start_state, batch.end_state, batch.steps, batch.reward,
                 None if response is None else np.asarray(response),
             )  # fmt: skip
+            info = BatchInfo(run=run, phase=phase, first_trial=int(trial[0]), env=self.env)
+            for m in self.monitors:
+                paths = m.scene_paths(batch, info)
+                if paths:
+                    times = [int((t[start_pos] if p.at == "start" else t[end_pos])[p.trial])
+                             for p in paths]  # fmt: skip
+                    self._writer.submit(self.mcap.write_paths, run, times, paths,
+                                        PATH_LIFETIME_NS)  # fmt: skip
 
     # -- closing -------------------------------------------------------------------------------
     def close(self) -> None:

@@ -11,6 +11,7 @@ from cobelrun.config import instantiate
 from cobelrun.envs import GridWorldEnv, from_layout
 from cobelrun.envs.world import World
 from cobelrun.errors import ConfigError, LayoutError
+from cobelrun.recorder import STEP_NS
 from tests.test_configs import _compose
 
 
@@ -140,3 +141,51 @@ def test_linear_track_pma_replays_forward_at_the_start_and_reverse_at_the_end(li
     assert counts.loc["start", "forward"] > 10 * max(1, counts.loc["start", "reverse"])
     assert counts.loc["end", "reverse"] > 10 * max(1, counts.loc["end", "forward"])
     assert counts.loc["end", "reverse"] > 50
+
+
+# ------------------------------------------------------------------ replays in run.mcap
+def test_replays_are_drawn_in_the_mcap_as_a_second_path(tmp_path):
+    """Read ``run.mcap`` back: one SceneUpdate per replay bout on ``/run_NNNN/replay`` at the
+    trial's start or end event, its line strips through the replayed states' cells."""
+    import cobelrun
+    from cobelrun.analysis.replay import replay_events
+    from tests.test_mcap import read
+
+    run = cobelrun.run("dyna_maze", ["task.runs=3", "task.protocol.phases.0.trials=6",
+                                     "task.record.mcap_runs=2"], out=tmp_path / "run")  # fmt: skip
+    msgs = read(run.path / "run.mcap")
+    replays = run.table("replays")
+    world = instantiate("env", _compose("task=dyna_maze").env).unwrapped.world
+    trial_t = {(m[3]["run"], m[3]["trial"], m[3]["event"]): m[2] for m in msgs if m[0] == "/trial"}
+    assert not any(m[0] == "/run_0002/replay" for m in msgs)  # only the kept runs
+    for r in (0, 1):
+        drawn = [m for m in msgs if m[0] == f"/run_{r:04d}/replay"]
+        assert {m[1] for m in drawn} == {"foxglove.SceneUpdate"}
+        bouts = replays[replays["run"] == r].groupby(["trial", "when"], sort=False)
+        assert len(drawn) == bouts.ngroups > 0
+        events = replay_events(replays[replays["run"] == r])
+        for (_, t_ns, msg), ((trial, when), bout) in zip(
+            [(m[0], m[2], m[3]) for m in sorted(drawn, key=lambda m: m[2])],
+            sorted(bouts, key=lambda kv: (kv[0][0], kv[0][1] == "end")), strict=True,
+        ):  # fmt: skip
+            assert t_ns == trial_t[(r, trial, "start" if when == "start" else "end")]
+            (entity,) = msg.entities
+            meta = {kv.key: kv.value for kv in entity.metadata}
+            assert meta["trial"] == str(trial) and meta["when"] == when
+            assert (
+                meta["backups"] == str(len(bout))
+                and entity.lifetime.ToNanoseconds() == 10 * STEP_NS
+            )
+            ev = events[(events["trial"] == trial) & (events["when"] == when)]
+            n_lines = sum(1 if d in ("forward", "reverse") else n
+                          for d, n in zip(ev["direction"], ev["length"], strict=True))  # fmt: skip
+            assert len(entity.lines) == n_lines == len(entity.spheres)
+            # every drawn point is a replayed state's cell, and together they cover them all
+            xy = {(p.x, p.y) for line in entity.lines for p in line.points}
+            states = np.unique(np.concatenate([bout["state"], bout["next_state"]]))
+            assert xy == {tuple(c) for c in world.coords[states].tolist()}
+            forward = ev[ev["direction"] == "forward"]
+            if len(forward):  # a forward event's strip runs s_1, s'_1, s'_2, ... in replay order
+                first = bout.iloc[int(forward["first"].iloc[0]) :][: int(forward["length"].iloc[0])]
+                want = world.coords[np.r_[first["state"].iloc[0], first["next_state"]]].tolist()
+                assert any([[p.x, p.y] for p in line.points] == want for line in entity.lines)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -40,6 +40,7 @@ __all__ = [
     "Monitor",
     "ResponseMonitor",
     "RewardMonitor",
+    "ScenePath",
     "Table",
     "TrajectoryMonitor",
     "TrialKeysMonitor",
@@ -89,6 +90,44 @@ class BatchInfo:
 
 Emit = Callable[[str, Mapping[str, Any]], None]
 
+#: kinds of :class:`ScenePath` segments (drawn in different colours)
+PATH_KINDS = ("forward", "reverse", "mixed", "none")
+
+
+@dataclass(frozen=True)
+class ScenePath:
+    """A path a monitor draws over the maze in ``run.mcap`` at the start or end of a trial
+    (e.g. a replay event: a second, highlighted path beside the agent's pose).
+
+    Attributes
+    ----------
+    name
+        Topic suffix: the path goes on ``/run_NNNN/<name>`` (a ``foxglove.SceneUpdate``).
+    trial
+        Position of the trial in the batch (0-based).
+    at
+        ``"start"`` (logged with the trial's first pose) or ``"end"`` (with its last pose).
+    segments
+        Polylines, each ``(k, 2)`` points ``x, y`` in world units, in the order they are run.
+    kinds
+        One of :data:`PATH_KINDS` per segment (its colour).
+    metadata
+        Key/value strings written with the scene entity.
+    """
+
+    name: str
+    trial: int
+    at: str
+    segments: tuple[np.ndarray, ...]
+    kinds: tuple[str, ...]
+    metadata: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.at not in ("start", "end"):
+            raise ValueError(f"ScenePath.at must be 'start' or 'end', got {self.at!r}")
+        if len(self.kinds) != len(self.segments) or not set(self.kinds) <= set(PATH_KINDS):
+            raise ValueError(f"ScenePath.kinds: one of {PATH_KINDS} per segment")
+
 
 class Monitor(abc.ABC):
     """Base class: declare :meth:`tables`, fill them in :meth:`on_batch` (or emit rows)."""
@@ -126,6 +165,11 @@ class Monitor(abc.ABC):
     def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
         """Columns for the batch's rows, by table name."""
         return {}
+
+    def scene_paths(self, batch: TrialBatch, info: BatchInfo) -> list[ScenePath]:
+        """Paths to draw in ``run.mcap`` for this batch (asked after :meth:`on_batch`, only
+        for the runs the MCAP keeps); none by default."""
+        return []
 
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:  # noqa: B027
         """The run's last trial is over."""

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from cobelrun.agents import PMA, DynaQ
+from cobelrun.agents.replay_log import ReplayLog
 from cobelrun.config import instantiate
 from cobelrun.envs import GridWorldEnv, from_layout
 from cobelrun.envs.world import World
@@ -189,3 +190,65 @@ def test_replays_are_drawn_in_the_mcap_as_a_second_path(tmp_path):
                 first = bout.iloc[int(forward["first"].iloc[0]) :][: int(forward["length"].iloc[0])]
                 want = world.coords[np.r_[first["state"].iloc[0], first["next_state"]]].tolist()
                 assert any([[p.x, p.y] for p in line.points] == want for line in entity.lines)
+
+
+# ------------------------------------------------------------------ SFMA definitions
+@pytest.mark.parametrize("mode", ["default", "reverse"])
+def test_sfma_first_reactivation_probabilities_are_cobel_v3s(mode):
+    """P(e) of the first reactivation, from CoBeL-RL v3's SFMAMemory.replay written out:
+    R = C * D[s_c, x(e)] * (1 - I), R /= max R, R < 1e-6 -> 0, P ~ exp(20 R) - 1."""
+    from cobelrun.agents import SFMA
+
+    env = GridWorldEnv(from_layout("S....G"))
+    agent = SFMA(env, seed=0, mode=mode, n_backups=1)
+    rng = np.random.default_rng(5)
+    S, A = agent.Q.shape
+    nxt = env.unwrapped.world.next_state
+    agent.model_next[:] = nxt
+    agent.model_next[5] = -1  # the goal: never left
+    agent.strength[:] = np.where(agent.model_next >= 0, rng.integers(1, 5, (S, A)), 0)
+    x = np.where(mode == "reverse", nxt, np.arange(S)[:, None])
+    R = agent.strength * agent.similarity[2, x]
+    R /= R.max()
+    R[R < 1e-6] = 0.0
+    P = np.exp(20 * R) - 1
+    P /= P.sum()
+    agent._log = ReplayLog()  # the log a train call would open
+    picks = np.zeros((S, A))
+    for _ in range(4000):
+        agent._bout(2, 0, 1)
+    rep = agent._log.collect()
+    np.add.at(picks, (rep["state"], rep["action"]), 1)
+    np.testing.assert_allclose(rep["gain"], P[rep["state"], rep["action"]], rtol=1e-9)
+    np.testing.assert_allclose(picks / picks.sum(), P, atol=0.025)
+
+
+def test_sfma_reward_memory_is_a_running_average():
+    from cobelrun.agents import SFMA
+
+    env = GridWorldEnv(from_layout("SG", reward_sd=0.1))
+    agent = SFMA(env, seed=0, learning_rate=0.9, replay="off")
+    env.unwrapped.np_random = np.random.default_rng(0)
+    batch = agent.train(3, 10)
+    est = 0.0
+    for r in batch.reward:
+        est += 0.9 * (r - est)
+    assert agent.model_reward[0, 2] == pytest.approx(est)
+
+
+def test_sfma_on_the_linear_track_reverse_share_depends_on_the_mode(tmp_path):
+    """Diekmann & Cheng's headline on the linear track: the default mode replays forward and
+    reverse sequences alike, the reverse mode almost only reverse ones."""
+    import cobelrun
+    from cobelrun.analysis.replay import direction_counts, replay_events
+
+    share = {}
+    for mode in ("default", "reverse"):
+        run = cobelrun.run("linear_track", ["agent=sfma", f"agent.mode={mode}", "task.runs=5",
+                                            "task.protocol.phases.0.trials=30",
+                                            "task.record.mcap=false", "task.save_agents=false"],
+                           out=tmp_path / mode)  # fmt: skip
+        counts = direction_counts(replay_events(run.table("replays")), 5).loc["end"]
+        assert counts["forward"] + counts["reverse"] >= 40, counts
+        share[mode] = counts["reverse"] / (counts["forward"] + counts["reverse"])
+    assert 0.25 < share["default"] < 0.8 and share["reverse"] > 0.9, share

@@ -299,9 +299,10 @@ def sfma_bout(
     ``C`` the experience strength (frequency), ``D`` the similarity of states, ``I`` the
     inhibition of return (reset per bout; after each reactivation ``I *= decay``,
     ``I(s) = min(I(s) + 1, 1)``). ``R`` is normalised by its maximum, thresholded and turned
-    into reactivation probabilities ``softmax(beta_replay * R)`` over the experiences with
-    ``R > threshold`` (or the argmax if ``deterministic``). Every reactivated experience is
-    a Q-learning backup with rate ``alpha``.
+    into reactivation probabilities ``P(e) ~ exp(beta_replay * R(e)) - 1`` (CoBeL-RL v3's
+    softmax with offset -1) over the experiences with ``R >= threshold`` (or the argmax if
+    ``deterministic``). Every reactivated experience is a Q-learning backup with rate
+    ``alpha``.
     """
     S, A = Q.shape
     inhibition = np.zeros(S)
@@ -330,8 +331,8 @@ def sfma_bout(
             r = prio[i] / best
             if r < threshold:
                 prio[i] = 0.0
-            else:
-                prio[i] = np.exp(beta_replay * (r - 1.0))
+            else:  # CoBeL-RL v3's softmax with offset -1: exp(beta r) - 1, scaled by exp(-beta)
+                prio[i] = np.exp(beta_replay * (r - 1.0)) - np.exp(-beta_replay)
                 total += prio[i]
                 if deterministic and chosen < 0 and r == 1.0:
                     chosen = i

@@ -148,3 +148,68 @@ def test_revaluation_pattern_with_20_runs_and_replay_budgets():
     assert scores[("policy", "sr_dyna", 1)] <= 0.3 and scores[("policy", "dyna_q", 1)] <= 0.3
     assert scores[("reward", "sr_td", -1)] >= 0.9 and scores[("transition", "sr_td", -1)] <= 0.1
     assert scores[("transition", "sr_mb", -1)] >= 0.9 and scores[("policy", "sr_mb", -1)] <= 0.1
+
+
+# ------------------------------------------------------------------ Russek's grid designs
+def _optimal_q(world):
+    """Optimal Q of a known world (arrival rewards, no bootstrap from terminals)."""
+    V = np.zeros(world.n_states)
+    for _ in range(500):
+        Q = world.T @ (world.rewards + 0.9 * V)
+        V = np.where(world.terminal, 0.0, Q.max(axis=1))
+    return Q
+
+
+@pytest.mark.parametrize("design", ["reward", "transition", "policy"])
+def test_grid_designs_need_a_new_path_from_the_start(design):
+    """In every grid design the phase-1 optimal path from the start does not reach the new goal
+    in the phase-2 world, and the phase-2 optimal path does (within 1.5 x the shortest)."""
+    from cobelrun.revaluation import GRID_DESIGNS, greedy_reaches
+
+    grid = GRID_DESIGNS[design]
+
+    class Oracle:  # an agent that knows the optimal values of a world
+        def __init__(self, world):
+            self.Q = _optimal_q(world)
+
+        def predict(self, states):
+            return self.Q[states]
+
+    env = GridWorldEnv(grid.world())
+    before = Oracle(env.unwrapped.world)
+    grid.apply(env)
+    world = env.unwrapped.world
+    start, goal = world.state(grid.start), world.state(grid.goal)
+    rng = np.random.default_rng(0)
+    assert greedy_reaches(before, world, start, goal, rng) == 0.0
+    assert greedy_reaches(Oracle(world), world, start, goal, rng) == 1.0
+    if design == "policy":  # the states between the start and B pointed to A in phase 1
+        q1 = before.Q
+        row = [world.state([1, c]) for c in range(5, 9)]
+        assert (q1[row].argmax(axis=1) == 0).all()  # left, towards A
+    if design == "transition":  # the upper corridor cannot lead back into the start
+        door = world.state("door")
+        assert world.next_state[door, 3] == door  # down from the door is blocked
+
+
+def test_grid_design_phase_two_changes():
+    from cobelrun.revaluation import GRID_DESIGNS
+
+    env = GridWorldEnv(GRID_DESIGNS["reward"].world())
+    w = env.unwrapped.world
+    assert not w.terminal.any() and not w.rewards.any()  # latent learning: no reward at first
+    assert len(np.unique(w.starts)) == int((~w.blocked).sum())  # exploration from everywhere
+    GRID_DESIGNS["reward"].apply(env)
+    assert w.rewards[w.state("R")] == 10 and w.terminal[w.state("R")]
+    assert sorted(w.starts.tolist()) == sorted([w.state("R_up"), w.state("R_left")])
+    env = GridWorldEnv(GRID_DESIGNS["transition"].world())
+    w = env.unwrapped.world
+    share = np.mean(w.starts == w.state("start"))
+    assert 0.45 < share < 0.55  # half of the phase-1 trials start at the start
+    b, c = w.state("B"), w.state("C")
+    assert w.next_state[b, 2] == c
+    GRID_DESIGNS["transition"].apply(env)
+    assert env.unwrapped.world.next_state[b, 2] == b  # walled off
+    with pytest.raises(ConfigError, match=r"task.job.maze 'maze' is not known"):
+        RevaluationJob(design="reward", agents={"q": {"_target_": "cobelrun.agents.DynaQ"}},
+                       maze="maze")  # fmt: skip

@@ -367,3 +367,43 @@ def sfma_bout(
         cur_s = s
         done += 1
     return done
+
+
+@njit(cache=True)
+def sr_dyna_replay(rng, M, w, model_next, pairs, terminal, n, gamma, lr):  # pragma: no cover
+    """SR-Dyna's replay after a step (Russek et al. 2017): ``n`` experiences drawn uniformly
+    (with replacement) from the experienced pairs ``pairs`` (flat ``s * A + a``), each a TD
+    update ``M(s,a,:) += lr (1_{s'} + gamma M(s', a*, :) - M(s,a,:))`` with ``s'`` the pair's
+    last outcome and ``a* = argmax_b M(s', b, :) . w`` (random tie-break; no bootstrap from a
+    terminal ``s'``)."""
+    S, A = model_next.shape
+    q = np.empty(A)
+    target = np.empty(S)
+    for _ in range(n):
+        i = pairs[randint(rng, pairs.shape[0])]
+        ps, pa = i // A, i % A
+        ps2 = model_next[ps, pa]
+        best = -np.inf
+        ties = 0
+        for b in range(A):
+            v = 0.0
+            for k in range(S):
+                v += M[ps2, b, k] * w[k]
+            q[b] = v
+            if v > best:
+                best, ties = v, 1
+            elif v == best:
+                ties += 1
+        j = randint(rng, ties)
+        a2 = 0
+        for b in range(A):
+            if q[b] == best:
+                if j == 0:
+                    a2 = b
+                    break
+                j -= 1
+        for k in range(S):
+            target[k] = 0.0 if terminal[ps2] else gamma * M[ps2, a2, k]
+        target[ps2] += 1.0
+        for k in range(S):
+            M[ps, pa, k] += lr * (target[k] - M[ps, pa, k])

@@ -346,13 +346,16 @@ class RunRecorder:
             self._writer.submit(_write_columns, sink.writer, parts)
 
     # -- batches -------------------------------------------------------------------------------
-    def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
-        """Hand a batch of trials (1-based ``first_trial``) to every monitor and buffer the rows.
+    def record(
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch, first_in_phase: int = 1
+    ) -> None:
+        """Hand a batch of trials (1-based ``first_trial``; ``first_in_phase`` its first trial's
+        position in the phase) to every monitor and buffer the rows.
 
         All tables of a batch are buffered in one critical section: a signal never leaves a
         batch's trials without its steps."""
         with self.guard.critical():
-            self._record(run, phase, first_trial, batch)
+            self._record(run, phase, first_trial, batch, first_in_phase)
 
     def _batch_monitors(self, steps_recorded: bool) -> list[Monitor]:
         """Monitors whose batch rows are written: a monitor that fills only per-step tables
@@ -372,11 +375,14 @@ class RunRecorder:
             self._active[key] = active
         return self._active[key]
 
-    def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
+    def _record(
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch, first_in_phase: int = 1
+    ) -> None:
         n = batch.n_trials
         if n == 0:
             return
-        info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
+        info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env,
+                         first_in_phase=first_in_phase)  # fmt: skip
         merged: dict[str, dict[str, Any]] = {}
         for m in self._batch_monitors(self.record_cfg.records_run(run)):
             for table, cols in m.on_batch(batch, info).items():

@@ -289,7 +289,7 @@ def execute(
                     task.protocol.apply_trial(phase, k, env)
                     callbacks = recorder.phase_callbacks(first + k, run)
                     batch = go(n, max_steps, callbacks) if callbacks else go(n, max_steps)
-                    recorder.record(run, phase.name, first + k, batch)
+                    recorder.record(run, phase.name, first + k, batch, first_in_phase=k + 1)
                 if phase_times is not None:
                     phase_times[phase.name] = (
                         phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase

@@ -92,6 +92,7 @@ def test_a_phase_cycle_changes_the_world_trial_by_trial_for_compiled_agents(tmp_
     assert np.all(paid == np.where(ends == 0, west, np.where(ends == 6, east, 0)))
     assert (paid == 2).any() and (paid == 1).any()
     assert set(t[t["phase"] == "a"]["start_state"]) == {3}  # before the cycle: the layout's start
+    assert laps.groupby("run")["trial_in_phase"].apply(list).map(list(range(1, 7)).__eq__).all()
 
 
 def test_bad_cycle_is_one_line_config_error():

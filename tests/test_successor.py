@@ -213,3 +213,45 @@ def test_grid_design_phase_two_changes():
     with pytest.raises(ConfigError, match=r"task.job.maze 'maze' is not known"):
         RevaluationJob(design="reward", agents={"q": {"_target_": "cobelrun.agents.DynaQ"}},
                        maze="maze")  # fmt: skip
+
+
+def _grid_scores(agents, runs, budgets=(0,)):
+    cfg = _compose("task=reward_revaluation")
+    nodes = {k: v for k, v in cfg.task.job.agents.items() if k in agents}
+    scores = {}
+    for design in ("reward", "transition", "policy"):
+        job = RevaluationJob(design=design, agents=nodes, runs=runs, replay_budgets=list(budgets),
+                             maze="grid")  # fmt: skip
+        for row in revaluation_scores(job.table(seed=0)).itertuples():
+            scores[(design, row.agent, row.replay_budget)] = (row.score, row.after)
+    return scores
+
+
+def test_russek_pattern_in_the_grid_designs():
+    """Russek et al.'s gridworlds, 5 seeded runs: SR-TD solves latent learning only, SR-MB
+    latent learning and the detour but not policy revaluation, Q-learning none, value
+    iteration all three (score: greedy paths from the start reaching the new goal)."""
+    scores = _grid_scores(("q_learning", "sr_td", "sr_mb", "value_iteration"), runs=5)
+    solves = {
+        "q_learning": (False, False, False),
+        "sr_td": (True, False, False),
+        "sr_mb": (True, True, False),
+        "value_iteration": (True, True, True),
+    }
+    for agent, expected in solves.items():
+        for design, ok in zip(("reward", "transition", "policy"), expected, strict=True):
+            score, after = scores[(design, agent, -1)]
+            assert (score >= 0.8 and after == 1.0) if ok else score <= 0.2, (design, agent, score)
+
+
+@pytest.mark.slow
+def test_grid_designs_need_enough_replay():
+    """Dyna-Q and SR-Dyna solve all three grid revaluations with 1000 backups per step, and
+    Dyna-Q none with 10 (20 runs, the setting of docs/replay.md)."""
+    scores = _grid_scores(("dyna_q", "sr_dyna"), runs=20, budgets=(10, 1000))
+    for design in ("reward", "transition", "policy"):
+        for agent in ("dyna_q", "sr_dyna"):
+            score, after = scores[(design, agent, 1000)]
+            assert after >= 0.95 and score >= 0.7, (design, agent, score, after)
+        assert scores[(design, "dyna_q", 10)][0] <= 0.1
+    assert scores[("reward", "sr_dyna", 10)][0] >= 0.7  # SR-Dyna: latent learning without much replay

@@ -83,6 +83,9 @@ class BatchInfo:
     phase: str
     first_trial: int
     env: Any
+    #: position of the batch's first trial in its phase (1-based; >1 when a phase with a
+    #: per-trial ``cycle`` is recorded trial by trial)
+    first_in_phase: int = 1
 
     def trials(self, n: int) -> np.ndarray:
         return np.arange(self.first_trial, self.first_trial + n, dtype=np.int32)
@@ -192,7 +195,8 @@ class TrialKeysMonitor(Monitor):
         return {"trials": {
             "run": np.full(n, info.run, np.int32), "trial": info.trials(n),
             "phase": np.full(n, info.phase, dtype=object),
-            "trial_in_phase": np.arange(1, n + 1, dtype=np.int32),
+            "trial_in_phase": np.arange(info.first_in_phase, info.first_in_phase + n,
+                                        dtype=np.int32),
             "start_state": batch.start_state, "end_state": batch.end_state,
             "terminated": batch.terminated,
         }}  # fmt: skip

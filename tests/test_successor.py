@@ -252,6 +252,6 @@ def test_grid_designs_need_enough_replay():
     for design in ("reward", "transition", "policy"):
         for agent in ("dyna_q", "sr_dyna"):
             score, after = scores[(design, agent, 1000)]
-            assert after >= 0.95 and score >= 0.7, (design, agent, score, after)
+            assert after >= 0.9 and score >= 0.7, (design, agent, score, after)
         assert scores[(design, "dyna_q", 10)][0] <= 0.1
     assert scores[("reward", "sr_dyna", 10)][0] >= 0.7  # SR-Dyna: latent learning without much replay

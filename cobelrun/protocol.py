@@ -3,6 +3,10 @@
 A phase has a name, a number of trials and the changes it makes to the environment when it
 starts: reward placement, terminal states, start states, and whether the agent learns.
 Changes persist into later phases unless a later phase changes them again.
+
+A phase may also change the environment trial by trial: its ``cycle`` is a list of changes,
+and trial ``k`` of the phase (0-based) starts with ``cycle[k % len(cycle)]`` applied (after the
+phase's own changes). Laps on a linear track alternate their start that way.
 """
 
 from __future__ import annotations
@@ -13,6 +17,19 @@ from typing import Any
 
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.schema import ProtocolSpec, validate
+
+
+@dataclass(frozen=True)
+class Changes:
+    """Changes to the environment: ``{state: reward}``, ``{state: terminal}`` and start states
+    (``None``: unchanged); states as in :class:`Phase`."""
+
+    rewards: Mapping[Any, float] = field(default_factory=dict)
+    terminals: Mapping[Any, bool] = field(default_factory=dict)
+    starts: Sequence[Any] | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.rewards or self.terminals or self.starts is not None)
 
 
 @dataclass(frozen=True)
@@ -36,6 +53,9 @@ class Phase:
         ``{state: bool}`` set when the phase starts.
     starts
         Start states from this phase on.
+    cycle
+        Per-trial changes: trial ``k`` of the phase starts with ``cycle[k % len(cycle)]``
+        applied (empty: none). The agent then runs one trial per ``train``/``test`` call.
     """
 
     name: str
@@ -45,6 +65,7 @@ class Phase:
     rewards: Mapping[Any, float] = field(default_factory=dict)
     terminals: Mapping[Any, bool] = field(default_factory=dict)
     starts: Sequence[Any] | None = None
+    cycle: tuple[Changes, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -76,6 +97,14 @@ class Protocol:
                 rewards=dict(p.rewards),
                 terminals=dict(p.terminals),
                 starts=None if p.starts is None else list(p.starts),
+                cycle=tuple(
+                    Changes(
+                        rewards=dict(c.rewards),
+                        terminals=dict(c.terminals),
+                        starts=None if c.starts is None else list(c.starts),
+                    )
+                    for c in (p.cycle or ())
+                ),
             )
             for p in spec.phases
         )
@@ -83,7 +112,16 @@ class Protocol:
 
     def apply(self, phase: Phase, env: Any) -> None:
         """Apply a phase's changes to ``env`` (which must offer ``apply_changes``)."""
-        if not (phase.rewards or phase.terminals or phase.starts is not None):
+        self._change(phase, Changes(phase.rewards, phase.terminals, phase.starts), env)
+
+    def apply_trial(self, phase: Phase, k: int, env: Any) -> None:
+        """Apply the changes of trial ``k`` (0-based) of ``phase``'s cycle (if it has one)."""
+        if phase.cycle:
+            self._change(phase, phase.cycle[k % len(phase.cycle)], env)
+
+    @staticmethod
+    def _change(phase: Phase, changes: Changes, env: Any) -> None:
+        if not changes:
             return
         from cobelrun.envs.base import Changeable, supports
 
@@ -94,8 +132,9 @@ class Protocol:
                 "does not support changes (no 'changeable' contract)"
             )
         base.apply_changes(
-            rewards=phase.rewards or None, terminals=phase.terminals or None, starts=phase.starts
-        )
+            rewards=changes.rewards or None, terminals=changes.terminals or None,
+            starts=changes.starts,
+        )  # fmt: skip
 
     def check(self, env: Any) -> None:
         """Apply every phase's changes once, in order, then restore the world: a bad state name,
@@ -104,13 +143,16 @@ class Protocol:
         An env's own checks may raise ``ValueError``/``KeyError``/``TypeError``; they become a
         ConfigError too, so a user's env module still gives the one-line error.
         """
-        changing = [p for p in self.phases if p.rewards or p.terminals or p.starts is not None]
+        changing = [p for p in self.phases
+                    if p.rewards or p.terminals or p.starts is not None or p.cycle]  # fmt: skip
         if not changing:
             return
         try:
             for phase in changing:
                 try:
                     self.apply(phase, env)
+                    for k in range(len(phase.cycle or ())):  # each entry of a per-trial cycle
+                        self.apply_trial(phase, k, env)
                 except CobelError:
                     raise
                 except (ValueError, KeyError, TypeError) as exc:

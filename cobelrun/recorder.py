@@ -42,6 +42,8 @@ from cobelrun.schema import RecordSpec, validate
 
 #: simulated time per step in the MCAP stream (100 ms)
 STEP_NS = 100_000_000
+#: how long a monitor's path (a replay event) stays drawn in the MCAP viewer: 10 steps
+PATH_LIFETIME_NS = 10 * STEP_NS
 #: Parquet key/value metadata schema version of cobel's tables
 SCHEMA_VERSION = "2"
 
@@ -392,13 +394,16 @@ class RunRecorder:
             self._writer.submit(_write_columns, sink.writer, parts)
 
     # -- batches -------------------------------------------------------------------------------
-    def record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
-        """Hand a batch of trials (1-based ``first_trial``) to every monitor and buffer the rows.
+    def record(
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch, first_in_phase: int = 1
+    ) -> None:
+        """Hand a batch of trials (1-based ``first_trial``; ``first_in_phase`` its first trial's
+        position in the phase) to every monitor and buffer the rows.
 
         All tables of a batch are buffered in one critical section: a signal never leaves a
         batch's trials without its steps."""
         with self.guard.critical():
-            self._record(run, phase, first_trial, batch)
+            self._record(run, phase, first_trial, batch, first_in_phase)
 
     def _batch_monitors(
         self, steps_recorded: bool, monitors: Sequence[Monitor] | None = None
@@ -426,20 +431,25 @@ class RunRecorder:
             self._active[key] = active
         return self._active[key]
 
-    def _record(self, run: int, phase: str, first_trial: int, batch: TrialBatch) -> None:
-        rows = self._rows(run, phase, first_trial, batch, self.monitors)
+    def _record(
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch, first_in_phase: int = 1
+    ) -> None:
+        rows = self._rows(run, phase, first_trial, batch, self.monitors, first_in_phase)
         if rows is not None:
             self._commit_rows(*rows)
 
     def _rows(
-        self, run: int, phase: str, first_trial: int, batch: TrialBatch, monitors: Sequence[Monitor]
-    ) -> tuple[list[tuple[str, dict[str, Any], int]], Any, Any] | None:
+        self, run: int, phase: str, first_trial: int, batch: TrialBatch,
+        monitors: Sequence[Monitor], first_in_phase: int = 1,
+    ) -> tuple[list[tuple[str, dict[str, Any], int]], Any, Any] | None:  # fmt: skip
         """The monitors' rows of a batch: ``([(table, columns, n_rows)], mcap arguments,
-        (batch, info) for the joinable monitors' bulk-built step rows or None)``."""
+        (batch, info) for the joinable monitors' bulk-built step rows or None)``;
+        ``first_in_phase`` is the batch's first trial's position in its phase (1-based)."""
         n = batch.n_trials
         if n == 0:
             return None
-        info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env)
+        info = BatchInfo(run=run, phase=phase, first_trial=first_trial, env=self.env,
+                         first_in_phase=first_in_phase)  # fmt: skip
         merged: dict[str, dict[str, Any]] = {}
         for m in self._batch_monitors(self.record_cfg.records_run(run), monitors):
             for table, cols in m.on_batch(batch, info).items():
@@ -583,6 +593,14 @@ class RunRecorder:
                 batch.start_state, batch.end_state, batch.steps, batch.reward,
                 None if response is None else np.asarray(response),
             )  # fmt: skip
+            info = BatchInfo(run=run, phase=phase, first_trial=int(trial[0]), env=self.env)
+            for m in self.monitors:
+                paths = m.scene_paths(batch, info)
+                if paths:
+                    times = [int((t[start_pos] if p.at == "start" else t[end_pos])[p.trial])
+                             for p in paths]  # fmt: skip
+                    self._writer.submit(self.mcap.write_paths, run, times, paths,
+                                        PATH_LIFETIME_NS)  # fmt: skip
 
     @property
     def writer_cpu_s(self) -> float:

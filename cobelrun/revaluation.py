@@ -20,21 +20,40 @@ come from the agent's representation or from replay:
 In all three the newly best first choice is ``a2``. **Revaluation score** (per agent): the
 fraction of runs whose greedy choice at ``start`` (between ``a0`` and ``a2``, ties count 1/2) is
 ``a2`` after phase 2, minus the same fraction after phase 1. 1: every run revalues; 0: none does.
+
+**Grid versions** (``maze: grid``, :data:`GRID_DESIGNS`), the gridworld designs of Russek et al.
+(2017): the decisive choice lies several steps before the change, and the score is whether the
+greedy path from the start reaches the new goal (:func:`greedy_reaches`):
+
+* ``reward`` (latent learning): phase 1 explores a 7 x 7 maze without reward (random starts);
+  phase 2 puts a reward of 10 on ``R`` (terminal) and starts next to it;
+* ``transition`` (detour): phase 1 learns the short middle corridor to ``G`` (random starts; an
+  upper corridor, entered from the start through a one-way door, also leads there); phase 2 walls
+  the middle corridor off in front of ``B`` and starts the agent at ``B`` for one step;
+* ``policy``: a 3 x 11 strip with ``A`` (10) at one end and ``B`` (5) at the other, the start
+  nearer ``A``; phase 2 raises ``B`` to 20 and starts next to it for one step: the states between
+  the start and ``B`` still point towards ``A``.
+
+Score: per run, the share of greedy rollouts (ties broken at random) from the start in the
+phase-2 world that reach the new goal within 1.5 x its shortest path, after phase 2 minus the
+same before phase 2 (after phase 1).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from cobelrun.envs.world import World
+from cobelrun.envs.world import World, from_layout
 from cobelrun.errors import ConfigError, allowed_list
 
 DESIGNS = ("reward", "transition", "policy")
+MAZES = ("graph", "grid")
 PLACES = {"start": 0, "A": 1, "B": 2, "end_A": 3, "end_B1": 4, "pre_B2": 5, "end_B2": 6}
 OLD_BEST, NEW_BEST = 0, 2  # actions at start: a0 -> A, a2 -> B
 LEFT, UP, RIGHT, DOWN = 0, 1, 2, 3
@@ -101,6 +120,144 @@ def start_choice(agent: Any) -> float:
     return float(q[NEW_BEST] > q[OLD_BEST])
 
 
+# ---------------------------------------------------------------------------- grid designs
+@dataclass(frozen=True)
+class GridDesign:
+    """A revaluation in a gridworld: the phase-1 world, the phase-2 changes, the test.
+
+    Attributes
+    ----------
+    layout, places, rewards, terminals, one_way
+        The phase-1 world (:func:`~cobelrun.envs.world.from_layout`).
+    start_share
+        Share of phase-1 trials that begin at ``start`` (the others: every free non-terminal
+        cell alike), so that the route from the start is learned.
+    rewards_2, terminals_2, starts_2, walls_2
+        Phase 2: new rewards, terminal flags, starts and walls.
+    trials, max_steps
+        ``(phase 1, phase 2)`` trial counts and step limits.
+    start, goal
+        The test: greedy rollouts from ``start`` must reach ``goal``.
+    """
+
+    layout: str
+    places: dict[str, tuple[int, int]]
+    trials: tuple[int, int]
+    max_steps: tuple[int, int]
+    start: str
+    goal: str
+    rewards: dict[str, float] = field(default_factory=dict)
+    terminals: tuple[str, ...] = ()
+    one_way: tuple[tuple[str, str], ...] = ()
+    start_share: float = 0.0
+    rewards_2: dict[str, float] = field(default_factory=dict)
+    terminals_2: dict[str, bool] = field(default_factory=dict)
+    starts_2: tuple[str, ...] = ()
+    walls_2: tuple[tuple[str, str], ...] = ()
+
+    def world(self, phase: int = 1) -> World:
+        """The world of phase 1 (or, with ``phase=2``, with phase 2's walls)."""
+        places = {k: list(v) for k, v in self.places.items()}
+        w = from_layout(self.layout, places=places, goal_reward=0.0, rewards=self.rewards,
+                        terminals=list(self.terminals) or None,
+                        one_way=[list(p) for p in self.one_way],
+                        walls=[list(p) for p in self.walls_2] if phase == 2 else ())  # fmt: skip
+        cells = np.flatnonzero(~w.blocked & ~w.terminal).tolist()
+        extra = round(self.start_share / (1.0 - self.start_share) * len(cells))
+        w.set_starts(cells + [w.state(self.start)] * extra)  # reset draws uniformly over these
+        return w
+
+    def apply(self, env: Any) -> None:
+        """Phase 2's changes to an environment built on :meth:`world`."""
+        base = env.unwrapped
+        if self.walls_2:
+            base.world.T = self.world(2).T
+        base.apply_changes(starts=list(self.starts_2))  # first: a new terminal may be a start
+        base.apply_changes(rewards=self.rewards_2 or None, terminals=self.terminals_2 or None)
+
+
+#: Russek et al. (2017)'s three revaluations as gridworlds (see the module docstring)
+GRID_DESIGNS: dict[str, GridDesign] = {
+    "reward": GridDesign(
+        layout="""
+            S.....#
+            .####.#
+            .#....#
+            .#.####
+            .#.....
+            .####..
+            .......
+        """,
+        places={"start": (0, 0), "R": (6, 6), "R_up": (5, 6), "R_left": (6, 5)},
+        trials=(100, 20),
+        max_steps=(50, 5),
+        start="start",
+        goal="R",
+        rewards_2={"R": 10.0},
+        terminals_2={"R": True},
+        starts_2=("R_up", "R_left"),
+    ),
+    "transition": GridDesign(
+        layout="""
+            .........
+            .#######.
+            S.......G
+        """,
+        places={"start": (2, 0), "goal": (2, 8), "B": (2, 4), "C": (2, 5), "door": (1, 0)},
+        rewards={"goal": 10.0},
+        one_way=(("door", "start"),),
+        start_share=0.5,
+        trials=(400, 20),
+        max_steps=(30, 1),
+        start="start",
+        goal="goal",
+        starts_2=("B",),
+        walls_2=(("B", "C"),),
+    ),
+    "policy": GridDesign(
+        layout="""
+            ...........
+            ....S......
+            ...........
+        """,
+        places={"start": (1, 4), "A": (1, 0), "B": (1, 10), "B_left": (1, 9)},
+        rewards={"A": 10.0, "B": 5.0},
+        terminals=("A", "B"),
+        start_share=0.5,
+        trials=(400, 20),
+        max_steps=(30, 1),
+        start="start",
+        goal="B",
+        rewards_2={"B": 20.0},
+        starts_2=("B_left",),
+    ),
+}
+
+
+def greedy_reaches(
+    agent: Any, world: World, start: int, goal: int, rng: np.random.Generator, rollouts: int = 10
+) -> float:
+    """Share of ``rollouts`` greedy walks (ties broken at random by ``rng``) from ``start``
+    that reach ``goal`` within 1.5 x its shortest path in ``world``; a walk stops at any
+    terminal state. The agent is only asked for its values (``predict``)."""
+    nxt = world.next_state
+    if nxt is None:
+        raise ConfigError("revaluation: the grid designs need a deterministic world")
+    shortest = int(world.distances([start])[goal])
+    limit = int(np.ceil(1.5 * shortest))
+    Q = np.asarray(agent.predict(np.arange(world.n_states)))
+    hits = 0
+    for _ in range(rollouts):
+        s = start
+        for _ in range(limit):
+            best = np.flatnonzero(Q[s] == Q[s].max())
+            s = int(nxt[s, best[rng.integers(best.size)] if best.size > 1 else best[0]])
+            if world.terminal[s]:
+                break
+        hits += int(s == goal)
+    return hits / rollouts
+
+
 class RevaluationJob:
     """``task.job`` of the revaluation tasks: every agent x replay budget x run, one table.
 
@@ -116,6 +273,10 @@ class RevaluationJob:
         Trials of phase 1 and phase 2 and the per-trial step limit.
     replay_budgets
         Values of ``replay_batch`` tried for agents that replay (Dyna-Q, SR-Dyna).
+    maze
+        ``graph`` (the two-stage graph; the trial counts and step limit above apply) or
+        ``grid`` (Russek et al.'s gridworld designs, :data:`GRID_DESIGNS`, with their own trial
+        counts and step limits).
     """
 
     def __init__(
@@ -127,6 +288,7 @@ class RevaluationJob:
         revaluation_trials: int = 20,
         max_steps: int = 10,
         replay_budgets: list[int] | tuple[int, ...] = (10,),
+        maze: str = "graph",
     ) -> None:
         from omegaconf import OmegaConf
 
@@ -137,6 +299,11 @@ class RevaluationJob:
                 f"task.job.design {design!r} is not known; allowed: {allowed_list(DESIGNS)}"
             )
         self.design = design
+        if maze not in MAZES:
+            raise ConfigError(
+                f"task.job.maze {maze!r} is not known; allowed: {allowed_list(MAZES)}"
+            )
+        self.maze = maze
         if OmegaConf.is_config(agents):
             agents = OmegaConf.to_container(agents, resolve=True)
         self.agents = {str(k): dict(v) for k, v in (agents or {}).items() if v is not None}
@@ -170,19 +337,33 @@ class RevaluationJob:
         return out
 
     def run_one(self, node: dict[str, Any], seed: int, run: int) -> tuple[float, float]:
-        """Greedy start choice (1 = new best) after phase 1 and after phase 2 of one run."""
+        """The test after phase 1 and after phase 2 of one run: the greedy choice at the start
+        (graph; 1 = new best) or the share of greedy paths reaching the new goal (grid)."""
         from cobelrun.config import instantiate
         from cobelrun.envs import GridWorldEnv
 
         agent_seed, env_seed = np.random.SeedSequence(seed, spawn_key=(run,)).spawn(2)
-        env = GridWorldEnv(revaluation_world())
+        if self.maze == "grid":
+            grid = GRID_DESIGNS[self.design]
+            env = GridWorldEnv(grid.world())
+            test_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(run, 1)))
+        else:
+            env = GridWorldEnv(revaluation_world())
         env.unwrapped.np_random = np.random.default_rng(env_seed)
         agent = instantiate("agent", node, env=env, seed=agent_seed)
-        agent.train(self.training_trials, self.max_steps)
-        before = start_choice(agent)
-        apply_revaluation(env, self.design)
-        agent.train(self.revaluation_trials, self.max_steps)
-        return before, start_choice(agent)
+        if self.maze == "graph":
+            agent.train(self.training_trials, self.max_steps)
+            before = start_choice(agent)
+            apply_revaluation(env, self.design)
+            agent.train(self.revaluation_trials, self.max_steps)
+            return before, start_choice(agent)
+        agent.train(grid.trials[0], grid.max_steps[0])
+        grid.apply(env)
+        world = env.unwrapped.world
+        start, goal = world.state(grid.start), world.state(grid.goal)
+        before = greedy_reaches(agent, world, start, goal, test_rng)
+        agent.train(grid.trials[1], grid.max_steps[1])
+        return before, greedy_reaches(agent, world, start, goal, test_rng)
 
     def table(self, seed: int, progress: Callable[..., None] | None = None) -> pd.DataFrame:
         """One row per (agent, budget, run): choices before and after the revaluation."""
@@ -191,8 +372,9 @@ class RevaluationJob:
         for i, (label, node, budget) in enumerate(variants):
             for run in range(self.runs):
                 before, after = self.run_one(node, seed, run)
-                rows.append({"design": self.design, "agent": label, "replay_budget": budget,
-                             "run": run, "choice_before": before, "choice_after": after})  # fmt: skip
+                rows.append({"design": self.design, "maze": self.maze, "agent": label,
+                             "replay_budget": budget, "run": run, "choice_before": before,
+                             "choice_after": after})  # fmt: skip
             if progress is not None:
                 progress(i + 1, len(variants))
         return pd.DataFrame(rows)
@@ -206,6 +388,6 @@ class RevaluationJob:
         table.to_csv(Path(run_dir) / "revaluation.csv", index=False)
         scores = revaluation_scores(table)
         scores.to_csv(Path(run_dir) / "revaluation_scores.csv", index=False)
-        return {"design": self.design,
+        return {"design": self.design, "maze": self.maze,
                 "scores": {f"{r.agent}@{r.replay_budget}": round(float(r.score), 3)
                            for r in scores.itertuples()}}  # fmt: skip

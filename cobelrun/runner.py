@@ -351,14 +351,16 @@ def execute(
                 task.protocol.apply(phase, env)
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
-                callbacks = recorder.phase_callbacks(first, run)
                 t_phase = time.perf_counter()
-                batch = (
-                    go(phase.trials, max_steps, callbacks)
-                    if callbacks
-                    else go(phase.trials, max_steps)
+                # a phase with a per-trial cycle runs (and records) one trial at a time
+                chunks = (
+                    [(k, 1) for k in range(phase.trials)] if phase.cycle else [(0, phase.trials)]
                 )
-                recorder.record(run, phase.name, first, batch)
+                for k, n in chunks:
+                    task.protocol.apply_trial(phase, k, env)
+                    callbacks = recorder.phase_callbacks(first + k, run)
+                    batch = go(n, max_steps, callbacks) if callbacks else go(n, max_steps)
+                    recorder.record(run, phase.name, first + k, batch, first_in_phase=k + 1)
                 if phase_times is not None:
                     phase_times[phase.name] = (
                         phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase

@@ -80,6 +80,22 @@ class Spec(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
+class TrialChangesSpec(Spec):
+    """The changes one trial of a phase's ``cycle`` makes (see :class:`cobelrun.protocol.Changes`)."""
+
+    rewards: Annotated[dict[State, float], Expect("a mapping state -> number")] = {}
+    terminals: Annotated[dict[State, bool], Expect("a mapping state -> true/false")] = {}
+    starts: Annotated[list[State] | None, Expect("a list of states")] = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _nulls_are_empty(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            data = {k: ({} if k in ("rewards", "terminals") and v is None else v)
+                    for k, v in data.items()}  # fmt: skip
+        return data
+
+
 class PhaseSpec(Spec):
     """One phase of a protocol (see :class:`cobelrun.protocol.Phase`)."""
 
@@ -90,6 +106,11 @@ class PhaseSpec(Spec):
     rewards: Annotated[dict[State, float], Expect("a mapping state -> number")] = {}
     terminals: Annotated[dict[State, bool], Expect("a mapping state -> true/false")] = {}
     starts: Annotated[list[State] | None, Expect("a list of states")] = None
+    cycle: Annotated[
+        list[TrialChangesSpec] | None,
+        Field(min_length=1),
+        Expect("a non-empty list of per-trial changes {rewards, terminals, starts}"),
+    ] = None
 
     @model_validator(mode="before")
     @classmethod

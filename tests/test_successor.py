@@ -148,3 +148,112 @@ def test_revaluation_pattern_with_20_runs_and_replay_budgets():
     assert scores[("policy", "sr_dyna", 1)] <= 0.3 and scores[("policy", "dyna_q", 1)] <= 0.3
     assert scores[("reward", "sr_td", -1)] >= 0.9 and scores[("transition", "sr_td", -1)] <= 0.1
     assert scores[("transition", "sr_mb", -1)] >= 0.9 and scores[("policy", "sr_mb", -1)] <= 0.1
+
+
+# ------------------------------------------------------------------ Russek's grid designs
+def _optimal_q(world):
+    """Optimal Q of a known world (arrival rewards, no bootstrap from terminals)."""
+    V = np.zeros(world.n_states)
+    for _ in range(500):
+        Q = world.T @ (world.rewards + 0.9 * V)
+        V = np.where(world.terminal, 0.0, Q.max(axis=1))
+    return Q
+
+
+@pytest.mark.parametrize("design", ["reward", "transition", "policy"])
+def test_grid_designs_need_a_new_path_from_the_start(design):
+    """In every grid design the phase-1 optimal path from the start does not reach the new goal
+    in the phase-2 world, and the phase-2 optimal path does (within 1.5 x the shortest)."""
+    from cobelrun.revaluation import GRID_DESIGNS, greedy_reaches
+
+    grid = GRID_DESIGNS[design]
+
+    class Oracle:  # an agent that knows the optimal values of a world
+        def __init__(self, world):
+            self.Q = _optimal_q(world)
+
+        def predict(self, states):
+            return self.Q[states]
+
+    env = GridWorldEnv(grid.world())
+    before = Oracle(env.unwrapped.world)
+    grid.apply(env)
+    world = env.unwrapped.world
+    start, goal = world.state(grid.start), world.state(grid.goal)
+    rng = np.random.default_rng(0)
+    assert greedy_reaches(before, world, start, goal, rng) == 0.0
+    assert greedy_reaches(Oracle(world), world, start, goal, rng) == 1.0
+    if design == "policy":  # the states between the start and B pointed to A in phase 1
+        q1 = before.Q
+        row = [world.state([1, c]) for c in range(5, 9)]
+        assert (q1[row].argmax(axis=1) == 0).all()  # left, towards A
+    if design == "transition":  # the upper corridor cannot lead back into the start
+        door = world.state("door")
+        assert world.next_state[door, 3] == door  # down from the door is blocked
+
+
+def test_grid_design_phase_two_changes():
+    from cobelrun.revaluation import GRID_DESIGNS
+
+    env = GridWorldEnv(GRID_DESIGNS["reward"].world())
+    w = env.unwrapped.world
+    assert not w.terminal.any() and not w.rewards.any()  # latent learning: no reward at first
+    assert len(np.unique(w.starts)) == int((~w.blocked).sum())  # exploration from everywhere
+    GRID_DESIGNS["reward"].apply(env)
+    assert w.rewards[w.state("R")] == 10 and w.terminal[w.state("R")]
+    assert sorted(w.starts.tolist()) == sorted([w.state("R_up"), w.state("R_left")])
+    env = GridWorldEnv(GRID_DESIGNS["transition"].world())
+    w = env.unwrapped.world
+    share = np.mean(w.starts == w.state("start"))
+    assert 0.45 < share < 0.55  # half of the phase-1 trials start at the start
+    b, c = w.state("B"), w.state("C")
+    assert w.next_state[b, 2] == c
+    GRID_DESIGNS["transition"].apply(env)
+    assert env.unwrapped.world.next_state[b, 2] == b  # walled off
+    with pytest.raises(ConfigError, match=r"task.job.maze 'maze' is not known"):
+        RevaluationJob(design="reward", agents={"q": {"_target_": "cobelrun.agents.DynaQ"}},
+                       maze="maze")  # fmt: skip
+
+
+def _grid_scores(agents, runs, budgets=(0,)):
+    cfg = _compose("task=reward_revaluation")
+    nodes = {k: v for k, v in cfg.task.job.agents.items() if k in agents}
+    scores = {}
+    for design in ("reward", "transition", "policy"):
+        job = RevaluationJob(design=design, agents=nodes, runs=runs, replay_budgets=list(budgets),
+                             maze="grid")  # fmt: skip
+        for row in revaluation_scores(job.table(seed=0)).itertuples():
+            scores[(design, row.agent, row.replay_budget)] = (row.score, row.after)
+    return scores
+
+
+def test_russek_pattern_in_the_grid_designs():
+    """Russek et al.'s gridworlds, 5 seeded runs: SR-TD solves latent learning only, SR-MB
+    latent learning and the detour but not policy revaluation, Q-learning none, value
+    iteration all three (score: greedy paths from the start reaching the new goal)."""
+    scores = _grid_scores(("q_learning", "sr_td", "sr_mb", "value_iteration"), runs=5)
+    solves = {
+        "q_learning": (False, False, False),
+        "sr_td": (True, False, False),
+        "sr_mb": (True, True, False),
+        "value_iteration": (True, True, True),
+    }
+    for agent, expected in solves.items():
+        for design, ok in zip(("reward", "transition", "policy"), expected, strict=True):
+            score, after = scores[(design, agent, -1)]
+            assert (score >= 0.8 and after == 1.0) if ok else score <= 0.2, (design, agent, score)
+
+
+@pytest.mark.slow
+def test_grid_designs_need_enough_replay():
+    """Dyna-Q and SR-Dyna solve all three grid revaluations with 1000 backups per step, and
+    Dyna-Q none with 10 (20 runs, the setting of docs/replay.md)."""
+    scores = _grid_scores(("dyna_q", "sr_dyna"), runs=20, budgets=(10, 1000))
+    for design in ("reward", "transition", "policy"):
+        for agent in ("dyna_q", "sr_dyna"):
+            score, after = scores[(design, agent, 1000)]
+            assert after >= 0.9 and score >= 0.7, (design, agent, score, after)
+        assert scores[(design, "dyna_q", 10)][0] <= 0.1
+    assert (
+        scores[("reward", "sr_dyna", 10)][0] >= 0.7
+    )  # SR-Dyna: latent learning without much replay

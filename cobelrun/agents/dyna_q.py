@@ -178,6 +178,14 @@ class DynaQ(Agent):
             if self.engine == "compiled":
                 raise ConfigError("agent.engine 'compiled' cannot run per-step callbacks")
             return False
+        if self.tabular and self.env.unwrapped.world.reward_sd > 0.0:
+            # the trial kernel reads exact rewards; noisy ones come from the env's step
+            if self.engine == "compiled":
+                raise ConfigError(
+                    "agent.engine 'compiled' needs exact rewards (env.world.reward_sd = 0); "
+                    "use 'auto' or 'python'"
+                )
+            return False
         return self.tabular
 
     # -- trials ----------------------------------------------------------------------------

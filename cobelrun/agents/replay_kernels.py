@@ -299,9 +299,10 @@ def sfma_bout(
     ``C`` the experience strength (frequency), ``D`` the similarity of states, ``I`` the
     inhibition of return (reset per bout; after each reactivation ``I *= decay``,
     ``I(s) = min(I(s) + 1, 1)``). ``R`` is normalised by its maximum, thresholded and turned
-    into reactivation probabilities ``softmax(beta_replay * R)`` over the experiences with
-    ``R > threshold`` (or the argmax if ``deterministic``). Every reactivated experience is
-    a Q-learning backup with rate ``alpha``.
+    into reactivation probabilities ``P(e) ~ exp(beta_replay * R(e)) - 1`` (CoBeL-RL v3's
+    softmax with offset -1) over the experiences with ``R >= threshold`` (or the argmax if
+    ``deterministic``). Every reactivated experience is a Q-learning backup with rate
+    ``alpha``.
     """
     S, A = Q.shape
     inhibition = np.zeros(S)
@@ -330,8 +331,8 @@ def sfma_bout(
             r = prio[i] / best
             if r < threshold:
                 prio[i] = 0.0
-            else:
-                prio[i] = np.exp(beta_replay * (r - 1.0))
+            else:  # CoBeL-RL v3's softmax with offset -1: exp(beta r) - 1, scaled by exp(-beta)
+                prio[i] = np.exp(beta_replay * (r - 1.0)) - np.exp(-beta_replay)
                 total += prio[i]
                 if deterministic and chosen < 0 and r == 1.0:
                     chosen = i
@@ -366,3 +367,43 @@ def sfma_bout(
         cur_s = s
         done += 1
     return done
+
+
+@njit(cache=True)
+def sr_dyna_replay(rng, M, w, model_next, pairs, terminal, n, gamma, lr):  # pragma: no cover
+    """SR-Dyna's replay after a step (Russek et al. 2017): ``n`` experiences drawn uniformly
+    (with replacement) from the experienced pairs ``pairs`` (flat ``s * A + a``), each a TD
+    update ``M(s,a,:) += lr (1_{s'} + gamma M(s', a*, :) - M(s,a,:))`` with ``s'`` the pair's
+    last outcome and ``a* = argmax_b M(s', b, :) . w`` (random tie-break; no bootstrap from a
+    terminal ``s'``)."""
+    S, A = model_next.shape
+    q = np.empty(A)
+    target = np.empty(S)
+    for _ in range(n):
+        i = pairs[randint(rng, pairs.shape[0])]
+        ps, pa = i // A, i % A
+        ps2 = model_next[ps, pa]
+        best = -np.inf
+        ties = 0
+        for b in range(A):
+            v = 0.0
+            for k in range(S):
+                v += M[ps2, b, k] * w[k]
+            q[b] = v
+            if v > best:
+                best, ties = v, 1
+            elif v == best:
+                ties += 1
+        j = randint(rng, ties)
+        a2 = 0
+        for b in range(A):
+            if q[b] == best:
+                if j == 0:
+                    a2 = b
+                    break
+                j -= 1
+        for k in range(S):
+            target[k] = 0.0 if terminal[ps2] else gamma * M[ps2, a2, k]
+        target[ps2] += 1.0
+        for k in range(S):
+            M[ps, pa, k] += lr * (target[k] - M[ps, pa, k])

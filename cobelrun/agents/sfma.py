@@ -5,13 +5,14 @@ combines how often an experience was made (strength ``C``), how similar its stat
 last reactivated one (``D``: the default representation of the maze or a Euclidean kernel) and
 an inhibition of return (``I``), so that replays form sequences:
 
-1. act, observe ``r, s'``, Q-learn online, store the experience ``(s, a)`` (last ``r, s'``) and
-   increase its strength ``C(s, a) += 1`` (all strengths decay by ``decay_strength`` first);
+1. act, observe ``r, s'``, Q-learn online, store the experience ``(s, a)`` (last ``s'``, running
+   average of ``r`` at the learning rate) and increase its strength ``C(s, a) += 1`` (all
+   strengths decay by ``decay_strength`` first);
 2. at the end of a trial (and optionally at its start) replay ``n_backups`` experiences,
    starting at the agent's state: ``R(e) = C(e) D(s_c, x(e)) (1 - I(s_e))`` with ``x(e) = s_e``
    in the ``default`` mode and ``x(e) = s'_e`` in the ``reverse`` mode; reactivate ``e`` with
-   probability ``softmax(beta_replay R / max R)``; back it up with Q-learning; inhibit its
-   state. See :func:`cobelrun.agents.replay_kernels.sfma_bout`.
+   probability proportional to ``exp(beta_replay R / max R) - 1``; back it up with Q-learning;
+   inhibit its state. See :func:`cobelrun.agents.replay_kernels.sfma_bout`.
 
 The default representation (Piray & Daw 2021) of a gridworld is the successor representation
 of the uniform random walk through its real transitions, ``D = (I - gamma_dr T_rw)^-1``:
@@ -177,7 +178,9 @@ class SFMA(ReplayAgent):
         q_update(self.Q, self._no_mask, False, s, a, r, s2, transition.terminated,
                  self.learning_rate, self.gamma)  # fmt: skip
         self.model_next[s, a] = s2
-        self.model_reward[s, a] = r
+        # the reward of an experience is a running average (rate = the learning rate), as
+        # CoBeL-RL v3's SFMAMemory.store
+        self.model_reward[s, a] += self.learning_rate * (r - self.model_reward[s, a])
         self.strength *= self.decay_strength
         self.strength[s, a] += 1.0
 

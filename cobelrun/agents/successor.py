@@ -18,7 +18,8 @@ They differ only in how ``M`` is learned:
   experiences sampled uniformly from a model of experienced transitions (the last ``s'`` of
   each experienced ``(s, a)``), with ``a*`` greedy under the current values;
 * :class:`SRMB` (SR-MB): computes ``M`` from a learned one-step model ``T(s, a, s')`` and a
-  cached policy ``pi(s)`` (the greedy action the last time the agent acted in ``s``):
+  cached policy ``pi(s, .)`` (the greedy policy the last time the agent acted in ``s``: uniform
+  over the best actions; uniform over all actions in states never acted in):
   ``M(s, a, :) = T(s, a, :) (I - gamma T_pi)^-1`` with terminal rows of ``T_pi`` zero.
 
 :class:`ValueIteration` learns the same one-step model and ``w`` and plans from scratch by value
@@ -91,9 +92,13 @@ class SuccessorCore:
         self.M[s, a] += self.learning_rate * (target - self.M[s, a])
 
     def from_model(self, T: np.ndarray, policy: np.ndarray, terminal: np.ndarray) -> None:
-        """``M(s, a, :) = T(s, a, :) (I - gamma T_pi)^-1``, ``T_pi(s) = T(s, pi(s))``."""
+        """``M(s, a, :) = T(s, a, :) (I - gamma T_pi)^-1``, ``T_pi(s) = sum_a pi(s, a) T(s, a)``;
+        ``policy`` is (S, A) action probabilities or (S,) actions."""
         n = T.shape[0]
-        T_pi = T[np.arange(n), policy].copy()
+        if policy.ndim == 1:
+            T_pi = T[np.arange(n), policy].copy()
+        else:
+            T_pi = np.einsum("sa,sat->st", policy, T)
         T_pi[terminal] = 0.0
         N = np.linalg.inv(np.eye(n) - self.gamma * T_pi)
         self.M[...] = T @ N
@@ -251,12 +256,14 @@ class SRDyna(SRTD):
     def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
         super().learn(s, a, r, s2, terminal)
         self.model_next[s, a] = s2
+        if self.replay_batch == 0:
+            return
+        from cobelrun.agents.replay_kernels import sr_dyna_replay  # numba: on first use
+
         pairs = np.flatnonzero(self.model_next.reshape(-1) >= 0)
-        for i in self.rng.integers(pairs.size, size=self.replay_batch):
-            ps, pa = divmod(int(pairs[i]), self.n_actions)
-            ps2 = int(self.model_next[ps, pa])
-            done = bool(self.env.unwrapped.world.terminal[ps2])
-            self.core.td(ps, pa, ps2, done, self.core.greedy(self.rng, ps2))
+        terminal = np.ascontiguousarray(self.env.unwrapped.world.terminal, np.bool_)
+        sr_dyna_replay(self.rng, self.core.M, self.core.w, self.model_next, pairs, terminal,
+                       self.replay_batch, self.gamma, self.core.learning_rate)  # fmt: skip
 
     def get_state(self) -> dict[str, np.ndarray]:
         return {**super().get_state(), "model_next": self.model_next}
@@ -286,6 +293,10 @@ class _OneStepModel:
 class SRMB(TabularModelAgent):
     """SR-MB (Russek et al. 2017): ``M`` computed from a learned model and a cached policy.
 
+    Acting needs only ``Q(s, :) = T(s, :, :) (I - gamma T_pi)^-1 w``: one linear solve after
+    each change of the model, ``w`` or the cached policy; the full ``M`` is computed when asked
+    for (:meth:`get_state`).
+
     Parameters
     ----------
     transition_rate
@@ -304,34 +315,47 @@ class SRMB(TabularModelAgent):
                                   _check_rate("reward_rate", reward_rate))  # fmt: skip
         self.model = _OneStepModel(self.n_states, self.n_actions,
                                    _check_rate("transition_rate", transition_rate))  # fmt: skip
-        self.cached_policy = np.zeros(self.n_states, np.int64)
+        #: (S, A) the greedy policy when the agent last acted in each state (ties split)
+        self.cached_policy = np.full((self.n_states, self.n_actions), 1.0 / self.n_actions)
         self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
-        self._refresh()
+        self._v: np.ndarray | None = None  # (I - gamma T_pi)^-1 w, None: out of date
 
-    def _refresh(self) -> None:
-        self.core.from_model(self.model.T, self.cached_policy, self.terminal)
+    def _values(self) -> np.ndarray:
+        """``v = (I - gamma T_pi)^-1 w`` (terminal rows of ``T_pi`` zero)."""
+        if self._v is None:
+            T_pi = np.einsum("sa,sat->st", self.cached_policy, self.model.T)
+            T_pi[self.terminal] = 0.0
+            self._v = np.linalg.solve(np.eye(self.n_states) - self.gamma * T_pi, self.core.w)
+        return self._v
 
     def q_values(self, s: int) -> np.ndarray:
-        return self.core.q(s)
+        return self.model.T[s] @ self._values()
 
     def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
         self.core.learn_reward(s2, r)
         self.model.learn(s, a, s2)
         if terminal:
             self.terminal[s2] = True
-        self._refresh()
-        self.cached_policy[s] = self.core.greedy(self.rng, s)  # the policy where it acted
-        self._refresh()
+        self._v = None
+        q = self.q_values(s)  # the greedy policy where it acted, ties split evenly
+        best = q == q.max()
+        self.cached_policy[s] = best / best.sum()
+        self._v = None
 
     def get_state(self) -> dict[str, np.ndarray]:
+        self.core.from_model(self.model.T, self.cached_policy, self.terminal)
         return {"M": self.core.M, "w": self.core.w, "T": self.model.T,
                 "cached_policy": self.cached_policy, "terminal": self.terminal}  # fmt: skip
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        super().set_state(arrays)
+        self._v = None
 
     def state_schema(self) -> dict[str, ArraySpec]:
         S, A = self.n_states, self.n_actions
         return {"M": ArraySpec((S, A, S)), "w": ArraySpec((S,)),
                 "T": ArraySpec((S, A, S), low=0.0, high=1.0 + 1e-9),
-                "cached_policy": ArraySpec((S,), "i", low=0, high=A),
+                "cached_policy": ArraySpec((S, A), low=0.0, high=1.0 + 1e-9),
                 "terminal": ArraySpec((S,), "b")}  # fmt: skip
 
     def hyperparameters(self) -> dict:
@@ -373,16 +397,20 @@ class ValueIteration(TabularModelAgent):
         self.w = np.zeros(self.n_states)
         self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
         self.Q = np.zeros((self.n_states, self.n_actions))
+        self._V = np.zeros(self.n_states)  # warm start of value iteration
 
     def plan(self) -> None:
-        """``Q(s,a) = sum_s' T(s,a,s') (w(s') + gamma V(s'))``, ``V = max_a Q`` (0 if terminal)."""
-        V = np.zeros(self.n_states)
+        """``Q(s,a) = sum_s' T(s,a,s') (w(s') + gamma V(s'))``, ``V = max_a Q`` (0 if terminal),
+        iterated from the last plan's ``V`` (the same fixed point, reached in a few sweeps
+        when one experience changed the model)."""
+        V = self._V
         for _ in range(10_000):
             self.Q = self.model.T @ (self.w + self.gamma * V)
             V_new = np.where(self.terminal, 0.0, self.Q.max(axis=1))
             if np.max(np.abs(V_new - V)) < self.tolerance:
                 break
             V = V_new
+        self._V = V_new
 
     def q_values(self, s: int) -> np.ndarray:
         return self.Q[s]

@@ -28,6 +28,38 @@ def _pair_codes(state: np.ndarray, next_state: np.ndarray) -> np.ndarray:
     return np.where(fwd, 1, np.where(rev, -1, 0))
 
 
+def split_events(state: np.ndarray, next_state: np.ndarray) -> list[tuple[int, int, str]]:
+    """The events of one bout: ``(first, last, direction)`` per maximal run of matched
+    consecutive experiences (positions inclusive), direction ``forward``, ``reverse``,
+    ``mixed`` or ``none`` (a single experience)."""
+    s, s2 = np.asarray(state), np.asarray(next_state)
+    codes = _pair_codes(s, s2)
+    out, start = [], 0
+    for i in range(len(s)):
+        if i == len(s) - 1 or codes[i] == 0:
+            seg = codes[start:i]
+            nf, nr = int((seg == 1).sum()), int((seg == -1).sum())
+            direction = (
+                "none" if nf + nr == 0 else "forward" if nr == 0 else "reverse" if nf == 0
+                else "mixed"
+            )  # fmt: skip
+            out.append((start, i, direction))
+            start = i + 1
+    return out
+
+
+def event_path(state: np.ndarray, next_state: np.ndarray, direction: str) -> list[np.ndarray]:
+    """The states an event runs through, in the order they were replayed: a forward event
+    ``s_1, s'_1, s'_2, ...``, a reverse one ``s'_1, s_1, s_2, ...``; a mixed (or single)
+    event gives one ``[s_k, s'_k]`` pair per experience."""
+    s, s2 = np.asarray(state, np.int64), np.asarray(next_state, np.int64)
+    if direction == "forward":
+        return [np.concatenate([s[:1], s2])]
+    if direction == "reverse":
+        return [np.concatenate([s2[:1], s])]
+    return [np.array([a, b], np.int64) for a, b in zip(s.tolist(), s2.tolist(), strict=True)]
+
+
 def replay_events(replays: pd.DataFrame, distances: np.ndarray | None = None) -> pd.DataFrame:
     """One row per replay event (a maximal sequence of matched consecutive experiences).
 
@@ -61,22 +93,15 @@ def replay_events(replays: pd.DataFrame, distances: np.ndarray | None = None) ->
         s2 = bout["next_state"].to_numpy()
         agent = int(bout["agent_state"].iloc[0])
         codes = _pair_codes(s, s2)
-        start = 0
-        for i in range(len(s)):
-            if i == len(s) - 1 or codes[i] == 0:
-                seg = codes[start:i]
-                nf, nr = int((seg == 1).sum()), int((seg == -1).sum())
-                direction = (
-                    "none" if nf + nr == 0 else "forward" if nr == 0 else "reverse" if nf == 0
-                    else "mixed"
-                )  # fmt: skip
-                row = [int(run), int(trial), str(when), agent, start, int(s[start]),
-                       int(s2[i]), i - start + 1, nf, nr, direction]  # fmt: skip
-                if distances is not None:
-                    visited = np.concatenate([s[start : i + 1], s2[start : i + 1]])
-                    row.append(int(distances[agent, visited].min()))
-                rows.append(row)
-                start = i + 1
+        for start, i, direction in split_events(s, s2):
+            seg = codes[start:i]
+            nf, nr = int((seg == 1).sum()), int((seg == -1).sum())
+            row = [int(run), int(trial), str(when), agent, start, int(s[start]),
+                   int(s2[i]), i - start + 1, nf, nr, direction]  # fmt: skip
+            if distances is not None:
+                visited = np.concatenate([s[start : i + 1], s2[start : i + 1]])
+                row.append(int(distances[agent, visited].min()))
+            rows.append(row)
     return pd.DataFrame(rows, columns=cols)
 
 

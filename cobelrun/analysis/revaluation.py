@@ -19,11 +19,12 @@ def revaluation_scores(table: pd.DataFrame) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        ``design, agent, replay_budget, runs, before, after, score`` (budget -1 where the agent
+        ``design, [maze,] agent, replay_budget, runs, before, after, score`` (budget -1 where the agent
         has none).
     """
     df = table.assign(replay_budget=table["replay_budget"].fillna(-1).astype(int))
-    g = df.groupby(["design", "agent", "replay_budget"], sort=False)
+    keys = ["design", *(["maze"] if "maze" in df else []), "agent", "replay_budget"]
+    g = df.groupby(keys, sort=False)
     out = g.agg(runs=("run", "size"), before=("choice_before", "mean"),
                 after=("choice_after", "mean")).reset_index()  # fmt: skip
     out["score"] = out["after"] - out["before"]

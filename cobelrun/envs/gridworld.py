@@ -39,7 +39,9 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
 
     Rewards
     -------
-    ``world.rewards[s']`` of the state ``s'`` the agent arrives in.
+    ``world.rewards[s']`` of the state ``s'`` the agent arrives in; with ``world.reward_sd > 0``
+    every non-zero reward gets Gaussian noise drawn from ``np_random`` (positive rewards
+    truncated at 0).
 
     Starting State
     --------------
@@ -147,6 +149,9 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         self._heading = float(ACTION_HEADING[a])
         self._steps += 1
         reward = float(world.rewards[s2])
+        if world.reward_sd > 0.0 and reward != 0.0:  # Mattar & Daw's noisy reward
+            noisy = reward + world.reward_sd * float(self.np_random.standard_normal())
+            reward = max(0.0, noisy) if reward > 0.0 else noisy
         terminated = bool(world.terminal[s2])
         truncated = self.max_steps is not None and self._steps >= self.max_steps
         return self._observe(s2), reward, terminated, truncated, self._info(s2)

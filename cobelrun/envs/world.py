@@ -70,6 +70,10 @@ class World:
         Wall cells: numbered like every other cell, but never reachable.
     places : dict[str, int]
         Named states, e.g. ``{"start": 38, "left_arm": 0, "right_arm": 6}``.
+    reward_sd : float
+        Standard deviation of Gaussian noise added to every non-zero reward on arrival (0: the
+        rewards are exact). Positive rewards plus noise are truncated at 0, as Mattar & Daw's
+        ``rewOnlyPositive``; the noise is drawn from the environment's ``np_random``.
     """
 
     width: int
@@ -81,6 +85,7 @@ class World:
     coords: np.ndarray
     blocked: np.ndarray
     places: dict[str, int] = field(default_factory=dict)
+    reward_sd: float = 0.0
     _next_state: np.ndarray | None = field(default=None, init=False, repr=False)
     _next_state_known: bool = field(default=False, init=False, repr=False)
 
@@ -102,6 +107,10 @@ class World:
         self.coords = coords.copy()
         if not np.all(np.isfinite(self.rewards)):
             raise LayoutError("rewards must be finite numbers")
+        sd = _finite(self.reward_sd, "reward_sd")
+        if sd < 0:
+            raise LayoutError(f"reward_sd must be a number >= 0, got {sd}")
+        self.reward_sd = sd
         self.places = {str(k): self._index(v, f"place '{k}'") for k, v in dict(self.places).items()}
         self.set_starts(np.asarray(self.starts).reshape(-1).tolist())
 
@@ -345,6 +354,7 @@ class World:
             coords=self.coords,
             blocked=self.blocked,
             places=np.str_(json.dumps(self.places, sort_keys=True)),
+            reward_sd=np.float64(self.reward_sd),
         )
         return path
 
@@ -362,6 +372,7 @@ class World:
                 coords=z["coords"],
                 blocked=z["blocked"],
                 places=json.loads(str(z["places"])),
+                reward_sd=float(z["reward_sd"]) if "reward_sd" in z.files else 0.0,
             )
 
 
@@ -470,6 +481,7 @@ def from_layout(
     places: Mapping[str, StateRef] | None = None,
     goal_reward: float = 1.0,
     slip: float = 0.0,
+    reward_sd: float = 0.0,
 ) -> World:
     """Build a world from an ASCII layout.
 
@@ -497,6 +509,8 @@ def from_layout(
     slip : float
         Probability in [0, 1) that a move goes in a uniformly random *other* direction.
         0 gives a deterministic world.
+    reward_sd : float
+        Gaussian noise (standard deviation) on every non-zero reward (see :class:`World`).
 
     Returns
     -------
@@ -599,6 +613,7 @@ def from_layout(
         coords=_coords(width, height),
         blocked=blocked,
         places=all_places,
+        reward_sd=reward_sd,
     )
     world.set_rewards(rewards or {})
     if terminals is not None:

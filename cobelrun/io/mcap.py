@@ -10,6 +10,9 @@ Channels (all in the frame ``maze``, world units; see ``docs/mcap.md``)
     of run ``NNNN`` at every recorded step.
 ``/run_NNNN/camera``
     ``foxglove.RawImage`` (protobuf, ``rgb8``): camera frames, when the run records images.
+``/run_NNNN/<name>``
+    ``foxglove.SceneUpdate`` (protobuf): paths that monitors draw over the maze at a trial's
+    start or end, e.g. ``/run_NNNN/replay``: each replay bout as highlighted line strips.
 ``/trial``
     ``cobel.TrialEvent`` (JSON, schema :data:`TRIAL_EVENT_SCHEMA`): one ``start`` and one ``end``
     event per trial of the runs kept in full, trials 1-based.
@@ -53,6 +56,7 @@ from foxglove.messages import (
     Color,
     CubePrimitive,
     CylinderPrimitive,
+    Duration,
     KeyValuePair,
     LinePrimitive,
     LinePrimitiveLineType,
@@ -95,7 +99,10 @@ class _RepeatFilter(logging.Filter):
 logging.getLogger("foxglove.log_sink_set").addFilter(_RepeatFilter())
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from cobelrun.envs.base import Geometry
+    from cobelrun.monitors import ScenePath
 
 __all__ = [
     "TRIAL_EVENT_SCHEMA",
@@ -292,6 +299,7 @@ class McapRecorder:
         self._poses: dict[str, PoseInFrameChannel] = {}
         self._cameras: dict[int, RawImageChannel] = {}
         self._trials: foxglove.Channel | None = None
+        self._paths: dict[str, SceneUpdateChannel] = {}
         try:
             self._trial = foxglove.Channel(
                 self.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA, context=self._context
@@ -509,6 +517,57 @@ class McapRecorder:
         msg.timestamp.seconds, msg.timestamp.nanos = divmod(t, _NS_PER_S)
         self._trials.log(msg.SerializeToString(), log_time=t)
 
+    # ------------------------------------------------------------------ paths
+    def write_paths(
+        self, run: int, t_ns: Sequence[int], paths: Sequence[ScenePath], lifetime_ns: int = 0
+    ) -> None:
+        """Draw monitors' paths (:class:`~cobelrun.monitors.ScenePath`) over the maze: one
+        ``foxglove.SceneUpdate`` per path on ``/run_{run:04d}/{path.name}``, with one entity
+        (id = the name, so each path replaces the last) holding a line strip per segment,
+        coloured by kind, and a sphere where each segment starts.
+
+        Parameters
+        ----------
+        run : int
+            Run index.
+        t_ns : sequence of int
+            Absolute log time of each path.
+        paths : sequence of ScenePath
+            What to draw.
+        lifetime_ns : int
+            How long a path stays drawn (0: until the next one replaces it).
+        """
+        self._check_open()
+        if len(t_ns) != len(paths):
+            raise ValueError(f"write_paths: {len(t_ns)} times for {len(paths)} paths")
+        life = Duration(sec=int(lifetime_ns) // _NS_PER_S, nsec=int(lifetime_ns) % _NS_PER_S)
+        for t, path in zip(t_ns, paths, strict=True):
+            t = int(t)
+            if t < 0:
+                raise ValueError("write_paths: times must be >= 0")
+            topic = f"/run_{int(run):04d}/{path.name}"
+            channel = self._paths.get(topic)
+            if channel is None:
+                channel = self._paths[topic] = SceneUpdateChannel(topic, context=self._context)
+            lines, spheres = [], []
+            for seg, kind in zip(path.segments, path.kinds, strict=True):
+                xy = np.asarray(seg, np.float64).reshape(-1, 2)
+                if not np.isfinite(xy).all():
+                    raise ValueError("write_paths: points must be finite")
+                color = _PATH_COLORS[kind]
+                pts = [Point3(x=x, y=y, z=PATH_HEIGHT) for x, y in xy.tolist()]
+                lines.append(LinePrimitive(type=LinePrimitiveLineType.LineStrip,
+                                           pose=_pose(0.0, 0.0), thickness=0.12,
+                                           points=pts, color=color))  # fmt: skip
+                spheres.append(SpherePrimitive(pose=_pose(xy[0, 0], xy[0, 1], PATH_HEIGHT),
+                                               size=Vector3(x=0.25, y=0.25, z=0.25),
+                                               color=color))  # fmt: skip
+            meta = [KeyValuePair(key=str(k), value=str(v)) for k, v in path.metadata.items()]
+            entity = SceneEntity(timestamp=_timestamp(t), frame_id=FRAME_ID, id=path.name,
+                                 lifetime=life, metadata=meta, lines=lines,
+                                 spheres=spheres)  # fmt: skip
+            channel.log(SceneUpdate(entities=[entity]), log_time=t)
+
     # ------------------------------------------------------------------ images
     def write_image(self, run: int, t_ns: int, image: np.ndarray) -> None:
         """Write one camera frame as ``foxglove.RawImage`` (``rgb8``) on ``/run_{run:04d}/camera``.
@@ -619,6 +678,14 @@ _REGION_COLORS = [
     Color(r=0.7, g=0.2, b=0.7, a=0.8),
     Color(r=0.9, g=0.2, b=0.2, a=0.8),
 ]
+#: colours of monitors' paths (replay events) by kind: highlighted against the maze
+_PATH_COLORS = {
+    "forward": Color(r=1.0, g=0.5, b=0.0, a=1.0),
+    "reverse": Color(r=0.9, g=0.1, b=0.6, a=1.0),
+    "mixed": Color(r=0.6, g=0.2, b=0.9, a=1.0),
+    "none": Color(r=1.0, g=0.8, b=0.1, a=1.0),
+}
+PATH_HEIGHT = 0.3  # world units above the floor
 WALL_HEIGHT = 0.5  # in cell sizes
 WALL_THICKNESS = 0.06  # in cell sizes
 

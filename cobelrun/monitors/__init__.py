@@ -25,7 +25,7 @@ from __future__ import annotations
 import abc
 import copy
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -41,6 +41,7 @@ __all__ = [
     "Monitor",
     "ResponseMonitor",
     "RewardMonitor",
+    "ScenePath",
     "Table",
     "TrajectoryMonitor",
     "TrialKeysMonitor",
@@ -91,6 +92,9 @@ class BatchInfo:
     env: Any
     trial_runs: np.ndarray | None = None
     trial_numbers: np.ndarray | None = None
+    #: position of the batch's first trial in its phase (1-based; >1 when a phase with a
+    #: per-trial ``cycle`` is recorded trial by trial)
+    first_in_phase: int = 1
 
     def trials(self, n: int) -> np.ndarray:
         """(n,) int32: the 1-based trial number of each trial of the batch."""
@@ -120,6 +124,44 @@ class BatchInfo:
 
 
 Emit = Callable[[str, Mapping[str, Any]], None]
+
+#: kinds of :class:`ScenePath` segments (drawn in different colours)
+PATH_KINDS = ("forward", "reverse", "mixed", "none")
+
+
+@dataclass(frozen=True)
+class ScenePath:
+    """A path a monitor draws over the maze in ``run.mcap`` at the start or end of a trial
+    (e.g. a replay event: a second, highlighted path beside the agent's pose).
+
+    Attributes
+    ----------
+    name
+        Topic suffix: the path goes on ``/run_NNNN/<name>`` (a ``foxglove.SceneUpdate``).
+    trial
+        Position of the trial in the batch (0-based).
+    at
+        ``"start"`` (logged with the trial's first pose) or ``"end"`` (with its last pose).
+    segments
+        Polylines, each ``(k, 2)`` points ``x, y`` in world units, in the order they are run.
+    kinds
+        One of :data:`PATH_KINDS` per segment (its colour).
+    metadata
+        Key/value strings written with the scene entity.
+    """
+
+    name: str
+    trial: int
+    at: str
+    segments: tuple[np.ndarray, ...]
+    kinds: tuple[str, ...]
+    metadata: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.at not in ("start", "end"):
+            raise ValueError(f"ScenePath.at must be 'start' or 'end', got {self.at!r}")
+        if len(self.kinds) != len(self.segments) or not set(self.kinds) <= set(PATH_KINDS):
+            raise ValueError(f"ScenePath.kinds: one of {PATH_KINDS} per segment")
 
 
 class Monitor(abc.ABC):
@@ -179,6 +221,11 @@ class Monitor(abc.ABC):
         """Columns for the batch's rows, by table name."""
         return {}
 
+    def scene_paths(self, batch: TrialBatch, info: BatchInfo) -> list[ScenePath]:
+        """Paths to draw in ``run.mcap`` for this batch (asked after :meth:`on_batch`, only
+        for the runs the MCAP keeps); none by default."""
+        return []
+
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:  # noqa: B027
         """The run's last trial is over."""
 
@@ -200,7 +247,8 @@ class TrialKeysMonitor(Monitor):
         return {"trials": {
             "run": np.full(n, info.run, np.int32), "trial": info.trials(n),
             "phase": np.full(n, info.phase, dtype=object),
-            "trial_in_phase": np.arange(1, n + 1, dtype=np.int32),
+            "trial_in_phase": np.arange(info.first_in_phase, info.first_in_phase + n,
+                                        dtype=np.int32),
             "start_state": batch.start_state, "end_state": batch.end_state,
             "terminated": batch.terminated,
         }}  # fmt: skip

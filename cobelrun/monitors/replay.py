@@ -8,17 +8,22 @@ phases, as in ``trials.parquet``), ``when`` (``start``: before the trial's first
 the replayed ``state, action, next_state, reward``, its ``gain``, ``need`` and the ``length`` of
 the (n-step) backup. Agents that do not replay give no rows. Events (direction, length,
 distance) are derived by :func:`cobelrun.analysis.replay.replay_events`.
+
+In ``run.mcap`` every replay bout of a kept run is drawn on ``/run_NNNN/replay`` (a
+:class:`~cobelrun.monitors.ScenePath`): one line strip per replay event through the replayed
+states in the order they were replayed, coloured by direction, at the trial's start or end.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import BatchInfo, Monitor, Table
+from cobelrun.monitors import BatchInfo, Monitor, ScenePath, Table
 from cobelrun.records import TrialBatch
 
 WHEN_NAMES = np.array(["start", "end"], dtype=object)
@@ -27,7 +32,7 @@ WHEN_NAMES = np.array(["start", "end"], dtype=object)
 class ReplayMonitor(Monitor):
     """Every replayed experience of agents that replay (the ``replays`` table, per event)."""
 
-    requires = ("tabular_model",)
+    requires = ("tabular_model", "discrete_states")
 
     def __init__(self) -> None:
         self._agent: Any = None
@@ -72,3 +77,28 @@ class ReplayMonitor(Monitor):
             "length": rep["length"].astype(np.int32),
         })  # fmt: skip
         return {}
+
+    def scene_paths(self, batch: TrialBatch, info: BatchInfo) -> list[ScenePath]:
+        """Each replay bout of the batch as a path on ``/run_NNNN/replay``: one segment per
+        event (:func:`~cobelrun.analysis.replay.split_events`) through the states' positions."""
+        from cobelrun.analysis.replay import event_path, split_events
+
+        rep = getattr(self._agent, "last_replays", None)
+        if not rep or rep["trial"].size == 0:
+            return []
+        base = info.env.unwrapped
+        bounds = [*np.flatnonzero(rep["index"] == 0).tolist(), rep["trial"].size]
+        paths = []
+        for lo, hi in itertools.pairwise(bounds):
+            s, s2 = rep["state"][lo:hi], rep["next_state"][lo:hi]
+            segments, kinds = [], []
+            for a, b, direction in split_events(s, s2):
+                for states in event_path(s[a : b + 1], s2[a : b + 1], direction):
+                    segments.append(base.poses_of(states)[:, :2])
+                    kinds.append(direction)
+            when = str(WHEN_NAMES[int(rep["when"][lo])])
+            trial = int(rep["trial"][lo])
+            meta = {"trial": str(trial + info.first_trial), "when": when,
+                    "agent_state": str(int(rep["agent_state"][lo])), "backups": str(hi - lo)}  # fmt: skip
+            paths.append(ScenePath("replay", trial, when, tuple(segments), tuple(kinds), meta))
+        return paths

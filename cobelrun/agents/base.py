@@ -69,6 +69,20 @@ def check_budget(n_trials: int, max_steps: int) -> None:
         raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
 
 
+def layer_sizes(key: str, values: Any) -> list[int]:
+    """Layer sizes from a config (``agent.hidden``, ``agent.net_arch``): a list of integers
+    >= 1, else a one-line ConfigError naming ``key`` (a 0-unit layer used to pass with a
+    runtime warning and NaN-free but meaningless outputs)."""
+    if isinstance(values, str | bytes) or not isinstance(values, Sequence):
+        raise ConfigError(f"{key} must be a list of layer sizes (integers >= 1), got {values!r}")
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+            raise ConfigError(
+                f"{key} must be a list of layer sizes (integers >= 1), got {list(values)!r}"
+            )
+    return [int(v) for v in values]
+
+
 def state_of(obs: Any, info: Mapping[str, Any]) -> int:
     """The discrete state of a step: ``info["state"]`` if given, else the observation if it is
     an integer, else -1 (continuous worlds have no state index)."""

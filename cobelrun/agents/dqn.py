@@ -43,13 +43,14 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback, layer_sizes
 from cobelrun.agents.networks import set_torch_threads
 from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
 from cobelrun.agents.sb3 import TrialDQN, TrialRecorder
 from cobelrun.agents.torch_init import INITS
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
+from cobelrun.safety import check_allocation
 
 #: activation functions by config name
 ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
@@ -171,6 +172,16 @@ class ConvFeatures(BaseFeaturesExtractor):
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         return self.linear(self.cnn(observations))
+
+
+def replay_bytes(space: gym.Space, capacity: int) -> int:
+    """Bytes of SB3's replay memory of ``capacity`` transitions: observations and next
+    observations in the space's dtype (``optimize_memory_usage`` off), plus actions, rewards,
+    dones and time-out flags."""
+    spaces = space.spaces.values() if isinstance(space, gym.spaces.Dict) else [space]
+    per_obs = sum(int(np.prod(s.shape or (1,))) * np.dtype(s.dtype or np.int64).itemsize
+                  for s in spaces)  # fmt: skip
+    return int(capacity) * (2 * per_obs + 8 + 4 + 4 + 4)
 
 
 class DQNAgent(Agent):
@@ -371,8 +382,13 @@ class DQNAgent(Agent):
             raise ConfigError("agent.prioritized replay does not support Dict observations")
         if net_arch is None:
             net_arch = [] if policy == "CnnPolicy" else [64, 64, 64, 64]
+        if isinstance(features_dim, bool) or not isinstance(features_dim, int) or features_dim < 1:
+            raise ConfigError(f"agent.features_dim must be an integer >= 1, got {features_dim!r}")
+        check_allocation("agent.buffer_size", replay_bytes(obs_space, buffer_size),
+                         f"a replay memory of {buffer_size:,} transitions of {obs_space}",
+                         "lower agent.buffer_size")  # fmt: skip
         policy_kwargs: dict[str, Any] = {
-            "net_arch": [int(n) for n in net_arch],
+            "net_arch": layer_sizes("agent.net_arch", net_arch),
             "activation_fn": ACTIVATIONS[activation],
         }
         if policy == "CnnPolicy":

@@ -31,7 +31,14 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
+from cobelrun.agents.base import (
+    Agent,
+    ArraySpec,
+    SeedLike,
+    Transition,
+    TrialCallback,
+    layer_sizes,
+)
 from cobelrun.agents.dyna_q import TABLE_BYTES_PER_PAIR
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.networks import Network, build_network, set_torch_threads
@@ -123,7 +130,7 @@ class DynaDeepAgent(Agent):
         set_torch_threads(torch_threads)
         self.epsilon, self.beta, self.policy = float(epsilon), float(beta), policy
         self.gamma, self.learning_rate = float(gamma), float(learning_rate)
-        self.hidden, self.activation = [int(h) for h in hidden], activation
+        self.hidden, self.activation = layer_sizes("agent.hidden", hidden), activation
         self.target_tau, self.replay_batch = float(target_tau), int(replay_batch)
         self.always_bootstrap, self.use_mask = bool(always_bootstrap), bool(action_mask)
         self.backend = backend

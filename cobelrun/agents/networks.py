@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from cobelrun.agents.base import layer_sizes
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.safety import check_allocation
 
@@ -136,7 +137,7 @@ class TorchMLP(Network):
                 f"allowed: {allowed_list(list(ACTIVATIONS))}"
             )
         self.input_dim, self.output_dim, self.n_heads = int(input_dim), int(output_dim), n_heads
-        self.hidden = [int(h) for h in hidden]
+        self.hidden = layer_sizes("agent.hidden", hidden)
         self.activation = activation
         self.act = ACTIVATIONS[activation]
         self.learning_rate = float(learning_rate)

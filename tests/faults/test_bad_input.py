@@ -348,7 +348,24 @@ COMPONENT_SIZES = [
      "env.n_directions would allocate about", "movement directions"),
     (["task=gridworld", "env=tmaze", "env.world.stem_length=100000"],
      "env.world would allocate about", "grid world"),
+    (["task=two_afc", "agent.buffer_size=1000000000"],
+     "agent.buffer_size would allocate about", "a replay memory of 1,000,000,000 transitions"),
 ]  # fmt: skip
+
+
+@pytest.mark.parametrize("overrides", [
+    ["task=tmaze_extinction", "agent=dyna_dqn", "agent.hidden=[0]"],
+    ["task=tmaze_extinction", "agent=dyna_dqn", "agent.hidden=[64,-3]"],
+    ["task=tmaze_extinction", "agent=dyna_dsr", "agent.hidden=[0]"],
+    ["task=two_afc", "agent.net_arch=[64,0]"],
+    ["task=two_afc", "agent.net_arch=7"],
+])  # fmt: skip
+def test_layer_sizes_must_be_positive(overrides):
+    """A layer of 0 (or fewer) units is refused in one line naming the key (it used to pass
+    with a runtime warning and a network that cannot learn)."""
+    key = next(o.split("=")[0] for o in overrides if o.startswith("agent."))
+    with pytest.raises(ConfigError, match=rf"^{key.replace('.', '[.]')} must be a list of layer sizes"):
+        validate([*overrides, "task.runs=1"], multirun=False)
 
 
 @pytest.mark.parametrize(("overrides", "start", "names"), COMPONENT_SIZES,

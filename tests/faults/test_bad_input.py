@@ -364,7 +364,9 @@ def test_layer_sizes_must_be_positive(overrides):
     """A layer of 0 (or fewer) units is refused in one line naming the key (it used to pass
     with a runtime warning and a network that cannot learn)."""
     key = next(o.split("=")[0] for o in overrides if o.startswith("agent."))
-    with pytest.raises(ConfigError, match=rf"^{key.replace('.', '[.]')} must be a list of layer sizes"):
+    with pytest.raises(
+        ConfigError, match=rf"^{key.replace('.', '[.]')} must be a list of layer sizes"
+    ):
         validate([*overrides, "task.runs=1"], multirun=False)
 
 

@@ -69,6 +69,15 @@ def check_budget(n_trials: int, max_steps: int) -> None:
         raise ConfigError(f"need n_trials >= 0 and max_steps >= 1, got {n_trials}, {max_steps}")
 
 
+def state_indices(observations: Any, n_states: int) -> np.ndarray:
+    """Observations of a tabular agent's ``predict`` as a flat int64 array of state indices,
+    checked to lie in ``[0, n_states)``."""
+    obs = np.asarray(observations, dtype=np.int64).reshape(-1)
+    if obs.size and (obs.min() < 0 or obs.max() >= n_states):
+        raise ValueError(f"observations must be state indices in [0, {n_states})")
+    return obs
+
+
 def layer_sizes(key: str, values: Any) -> list[int]:
     """Layer sizes from a config (``agent.hidden``, ``agent.net_arch``): a list of integers
     >= 1, else a one-line ConfigError naming ``key`` (a 0-unit layer used to pass with a

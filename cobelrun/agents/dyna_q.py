@@ -26,7 +26,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, TrialCallback
+from cobelrun.agents.base import (
+    Agent,
+    ArraySpec,
+    SeedLike,
+    Transition,
+    TrialCallback,
+    state_indices,
+)
 from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.envs.base import TabularModel, require, supports
@@ -303,9 +310,7 @@ class DynaQ(Agent):
 
     # -- inference and persistence ---------------------------------------------------------
     def predict(self, observations: np.ndarray) -> np.ndarray:
-        obs = np.asarray(observations, dtype=np.int64).reshape(-1)
-        if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
-            raise ValueError(f"observations must be state indices in [0, {self.n_states})")
+        obs = state_indices(observations, self.n_states)
         return self.Q[obs].copy()
 
     def hyperparameters(self) -> dict[str, Any]:

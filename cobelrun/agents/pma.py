@@ -27,7 +27,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import ArraySpec, SeedLike, Transition
+from cobelrun.agents.base import ArraySpec, SeedLike, Transition, state_indices
 from cobelrun.agents.policy import check_policy
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayAgent, empty_replays
 from cobelrun.errors import ConfigError, check_choice
@@ -261,9 +261,7 @@ class PMA(ReplayAgent):
 
     # -- inference and persistence ---------------------------------------------------------
     def predict(self, observations: np.ndarray) -> np.ndarray:
-        obs = np.asarray(observations, dtype=np.int64).reshape(-1)
-        if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
-            raise ValueError(f"observations must be state indices in [0, {self.n_states})")
+        obs = state_indices(observations, self.n_states)
         return self.Q[obs].copy()
 
     def hyperparameters(self) -> dict:

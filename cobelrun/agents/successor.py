@@ -34,7 +34,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, state_indices
 from cobelrun.agents.policy import check_policy, select
 from cobelrun.errors import ConfigError
 from cobelrun.safety import check_allocation
@@ -187,9 +187,7 @@ class TabularModelAgent(Agent):
                        transition.next_state, transition.terminated)  # fmt: skip
 
     def predict(self, observations: np.ndarray) -> np.ndarray:
-        obs = np.asarray(observations, dtype=np.int64).reshape(-1)
-        if obs.size and (obs.min() < 0 or obs.max() >= self.n_states):
-            raise ValueError(f"observations must be state indices in [0, {self.n_states})")
+        obs = state_indices(observations, self.n_states)
         return np.array([self.q_values(int(s)) for s in obs]).reshape(-1, self.n_actions)
 
 

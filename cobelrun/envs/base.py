@@ -38,7 +38,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from cobelrun.errors import ConfigError
+from cobelrun.errors import ConfigError, allowed_list, suggest
 
 __all__ = [
     "CONTRACTS",
@@ -339,6 +339,27 @@ class ChangeableWorld:
             self._world.set_terminal(terminals)
         if starts is not None:
             self._world.set_starts(starts)
+
+
+def episode_options(
+    max_steps: Any, render_mode: Any, modes: Sequence[str]
+) -> tuple[int | None, str | None]:
+    """An env's checked ``max_steps`` (a positive integer or None) and ``render_mode`` (one of
+    ``modes`` or None); a one-line ConfigError otherwise."""
+    if max_steps is not None:
+        if (
+            isinstance(max_steps, bool)
+            or not isinstance(max_steps, int | np.integer)
+            or max_steps < 1
+        ):
+            raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps!r}")
+        max_steps = int(max_steps)
+    if render_mode is not None and render_mode not in modes:
+        raise ConfigError(
+            f"render_mode {render_mode!r} is not supported{suggest(str(render_mode), list(modes))}; "
+            f"allowed: {allowed_list(list(modes))}, None"
+        )
+    return max_steps, render_mode
 
 
 def check_action(action: Any, n_actions: int, names: Sequence[str]) -> int:

@@ -10,7 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from cobelrun.envs.arena import Arena, Shape, points_in_polygon
-from cobelrun.envs.base import Geometry, check_action
+from cobelrun.envs.base import Geometry, check_action, episode_options
 from cobelrun.envs.cells import CameraView, SpatialCode, build_observation
 from cobelrun.envs.raycast import move_kernel
 from cobelrun.errors import ConfigError, allowed_list, suggest
@@ -188,16 +188,9 @@ class Continuous2DEnv(gym.Env[np.ndarray, Any]):
             self._start_heading: float | str = start_heading
         else:
             self._start_heading = np.deg2rad(_finite("start_heading", start_heading))
-        if max_steps is not None and (
-            isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1
-        ):
-            raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps!r}")
-        self.max_steps = max_steps
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ConfigError(
-                f"render_mode {render_mode!r} is not supported; allowed: 'rgb_array', None"
-            )
-        self.render_mode = render_mode
+        self.max_steps, self.render_mode = episode_options(
+            max_steps, render_mode, self.metadata["render_modes"]
+        )
         from cobelrun.render.scene import CameraSpec, SceneStyle  # plain data, no pybullet
 
         try:

@@ -8,7 +8,13 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from cobelrun.envs.base import ChangeableWorld, Geometry, check_action, headings_of_moves
+from cobelrun.envs.base import (
+    ChangeableWorld,
+    Geometry,
+    check_action,
+    episode_options,
+    headings_of_moves,
+)
 from cobelrun.envs.world import World, tmaze_paper
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
@@ -80,19 +86,9 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             raise ConfigError(
                 f"world must be a cobelrun World (e.g. _target_: cobelrun.envs.world.tmaze_paper), got {type(world).__name__}"
             )
-        if max_steps is not None:
-            if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer):
-                raise ConfigError(
-                    f"max_steps must be a positive integer or null, got {max_steps!r}"
-                )
-            if max_steps < 1:
-                raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps}")
-            max_steps = int(max_steps)
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ConfigError(
-                f"render_mode {render_mode!r} is not supported{suggest(str(render_mode), self.metadata['render_modes'])}; "
-                f"allowed: {allowed_list(self.metadata['render_modes'])}, None"
-            )
+        max_steps, render_mode = episode_options(
+            max_steps, render_mode, self.metadata["render_modes"]
+        )
         self._base_world = world.copy()
         self._world = world.copy()
         self.max_steps = max_steps

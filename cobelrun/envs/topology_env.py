@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from cobelrun.envs import topology as topo
-from cobelrun.envs.base import ChangeableWorld, Geometry, check_action
+from cobelrun.envs.base import ChangeableWorld, Geometry, check_action, episode_options
 from cobelrun.envs.observations import ObservationModule, PoseObservation
 from cobelrun.envs.world import World, _finite, _pairs
 from cobelrun.errors import ConfigError, LayoutError
@@ -221,16 +221,9 @@ class TopologyEnv(ChangeableWorld, gym.Env):
         self.action_map = topo.ActionMap.build(topology, actions)
         self.step_reward = _finite(step_reward, "step_reward")
         self._start_heading = self._parse_heading(start_heading)
-        if max_steps is not None and (
-            isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1
-        ):
-            raise ConfigError(f"max_steps must be a positive integer or null, got {max_steps!r}")
-        self.max_steps = max_steps
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ConfigError(
-                f"render_mode {render_mode!r} is not supported; allowed: 'rgb_array', None"
-            )
-        self.render_mode = render_mode
+        self.max_steps, self.render_mode = episode_options(
+            max_steps, render_mode, self.metadata["render_modes"]
+        )
         self.observation_module = observation if observation is not None else PoseObservation()
         if not isinstance(self.observation_module, ObservationModule):
             raise ConfigError(

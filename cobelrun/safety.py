@@ -23,6 +23,7 @@ import contextlib
 import math
 import os
 import re
+import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -97,9 +98,19 @@ def check_inside(path: Path, root: Path, what: str = "the run folder") -> Path:
 # -- memory ---------------------------------------------------------------------------------
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (``MemAvailable``, capped by a cgroup
-    limit and ``RLIMIT_AS``), or None where that cannot be read."""
+#: seconds :func:`available_memory` reuses what it read from ``/proc`` and the cgroup
+MEMORY_READ_TTL = 1.0
+_MEMORY_READ: list[Any] = [-math.inf, []]  # (monotonic time of the read, values found)
+
+
+def _system_memory() -> list[int]:
+    """``MemAvailable`` and the cgroup limit (bytes; those that can be read), read at most
+    once per :data:`MEMORY_READ_TTL` seconds: agents call :func:`check_allocation` once or
+    twice each, and a 20,000-run job would otherwise read these files 40,000 times (~0.3 ms
+    per agent, and each read lets a busy writer thread take the GIL)."""
+    now = time.monotonic()
+    if now - _MEMORY_READ[0] < MEMORY_READ_TTL:
+        return list(_MEMORY_READ[1])
     found: list[int] = []
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
@@ -117,6 +128,15 @@ def available_memory() -> int | None:
         if text.isdigit() and int(text) < 2**60:
             found.append(int(text))
         break
+    _MEMORY_READ[:] = [now, found]
+    return list(found)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (``MemAvailable``, capped by a cgroup
+    limit and ``RLIMIT_AS``), or None where that cannot be read. ``/proc/meminfo`` and the
+    cgroup are read at most once a second; ``RLIMIT_AS`` and ``COBEL_MEMORY_LIMIT`` always."""
+    found = _system_memory()
     try:
         import resource
 

@@ -310,6 +310,7 @@ class RunRecorder:
             if save_agents
             else None
         )
+        self._agents_merge: Future | None = None
 
     def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
         tables: dict[str, tuple[str, list[pa.Field]]] = {}
@@ -614,12 +615,12 @@ class RunRecorder:
         signals are held off until the files are complete)."""
         with self.guard.closing():
             steps = [*(functools.partial(self._flush, t) for t in self._sinks),
-                     self._flush_pending, self._writer.close,
+                     self._flush_pending, self._writer.close, self._close_agents,
                      *(sink.writer.close for sink in self._sinks.values())]  # fmt: skip
-            if self.agents is not None:
-                steps.append(self.agents.close)
             if self.mcap is not None:
                 steps.append(self.mcap.close)
+            if self.agents is not None:
+                steps.append(self._agents_closed)
             first: BaseException | None = None
             for step in steps:  # every file is finished even when another one fails (full disk)
                 try:
@@ -628,6 +629,21 @@ class RunRecorder:
                     first = first or exc
             if first is not None:
                 raise first
+
+    def _close_agents(self) -> None:
+        """Start merging the agents' batches into ``agents.npz`` on a thread of its own, while
+        this thread finishes the tables and the MCAP (both mostly compress, without the GIL);
+        :meth:`_agents_closed` waits for it."""
+        if self.agents is not None and self._agents_merge is None:
+            pool = ThreadPoolExecutor(1, thread_name_prefix="cobel-agents")
+            self._agents_merge = pool.submit(self.agents.close)
+            pool.shutdown(wait=False)
+
+    def _agents_closed(self) -> None:
+        if self._agents_merge is None:
+            self._close_agents()
+        assert self._agents_merge is not None
+        self._agents_merge.result()
 
 
 class ForkedRun:

@@ -24,6 +24,7 @@ import shutil
 import time
 import zipfile
 from collections.abc import Mapping, Sequence
+from copy import deepcopy
 from pathlib import Path
 from typing import Any
 
@@ -81,11 +82,20 @@ class AgentArchive:
         self._last = time.monotonic()
         self._n_parts = 0
         self._closed = False
+        self._meta: dict[str, Any] = {}
+        self._meta_json: str | None = None
 
     def add(self, run: int, state: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> bool:
-        """Buffer run ``run``'s state (copied) and metadata; True if a batch is due."""
+        """Buffer run ``run``'s state (copied) and metadata; True if a batch is due.
+
+        The runs of a job mostly share their metadata (class, schema, hyperparameters), so it
+        is encoded as JSON only when it differs from the previous run's (compared with a deep
+        copy of that one): one ``json.dumps`` per job instead of one per agent."""
         copy = {k: np.array(v, copy=True) for k, v in state.items()}
-        self._pending.append((int(run), copy, json.dumps(meta, separators=(",", ":"))))
+        if self._meta_json is None or meta != self._meta:
+            self._meta = deepcopy(dict(meta))
+            self._meta_json = json.dumps(meta, separators=(",", ":"))
+        self._pending.append((int(run), copy, self._meta_json))
         self._bytes += sum(v.nbytes for v in copy.values())
         return self._bytes >= self.max_bytes or time.monotonic() - self._last >= self.flush_seconds
 

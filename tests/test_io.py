@@ -187,3 +187,26 @@ def test_manifest_atomic_write(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
         m.finish("completed")
     assert (tmp_path / "manifest.json").read_text() == before  # old file intact
     assert [p.name for p in tmp_path.iterdir()] == ["manifest.json"]  # temp file removed
+
+
+def test_string_columns_of_few_values_keep_every_row(tmp_path):
+    """The phase column (few distinct strings) is built by index; values, order, non-ASCII
+    text and missing values come out as written, and the table reads back the same."""
+    from cobelrun.io.parquet import PartedTableWriter
+
+    schema = pa.schema([("phase", pa.string()), ("trial", pa.int32())])
+    writer = PartedTableWriter(tmp_path / "t.parquet", tmp_path / "parts", schema)
+    rng = np.random.default_rng(0)
+    phases = np.array(["acquisition", "extinction", "räume"], dtype=object)[
+        rng.integers(0, 3, 5000)
+    ]
+    unicode_phases = phases.astype(str)  # the same values as a numpy unicode array
+    with_none = phases.copy()
+    with_none[7] = None
+    for column in (phases, unicode_phases, with_none):
+        table = writer.to_table({"phase": column, "trial": np.arange(5000)})
+        assert table.column("phase").type == pa.string()
+        assert table.column("phase").to_pylist() == list(column)
+    writer.write_part({"phase": phases, "trial": np.arange(5000)})
+    writer.close()
+    assert pq.read_table(tmp_path / "t.parquet").column("phase").to_pylist() == list(phases)

@@ -185,6 +185,26 @@ def test_archive_round_trip_and_corrupt_state_is_a_clear_error(tmp_path):
     )
 
 
+def test_archive_keeps_each_runs_state_and_metadata_as_added(tmp_path):
+    """Metadata shared by runs is encoded once, yet a run whose metadata differs (here changed
+    in place after the previous add) keeps its own, and arrays are copied at the add."""
+    from cobelrun.io.agents_archive import AgentArchive, read_agent
+
+    arch = AgentArchive(tmp_path / "a.npz", tmp_path / "parts")
+    meta = {"agent": "x", "hyperparameters": {"lr": 0.5}, "state": {"seen": [1]}}
+    state = {"Q": np.arange(4.0)}
+    arch.add(0, state, meta)
+    meta["state"]["seen"].append(2)
+    state["Q"][:] = -1.0
+    arch.add(1, state, meta)
+    arch.add(2, state, meta)
+    arch.close()
+    got = [read_agent(tmp_path / "a.npz", r) for r in range(3)]
+    assert [m["state"]["seen"] for _, m in got] == [[1], [1, 2], [1, 2]]
+    np.testing.assert_array_equal(got[0][0]["Q"], np.arange(4.0))
+    np.testing.assert_array_equal(got[2][0]["Q"], np.full(4, -1.0))
+
+
 def _run_in_process(tmp_path, name, overrides, background=True):
     from cobelrun.api import compose
     from cobelrun.runner import build_task, execute

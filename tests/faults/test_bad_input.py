@@ -112,6 +112,21 @@ def test_memory_limit_from_the_environment(monkeypatch):
         validate([*TINY, "task.protocol.phases.0.trials=1000"], multirun=False)
 
 
+def test_memory_limit_set_between_two_checks_applies_at_once(monkeypatch):
+    """/proc/meminfo is read at most once a second, COBEL_MEMORY_LIMIT at every check."""
+    from cobelrun import safety
+    from cobelrun.safety import available_memory
+
+    monkeypatch.setattr(safety, "MEMORY_READ_TTL", 3600.0)  # no second read during the test
+    monkeypatch.setattr(safety, "_MEMORY_READ", [-float("inf"), []])
+    monkeypatch.delenv("COBEL_MEMORY_LIMIT", raising=False)
+    free = available_memory()
+    monkeypatch.setenv("COBEL_MEMORY_LIMIT", "1M")
+    assert available_memory() == 2**20
+    monkeypatch.delenv("COBEL_MEMORY_LIMIT")
+    assert available_memory() == free  # the system's reading of the first call, reused
+
+
 # -- names and paths ------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["../../x", "/etc", "a/b", ".hidden", "", "x" * 101, "ü ber"])
 def test_unsafe_task_names_are_refused(name):

@@ -82,6 +82,58 @@ def new_run_id() -> str:
     return secrets.token_hex(4)
 
 
+def apply_overrides(cfg: DictConfig, parsed: Sequence[Any]) -> None:
+    """Apply parsed Hydra value overrides to a composed config, as Hydra's composition does.
+
+    ``key=value`` changes an existing key, ``+key=value`` adds a new one, ``++key=value`` adds
+    or changes, ``~key`` (``~key=value``: only if it has that value) deletes. Errors are
+    one-line ConfigErrors worded as Hydra's (also where Hydra lets a ValueError through). Hydra 1.3 has no public function for this (its
+    own lives in a private module), so it is written here with OmegaConf's public API;
+    ``tests/test_api.py`` checks it against Hydra's on the same overrides.
+    """
+    from omegaconf import open_dict
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+
+    for o in parsed:
+        key = o.key_or_group
+        if o.package is not None:
+            raise ConfigError(
+                f"Override {o.input_line} looks like a config group override, but config "
+                f"group '{key}' does not exist."
+            )
+        value = o.value()
+        try:
+            if o.is_delete():
+                current = OmegaConf.select(cfg, key, throw_on_missing=False)
+                if current is None:
+                    raise ConfigError(f"Could not delete from config. '{key}' does not exist.")
+                if value is not None and value != current:
+                    raise ConfigError(f"Could not delete from config. The value of '{key}' is "
+                                      f"{current} and not {value}.")  # fmt: skip
+                parent, _, leaf = key.rpartition(".")
+                with open_dict(cfg):
+                    del (OmegaConf.select(cfg, parent) if parent else cfg)[leaf]
+            elif o.is_add():
+                if OmegaConf.select(cfg, key, throw_on_missing=False) is not None and not (
+                    isinstance(value, dict | list)
+                ):
+                    raise ConfigError(
+                        f"Could not append to config. An item is already at '{key}'."
+                    )
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+            elif o.is_force_add():
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+            else:
+                try:
+                    OmegaConf.update(cfg, key, value, merge=True)
+                except (ConfigAttributeError, ConfigKeyError):
+                    raise ConfigError(f"Could not override '{key}'.") from None
+        except ConfigError:
+            raise
+        except Exception:  # OmegaConf's errors, and a ValueError for a list index like a.x
+            raise ConfigError(f"Error merging override {o.input_line}") from None
+
+
 def register_resolvers() -> None:
     """Register cobel's OmegaConf resolvers (idempotent)."""
     if not OmegaConf.has_resolver("cobel.id"):

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import re
 import secrets
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,23 @@ def user_conf_dir(cwd: Path | None = None) -> Path | None:
     """``./conf`` in the working directory, searched before the built-in configs."""
     path = (cwd or Path.cwd()) / "conf"
     return path if path.is_dir() else None
+
+
+#: set by :func:`builtin_after_main`, read by ``hydra_plugins/cobel_searchpath``
+BUILTIN_AFTER_MAIN = False
+
+
+@contextlib.contextmanager
+def builtin_after_main(on: bool = True) -> Iterator[None]:
+    """While Hydra builds its config search path: search the built-in configs right after
+    the primary config folder (a user's ``-cd``/``-cp`` folder), through cobel's public
+    search-path plugin (``hydra_plugins/cobel_searchpath``)."""
+    global BUILTIN_AFTER_MAIN
+    before, BUILTIN_AFTER_MAIN = BUILTIN_AFTER_MAIN, on
+    try:
+        yield
+    finally:
+        BUILTIN_AFTER_MAIN = before
 
 
 def search_dirs() -> list[Path]:

@@ -175,7 +175,7 @@ class CobelSweeper(Sweeper):
                             write_job_status(job_dir(sweep_dir, num), "failed", error=_error(r))
                 returns.append(results)
                 first += len(batch)
-            _release_joblib_workers()
+            release_joblib_workers()
         finally:
             watcher.stop()
             job_rows(sweep_dir)
@@ -235,7 +235,7 @@ def _job_num(r: Any) -> int | None:
         return None
 
 
-def _release_joblib_workers() -> None:
+def release_joblib_workers() -> None:
     """Stop the joblib launcher's idle loky workers now that every job has returned.
 
     Otherwise they are stopped at interpreter exit, where each worker's clean shutdown (Python

@@ -135,9 +135,7 @@ def apply_overrides(cfg: DictConfig, parsed: Sequence[Any]) -> None:
                 if OmegaConf.select(cfg, key, throw_on_missing=False) is not None and not (
                     isinstance(value, dict | list)
                 ):
-                    raise ConfigError(
-                        f"Could not append to config. An item is already at '{key}'."
-                    )
+                    raise ConfigError(f"Could not append to config. An item is already at '{key}'.")
                 OmegaConf.update(cfg, key, value, merge=True, force_add=True)
             elif o.is_force_add():
                 OmegaConf.update(cfg, key, value, merge=True, force_add=True)

@@ -606,7 +606,7 @@ def run_hydra(parsed: Any, config_dir: Path, config_name: str) -> None:
     from hydra import main
 
     argv = ["cobel"]
-    for flags, dest, kwargs in HYDRA_FLAGS:
+    for flags, dest, _ in HYDRA_FLAGS:
         value = getattr(parsed, dest)
         if dest == "experimental_rerun" or value in (None, False):
             continue

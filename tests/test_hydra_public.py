@@ -78,8 +78,11 @@ def test_cli_parser_has_hydras_flags():
     assert flags(ours) == flags(theirs)
     theirs.prog = ours.prog
     assert ours.format_usage() == theirs.format_usage()
-    for args in (["-m", "-cd", "x", "--cfg", "job", "-i", "plugins", "a=1", "b=2"],
-                 ["--config-name=c", "-cp", "y", "--resolve", "-p", "agent", "-sc"], ["-i"]):
+    for args in (
+        ["-m", "-cd", "x", "--cfg", "job", "-i", "plugins", "a=1", "b=2"],
+        ["--config-name=c", "-cp", "y", "--resolve", "-p", "agent", "-sc"],
+        ["-i"],
+    ):
         assert vars(ours.parse_args(args)) == vars(theirs.parse_args(args))
 
 
@@ -121,7 +124,7 @@ def test_unexpected_errors_are_reported_as_hydra_does(func, capsys, monkeypatch)
         report_unexpected(func)
 
 
-CALLBACK = '''
+CALLBACK = """
 import json, os
 from hydra.experimental.callback import Callback
 
@@ -135,7 +138,7 @@ class Record(Callback):
     def on_job_start(self, config, **kw): self._log("job_start")
     def on_job_end(self, config, job_return, **kw): self._log(f"job_end {job_return.status.name}")
     def on_run_end(self, config, **kw): self._log("run_end")
-'''
+"""
 
 
 def test_a_single_run_calls_hydras_callbacks(cobel, tmp_path):

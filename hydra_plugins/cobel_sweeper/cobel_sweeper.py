@@ -246,7 +246,10 @@ def release_joblib_workers() -> None:
         from joblib.externals.loky import reusable_executor
     except ImportError:
         return
-    executor = getattr(reusable_executor, "_executor", None)  # loky's reusable executor
+    # loky (joblib 1.6) has no public way to look at its reusable executor without creating
+    # one (get_reusable_executor starts one, and its resource tracker, when there is none);
+    # this reads loky's module attribute, only here, and does nothing if it is gone
+    executor = getattr(reusable_executor, "_executor", None)
     if executor is not None:
         try:
             executor.shutdown(wait=True, kill_workers=True)

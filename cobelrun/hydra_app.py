@@ -579,8 +579,8 @@ def cli_parser() -> Any:
     """A parser of ``cobel run``'s arguments: Hydra's command line (:data:`HYDRA_FLAGS`, the
     flags of ``hydra.main``), read before Hydra runs so that cobel can check them first.
 
-    Hydra 1.3 builds its own parser in a private module; ``tests/test_cli.py`` checks that
-    this one has the same flags.
+    Hydra 1.3 builds its own parser in a private module; ``tests/test_hydra_public.py``
+    checks that this one has the same flags.
     """
     import argparse
 
@@ -659,18 +659,21 @@ def report_unexpected(func: Callable[[], Any]) -> Any:
     """Run ``func``; an exception it raises (a bug, not bad input) is reported as Hydra's own
     run reports it: the traceback from the job function on (without the frames above Hydra's
     ``run_job`` and OmegaConf's at the bottom), a hint, exit code 1. With
-    ``HYDRA_FULL_ERROR=1`` (``cobel run --debug``) it is raised whole."""
+    ``HYDRA_FULL_ERROR=1`` (``cobel run --debug``) or under a debugger it is raised whole."""
     import traceback
 
     from hydra.errors import CompactHydraException
+    from omegaconf.errors import OmegaConfBaseException
 
     try:
         return func()
     except Exception as exc:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or sys.gettrace() is not None:
             raise
         if isinstance(exc, CompactHydraException):
             sys.stderr.write(f"{exc}{os.linesep}")
+            if isinstance(exc.__cause__, OmegaConfBaseException):
+                sys.stderr.write(f"{exc.__cause__}{os.linesep}")
         else:
             te = traceback.TracebackException.from_exception(exc)
             frames = list(te.stack)

@@ -269,11 +269,9 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     Overrides use Hydra's syntax (``key=value``, ``+key=value``, ``~key``); config groups
     (``agent=NAME``) cannot be changed, since the saved config is fully composed.
     """
-    from hydra._internal.config_loader_impl import ConfigLoaderImpl
-    from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
-    from cobelrun.config import GROUPS
+    from cobelrun.config import GROUPS, apply_overrides
     from cobelrun.hydra_app import _parse
 
     folder = RunFolder(run_dir)
@@ -291,10 +289,9 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
             raise ConfigError(f"cobel rerun runs one job; {o.input_line!r} is a sweep")
     OmegaConf.set_struct(cfg, True)
     try:
-        ConfigLoaderImpl._apply_overrides_to_config(parsed, cfg)
-    except HydraException as exc:
-        text = str(exc).strip().splitlines()[0]
-        raise ConfigError(f"{text} (use +key=value to add a key)") from None
+        apply_overrides(cfg, parsed)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (use +key=value to add a key)") from None
     OmegaConf.set_struct(cfg, False)
     return cfg
 

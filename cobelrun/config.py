@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import re
 import secrets
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,23 @@ def user_conf_dir(cwd: Path | None = None) -> Path | None:
     """``./conf`` in the working directory, searched before the built-in configs."""
     path = (cwd or Path.cwd()) / "conf"
     return path if path.is_dir() else None
+
+
+#: set by :func:`builtin_after_main`, read by ``hydra_plugins/cobel_searchpath``
+BUILTIN_AFTER_MAIN = False
+
+
+@contextlib.contextmanager
+def builtin_after_main(on: bool = True) -> Iterator[None]:
+    """While Hydra builds its config search path: search the built-in configs right after
+    the primary config folder (a user's ``-cd``/``-cp`` folder), through cobel's public
+    search-path plugin (``hydra_plugins/cobel_searchpath``)."""
+    global BUILTIN_AFTER_MAIN
+    before, BUILTIN_AFTER_MAIN = BUILTIN_AFTER_MAIN, on
+    try:
+        yield
+    finally:
+        BUILTIN_AFTER_MAIN = before
 
 
 def search_dirs() -> list[Path]:
@@ -80,6 +98,56 @@ def describe(path: Path) -> str:
 def new_run_id() -> str:
     """A short random id that makes run folders unique even within one second."""
     return secrets.token_hex(4)
+
+
+def apply_overrides(cfg: DictConfig, parsed: Sequence[Any]) -> None:
+    """Apply parsed Hydra value overrides to a composed config, as Hydra's composition does.
+
+    ``key=value`` changes an existing key, ``+key=value`` adds a new one, ``++key=value`` adds
+    or changes, ``~key`` (``~key=value``: only if it has that value) deletes. Errors are
+    one-line ConfigErrors worded as Hydra's (also where Hydra lets a ValueError through). Hydra 1.3 has no public function for this (its
+    own lives in a private module), so it is written here with OmegaConf's public API;
+    ``tests/test_api.py`` checks it against Hydra's on the same overrides.
+    """
+    from omegaconf import open_dict
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+
+    for o in parsed:
+        key = o.key_or_group
+        if o.package is not None:
+            raise ConfigError(
+                f"Override {o.input_line} looks like a config group override, but config "
+                f"group '{key}' does not exist."
+            )
+        value = o.value()
+        try:
+            if o.is_delete():
+                current = OmegaConf.select(cfg, key, throw_on_missing=False)
+                if current is None:
+                    raise ConfigError(f"Could not delete from config. '{key}' does not exist.")
+                if value is not None and value != current:
+                    raise ConfigError(f"Could not delete from config. The value of '{key}' is "
+                                      f"{current} and not {value}.")  # fmt: skip
+                parent, _, leaf = key.rpartition(".")
+                with open_dict(cfg):
+                    del (OmegaConf.select(cfg, parent) if parent else cfg)[leaf]
+            elif o.is_add():
+                if OmegaConf.select(cfg, key, throw_on_missing=False) is not None and not (
+                    isinstance(value, dict | list)
+                ):
+                    raise ConfigError(f"Could not append to config. An item is already at '{key}'.")
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+            elif o.is_force_add():
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+            else:
+                try:
+                    OmegaConf.update(cfg, key, value, merge=True)
+                except (ConfigAttributeError, ConfigKeyError):
+                    raise ConfigError(f"Could not override '{key}'.") from None
+        except ConfigError:
+            raise
+        except Exception:  # OmegaConf's errors, and a ValueError for a list index like a.x
+            raise ConfigError(f"Error merging override {o.input_line}") from None
 
 
 def register_resolvers() -> None:

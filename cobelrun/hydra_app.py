@@ -124,25 +124,6 @@ def _parse(overrides: list[str]) -> list[Any]:
         raise ConfigError(f"cannot parse override: {str(exc).splitlines()[0]}") from None
 
 
-def search_path(config_dir: Path | None = None) -> Any:
-    """The config search path of ``cobel run`` (Hydra's ``ConfigSearchPath``).
-
-    Without ``config_dir``: the built-in configs (``./conf`` first, through
-    ``hydra_plugins/cobel_searchpath``). With a user's ``config_dir`` (``-cd``/``-cp``): that
-    folder is the primary one (its ``config.yaml`` wins) and the built-in configs come after
-    it, so its configs can still pick built-in envs, agents and tasks.
-    """
-    from hydra._internal.utils import create_config_search_path
-    from hydra.core.config_search_path import SearchPathQuery
-
-    if config_dir is None:
-        return create_config_search_path(str(builtin_conf_dir()))
-    sp = create_config_search_path(str(config_dir))
-    sp.prepend(provider="cobel", path=f"file://{builtin_conf_dir()}",
-               anchor=SearchPathQuery(provider="schema"))  # fmt: skip
-    return sp
-
-
 def user_config_dir(value: str | None) -> Path | None:
     """A ``-cd``/``-cp`` folder as an absolute path (relative to the working directory)."""
     if value is None:
@@ -160,13 +141,18 @@ def composer(
     """Compose configs as ``cobel run`` does, with errors as one-line ConfigErrors.
 
     Yields ``compose(overrides, return_hydra_config=False)``: built-in configs (``./conf``
-    searched first through ``hydra_plugins/cobel_searchpath``; a user's ``config_dir`` first
-    when given, see :func:`search_path`), overrides parsed, chosen task/env/agent/protocol
-    names checked with close-match suggestions, typos in keys explained. Used by ``cobel
-    run``'s up-front validation, the Python API, ``cobel render-cache`` and ``cobel figure``.
+    searched first through ``hydra_plugins/cobel_searchpath``), overrides parsed, chosen
+    task/env/agent/protocol names checked with close-match suggestions, typos in keys
+    explained. With a user's ``config_dir`` (``-cd``/``-cp``) that folder is the primary one
+    (its ``config.yaml`` wins) and the built-in configs are searched after it, so its configs
+    can still pick built-in envs, agents and tasks. Used by ``cobel run``'s up-front
+    validation, the Python API, ``cobel render-cache`` and ``cobel figure``.
+
+    Hydra is set up with its public ``initialize_config_dir`` (job name ``cobel``); the
+    built-in folder after a user's one is added by cobel's search-path plugin
+    (:func:`cobelrun.config.builtin_after_main`).
     """
-    from hydra import compose
-    from hydra._internal.hydra import Hydra
+    from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException, MissingConfigException
 
@@ -195,13 +181,15 @@ def composer(
                 msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
             raise ConfigError(msg) from None
 
-    from hydra import version
+    from cobelrun.config import builtin_after_main
 
     GlobalHydra.instance().clear()
     try:
-        version.setbase("1.3")
-        Hydra.create_main_hydra2(task_name="cobel", config_search_path=search_path(config_dir))
-        yield _compose
+        with builtin_after_main(config_dir is not None):
+            init = initialize_config_dir(str(config_dir or builtin_conf_dir()), job_name="cobel",
+                                         version_base="1.3")  # fmt: skip
+        with init:
+            yield _compose
     finally:
         GlobalHydra.instance().clear()
 
@@ -507,15 +495,7 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
     global SUMMARY
     SUMMARY = not quiet
 
-    import hydra._internal.utils as hydra_utils
-    from hydra._internal.utils import _run_hydra, get_args_parser
-
-    # Hydra's help prints the command that installs shell completion from this; `cobel -sc`
-    # is forwarded to `cobel run -sc` (cli._shell_completion_args)
-    hydra_utils._get_exec_command = lambda: "cobel"  # type: ignore[attr-defined]
-    parser = get_args_parser()
-    parser.prog = "cobel run"
-    parsed = parser.parse_args(args)
+    parsed = cli_parser().parse_args(args)
     # ./conf is put first on the search path by hydra_plugins/cobel_searchpath. A user's
     # -cd/-cp folder becomes the primary config folder (so -cd RUN/.hydra -cn config runs the
     # saved config), with the built-in configs searched after it.
@@ -546,8 +526,7 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             else:
                 sweep_dir = Path(str(OmegaConf.select(cfg, "hydra.sweep.dir"))).absolute()
             _writable_root(sweep_dir)
-            _run_hydra(args=parsed, args_parser=parser, task_function=job,
-                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
+            run_hydra(parsed, config_dir, config_name)
             return report_foreign_sweep(sweep_dir)
         if multirun:
             extra, sweep_dir = sweep_folder(overrides, cfg, jobs)
@@ -558,16 +537,14 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             extra, _ = run_folder(overrides, cfg)
             return run_composed(cfg, extra, user_dir, config_name)
     if sweep_dir is None:
-        _run_hydra(args=parsed, args_parser=parser, task_function=job,
-                   config_path=str(config_dir), config_name=config_name)  # fmt: skip
+        run_hydra(parsed, config_dir, config_name)
         return 0
     from cobelrun.sweep import SweepLock, clear_stop
 
     with SweepLock(sweep_dir), SweepStopper(sweep_dir, jobs) as stopper:
         clear_stop(sweep_dir)
         try:
-            _run_hydra(args=parsed, args_parser=parser, task_function=job,
-                       config_path=str(config_dir), config_name=config_name)  # fmt: skip
+            run_hydra(parsed, config_dir, config_name)
         except KeyboardInterrupt:
             if stopper.signum is None:
                 raise
@@ -577,6 +554,142 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
         if stopper.stopped:
             return stopper.report()
     return report_sweep(sweep_dir)
+
+
+#: Hydra 1.3's command-line flags (``hydra.main``): (flags, dest, argparse keywords)
+HYDRA_FLAGS: list[tuple[tuple[str, ...], str, dict[str, Any]]] = [
+    (("--help", "-h"), "help", {"action": "store_true"}),
+    (("--hydra-help",), "hydra_help", {"action": "store_true"}),
+    (("--cfg", "-c"), "cfg", {"choices": ["job", "hydra", "all"]}),
+    (("--resolve",), "resolve", {"action": "store_true"}),
+    (("--package", "-p"), "package", {}),
+    (("--run", "-r"), "run", {"action": "store_true"}),
+    (("--multirun", "-m"), "multirun", {"action": "store_true"}),
+    (("--shell-completion", "-sc"), "shell_completion", {"action": "store_true"}),
+    (("--config-path", "-cp"), "config_path", {}),
+    (("--config-name", "-cn"), "config_name", {}),
+    (("--config-dir", "-cd"), "config_dir", {}),
+    (("--experimental-rerun",), "experimental_rerun", {}),
+    (("--info", "-i"), "info", {"const": "all", "nargs": "?", "choices": [
+        "all", "config", "defaults", "defaults-tree", "plugins", "searchpath"]}),
+]  # fmt: skip
+
+
+def cli_parser() -> Any:
+    """A parser of ``cobel run``'s arguments: Hydra's command line (:data:`HYDRA_FLAGS`, the
+    flags of ``hydra.main``), read before Hydra runs so that cobel can check them first.
+
+    Hydra 1.3 builds its own parser in a private module; ``tests/test_hydra_public.py``
+    checks that this one has the same flags.
+    """
+    import argparse
+
+    import hydra
+
+    parser = argparse.ArgumentParser(prog="cobel run", add_help=False, description="Hydra")
+    for i, (flags, dest, kwargs) in enumerate(HYDRA_FLAGS):
+        if i == 2:  # in Hydra's order, so that a usage error lists them as Hydra would
+            parser.add_argument("--version", action="version", version=f"Hydra {hydra.__version__}")
+            parser.add_argument("overrides", nargs="*")
+        parser.add_argument(*flags, dest=dest, **kwargs)
+    return parser
+
+
+def run_hydra(parsed: Any, config_dir: Path, config_name: str) -> None:
+    """Run Hydra's command line (``hydra.main``, its public entry point) on ``parsed``.
+
+    ``hydra.main`` reads ``sys.argv``: for the call it holds the command ``cobel`` (so
+    Hydra's help and shell completion name the real command; ``cobel -sc`` is forwarded to
+    ``cobel run -sc``) and ``parsed`` written back as flags. ``--experimental-rerun`` is not
+    passed on (``cobel rerun`` reruns a run).
+    """
+    from hydra import main
+
+    argv = ["cobel"]
+    for flags, dest, _ in HYDRA_FLAGS:
+        value = getattr(parsed, dest)
+        if dest == "experimental_rerun" or value in (None, False):
+            continue
+        argv.append(flags[0] if value is True else f"{flags[0]}={value}")
+    argv.extend(parsed.overrides)
+    before = sys.argv
+    sys.argv = argv
+    try:
+        main(config_path=str(config_dir), config_name=config_name, version_base="1.3")(job)()
+    finally:
+        sys.argv = before
+
+
+class HydraCallbacks:
+    """The callbacks of ``hydra.callbacks`` (Hydra's public ``Callback`` interface) for a
+    single run: each is instantiated from the config and told of the run's and the job's start
+    and end, the ends in reverse order; a callback that raises is reported as a warning.
+    This is what Hydra's own run does, whose class for it lives in a private module."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        from hydra.utils import instantiate
+
+        nodes = OmegaConf.select(cfg, "hydra.callbacks") or {}
+        self.callbacks = [instantiate(node) for node in nodes.values()]
+
+    def _notify(self, name: str, reverse: bool = False, **kwargs: Any) -> None:
+        import warnings
+
+        for c in reversed(self.callbacks) if reverse else self.callbacks:
+            try:
+                getattr(c, name)(**kwargs)
+            except Exception as exc:
+                warnings.warn(f"Callback {type(c).__name__}.{name} raised "
+                              f"{type(exc).__name__}: {exc}", stacklevel=2)  # fmt: skip
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._notify("on_run_start", config=config, **kwargs)
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self._notify("on_run_end", reverse=True, config=config, **kwargs)
+
+    def on_job_start(self, config: DictConfig, *, task_function: Any, **kwargs: Any) -> None:
+        self._notify("on_job_start", config=config, task_function=task_function, **kwargs)
+
+    def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
+        self._notify("on_job_end", reverse=True, config=config, job_return=job_return, **kwargs)
+
+
+def report_unexpected(func: Callable[[], Any]) -> Any:
+    """Run ``func``; an exception it raises (a bug, not bad input) is reported as Hydra's own
+    run reports it: the traceback from the job function on (without the frames above Hydra's
+    ``run_job`` and OmegaConf's at the bottom), a hint, exit code 1. With
+    ``HYDRA_FULL_ERROR=1`` (``cobel run --debug``) or under a debugger it is raised whole."""
+    import traceback
+
+    from hydra.errors import CompactHydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return func()
+    except Exception as exc:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or sys.gettrace() is not None:
+            raise
+        if isinstance(exc, CompactHydraException):
+            sys.stderr.write(f"{exc}{os.linesep}")
+            if isinstance(exc.__cause__, OmegaConfBaseException):
+                sys.stderr.write(f"{exc.__cause__}{os.linesep}")
+        else:
+            te = traceback.TracebackException.from_exception(exc)
+            frames = list(te.stack)
+            starts = [i for i, f in enumerate(frames[:10]) if f.name == "run_job"]
+            if not starts:  # not from the job: the whole traceback
+                traceback.print_exc()
+                sys.exit(1)
+            frames = frames[starts[0] + 1 :]
+            end = next((i for i, f in enumerate(frames)
+                        if f"{os.sep}omegaconf{os.sep}" in f.filename), len(frames))  # fmt: skip
+            te.stack = traceback.StackSummary.from_list(frames[: max(end, 1)])
+            sys.stderr.write("".join(te.format()))
+        sys.stderr.write(
+            "\nSet the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace.\n"
+        )
+        sys.exit(1)
 
 
 def run_composed(
@@ -591,8 +704,6 @@ def run_composed(
     configured, and the job runs through Hydra's ``run_job`` (output folder, ``.hydra/``
     files, job logging, callbacks) with Hydra's error reporting.
     """
-    from hydra._internal.callbacks import Callbacks
-    from hydra._internal.utils import run_and_report
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.utils import configure_log, run_job
     from hydra.types import HydraContext, RunMode
@@ -607,30 +718,28 @@ def run_composed(
 
     def _run() -> None:
         with composer(config_dir, config_name):
-            hydra = GlobalHydra.instance().hydra
-            assert hydra is not None
             configure_log(cfg.hydra.hydra_logging, cfg.hydra.verbose)
-            callbacks = Callbacks(cfg)
+            callbacks = HydraCallbacks(cfg)
             callbacks.on_run_start(config=cfg, config_name=config_name)
             ret = run_job(
-                hydra_context=HydraContext(config_loader=hydra.config_loader,
-                                           callbacks=callbacks),
+                hydra_context=HydraContext(config_loader=GlobalHydra.instance().config_loader(),
+                                           callbacks=callbacks),  # type: ignore[arg-type]
                 task_function=job, config=cfg, job_dir_key="hydra.run.dir",
                 job_subdir_key=None, configure_logging=True,
             )  # fmt: skip
             callbacks.on_run_end(config=cfg, config_name=config_name, job_return=ret)
             _ = ret.return_value  # raises the job's exception, as Hydra's run does
 
-    run_and_report(_run)
+    report_unexpected(_run)
     return 0
 
 
 def _release_workers() -> None:
     try:
-        from hydra_plugins.cobel_sweeper.cobel_sweeper import _release_joblib_workers
+        from hydra_plugins.cobel_sweeper.cobel_sweeper import release_joblib_workers
     except ImportError:
         return
-    _release_joblib_workers()
+    release_joblib_workers()
 
 
 class SweepStopper:

@@ -153,7 +153,6 @@ def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str]
     Jobs come in Hydra's BasicSweeper order (cartesian product, last key fastest); ``params``
     holds each job's value of every swept key, typed (int, float, str, bool, None, list, dict).
     """
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     parser = OverridesParser.create()
@@ -162,7 +161,7 @@ def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str]
     for o in parsed:
         if o.is_sweep_override() and not is_hydra_key(o.key_or_group):
             swept.append(override_key(o))
-    combos = [j for batch in BasicSweeper.split_arguments(parsed, None) for j in batch]
+    combos = cartesian(parsed)
     jobs = []
     for i, combo in enumerate(combos):
         params: dict[str, Any] = {}
@@ -172,6 +171,34 @@ def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str]
                 params[key] = _plain_value(o.value())
         jobs.append({"job": i, "overrides": list(combo), "params": params})
     return swept, jobs
+
+
+def cartesian(parsed: Sequence[Any]) -> list[list[str]]:
+    """Every job's overrides for parsed Hydra overrides, as Hydra's basic sweeper makes them.
+
+    The cartesian product of the swept values (``a=1,2``, ``range(...)``, ``choice(...)``),
+    the last key varying fastest; a key given twice keeps its first position and its last
+    value. Only the public ``Override`` API is used (Hydra 1.3's ``BasicSweeper`` lives in a
+    private module); ``tests/test_sweep.py`` checks the order against Hydra's.
+    """
+    import itertools
+
+    from cobelrun.errors import ConfigError
+
+    values: dict[str, list[str]] = {}
+    for o in parsed:
+        key = o.get_key_element()
+        if not o.is_sweep_override():
+            values[key] = [f"{key}={o.get_value_element_as_str()}"]
+        elif o.is_discrete_sweep():
+            values[key] = [f"{key}={v}" for v in o.sweep_string_iterator()]
+        else:
+            raise ConfigError(
+                f"cannot sweep {o.input_line!r} with cobel's sweeper: it takes lists (a=1,2), "
+                "range(...) and choice(...); an interval needs a sampling sweeper such as "
+                "hydra/sweeper=optuna"
+            )
+    return [list(c) for c in itertools.product(*values.values())]
 
 
 def _plain_value(value: Any) -> Any:

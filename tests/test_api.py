@@ -217,3 +217,43 @@ def test_training_log_without_tensorboard(cobel, tmp_path):
     api = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert api.returncode == 0, api.stderr
     assert api.stderr.count("TensorBoard output skipped") == 1, api.stderr
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["a.b=3", "a.c=[1,2]", "+a.new=x", "++a.b=5", "++z=1", "~a.b", "~a.b=2", "~a.b=9", "~nope",
+     "+a.b=1", "+a={q:1}", "a.nope=1", "a.b={x:1}", "s=str", "lst.0=7", "lst=[3]", "~lst",
+     "a@pkg=1", "a.b=null", "+lst=[9]", "d.k=${a.b}", "a.c.x=1", "a.b.c=1"],
+)  # fmt: skip
+def test_rerun_overrides_behave_as_in_hydra(override):
+    """cobel applies value overrides to a saved config with OmegaConf's public API; the result
+    (or the error's first line) is what Hydra's own composition gives (imported here, in a
+    test only, to compare)."""
+    import copy
+
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from cobelrun.config import apply_overrides
+
+    base = OmegaConf.create({"a": {"b": 2, "c": [0]}, "s": "t", "lst": [1, 2], "d": {"k": 0}})
+    OmegaConf.set_struct(base, True)
+    parsed = OverridesParser.create().parse_overrides([override])
+    ours, theirs = copy.deepcopy(base), copy.deepcopy(base)
+    try:
+        ConfigLoaderImpl._apply_overrides_to_config(parsed, theirs)
+        expected = None
+    except HydraException as exc:
+        expected = str(exc).strip().splitlines()[0]
+    except ValueError:  # Hydra lets it through; cobel says which override
+        expected = f"Error merging override {override}"
+    if expected is None:
+        apply_overrides(ours, parsed)
+        assert OmegaConf.to_container(ours) == OmegaConf.to_container(theirs)
+        assert ours != base
+    else:
+        with pytest.raises(ConfigError) as err:
+            apply_overrides(ours, parsed)
+        assert str(err.value) == expected

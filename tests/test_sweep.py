@@ -169,3 +169,35 @@ def test_sweep_id_ignores_order_of_fixed_overrides_and_launcher(order):
     assert sweep_id(jobs) == sweep_id(ref)
     _, other = plan(["task=tmaze_extinction", "seed=1,2,3", "task.runs=2"])
     assert sweep_id(other) != sweep_id(ref)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["seed=1,2,3", "agent=q_learning,dyna_q", "task.runs=2"],
+        ["seed=range(0,4)", "agent.epsilon=0.1,0.2", "seed=5,6"],  # a key given twice
+        ["+extra=choice(a,'b c')", "agent.epsilon=0.3", "hydra/launcher=joblib", "~task.x"],
+        ["lst=[1,2],[3]", "d={a:1},{a:2}", "task=tmaze_extinction"],
+    ],
+)
+def test_jobs_come_in_hydras_basic_sweeper_order(overrides):
+    """cobel expands sweeps with Hydra's public override API; the jobs and their order are
+    those of Hydra's own basic sweeper (imported here, in a test only, to compare)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from cobelrun.sweep import cartesian, plan
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    (hydra_jobs,) = BasicSweeper.split_arguments(parsed, None)
+    assert cartesian(parsed) == hydra_jobs
+    _, jobs = plan(overrides)
+    assert [j["overrides"] for j in jobs] == hydra_jobs and len(jobs) > 1
+
+
+def test_an_interval_sweep_is_refused_in_one_line(cobel, tmp_path):
+    proc = cobel("run", "-m", "task=tmaze_extinction", "agent.epsilon=interval(0.1,0.5)")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "interval needs a sampling sweeper" in lines[0], proc.stderr
+    assert not (tmp_path / "results").exists()

@@ -28,16 +28,21 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-from omegaconf import OmegaConf
+from hydra.plugins.sweeper import Sweeper
+from hydra.types import HydraContext, TaskFunction
+from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
 FINAL = ("completed", "failed", "interrupted")
 
 
-class CobelSweeper(BasicSweeper):
-    """Hydra's cartesian sweeper with resume (skip done jobs) and per-job failure records.
+class CobelSweeper(Sweeper):
+    """Hydra's cartesian sweep with resume (skip done jobs) and per-job failure records.
+
+    Built on Hydra's public ``Sweeper`` plugin interface (Hydra's ``BasicSweeper`` lives in a
+    private module); the jobs and their order are the basic sweeper's
+    (:func:`cobelrun.sweep.cartesian`).
 
     Parameters
     ----------
@@ -56,11 +61,28 @@ class CobelSweeper(BasicSweeper):
         params: dict[str, str] | None = None,
         skip_done: bool = True,
     ) -> None:
-        super().__init__(max_batch_size=max_batch_size, params=params)
+        super().__init__()
+        self.max_batch_size = max_batch_size
+        self.params = dict(params or {})
         self.skip_done = skip_done
+        self.hydra_context: HydraContext | None = None
+        self.config: DictConfig | None = None
+        self.launcher: Any = None
         #: filled by :meth:`sweep`: job numbers launched and reused in this call
         self.launched: list[int] = []
         self.reused: list[int] = []
+
+    def setup(
+        self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig
+    ) -> None:
+        """Keep Hydra's context and config and instantiate the configured launcher."""
+        from hydra.core.plugins import Plugins
+
+        self.hydra_context = hydra_context
+        self.config = config
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
 
     def sweep(self, arguments: list[str]) -> Any:
         from hydra.core.utils import JobStatus
@@ -83,7 +105,7 @@ class CobelSweeper(BasicSweeper):
         assert self.config is not None and self.launcher is not None
         assert self.hydra_context is not None
         register_resolvers()
-        swept, jobs = plan(arguments, extra=self._parse_config())
+        swept, jobs = plan(arguments, extra=[f"{k}={v}" for k, v in self.params.items()])
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
@@ -122,9 +144,8 @@ class CobelSweeper(BasicSweeper):
 
         if self.reused:
             log.info(f"{len(self.reused)} of {len(jobs)} jobs already done, skipped")
-        batches = (
-            list(self.split_overrides_to_chunks(pending, self.max_batch_size)) if pending else []
-        )
+        size = self.max_batch_size if self.max_batch_size not in (None, -1) else len(pending)
+        batches = [pending[i : i + size] for i in range(0, len(pending), size)] if pending else []
         watcher = _Watcher(
             [job_dir(sweep_dir, n) for n in self.launched], len(jobs), len(self.reused)
         )
@@ -151,12 +172,10 @@ class CobelSweeper(BasicSweeper):
                     if r.status == JobStatus.FAILED:  # raised outside cobel's job function
                         num = _job_num(r)
                         if num is not None:
-                            write_job_status(
-                                job_dir(sweep_dir, num), "failed", error=one_line(r._return_value)
-                            )
+                            write_job_status(job_dir(sweep_dir, num), "failed", error=_error(r))
                 returns.append(results)
                 first += len(batch)
-            _release_joblib_workers()
+            release_joblib_workers()
         finally:
             watcher.stop()
             job_rows(sweep_dir)
@@ -194,6 +213,21 @@ class CobelSweeper(BasicSweeper):
         return broken
 
 
+def _error(r: Any) -> str:
+    """One line naming a failed ``JobReturn``'s exception (its public ``return_value`` raises
+    it, after writing a line of its own to stderr, which is dropped)."""
+    import io
+
+    from cobelrun.sweep import one_line
+
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):
+            r.return_value  # noqa: B018
+    except Exception as exc:
+        return one_line(exc)
+    return "the job failed"
+
+
 def _job_num(r: Any) -> int | None:
     try:
         return int(str(r.hydra_cfg.hydra.sweep.subdir))
@@ -201,7 +235,7 @@ def _job_num(r: Any) -> int | None:
         return None
 
 
-def _release_joblib_workers() -> None:
+def release_joblib_workers() -> None:
     """Stop the joblib launcher's idle loky workers now that every job has returned.
 
     Otherwise they are stopped at interpreter exit, where each worker's clean shutdown (Python
@@ -212,7 +246,10 @@ def _release_joblib_workers() -> None:
         from joblib.externals.loky import reusable_executor
     except ImportError:
         return
-    executor = getattr(reusable_executor, "_executor", None)  # loky's reusable executor
+    # loky (joblib 1.6) has no public way to look at its reusable executor without creating
+    # one (get_reusable_executor starts one, and its resource tracker, when there is none);
+    # this reads loky's module attribute, only here, and does nothing if it is gone
+    executor = getattr(reusable_executor, "_executor", None)
     if executor is not None:
         try:
             executor.shutdown(wait=True, kill_workers=True)
@@ -245,12 +282,11 @@ def _worker_setup(launcher: Any) -> Iterator[None]:
     import functools
 
     from joblib import parallel
-    from joblib._parallel_backends import LokyBackend
 
     from cobelrun.sweep import LAUNCHER_ENV, worker_init
 
     os.environ[LAUNCHER_ENV] = str(os.getpid())  # the workers inherit it (worker_init)
-    original = parallel.BACKENDS.get("loky", LokyBackend)
+    original = parallel.BACKENDS["loky"]
     parallel.register_parallel_backend("loky", functools.partial(original, initializer=worker_init))
     try:
         yield

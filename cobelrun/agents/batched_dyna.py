@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from cobelrun.agents.base import TrialCallback, state_of
-from cobelrun.agents.networks import ACTIVATIONS, TorchMLP
+from cobelrun.agents.batched_ops import RowAdam, activation
+from cobelrun.agents.networks import TorchMLP
 from cobelrun.agents.policy import allowed_next, select
 from cobelrun.envs.base import Posed
 from cobelrun.records import TrialBatch
@@ -70,7 +71,7 @@ class StackedMLP:
     def __init__(self, nets: Sequence[TorchMLP], device: torch.device) -> None:
         first = nets[0]
         self.R, self.H = len(nets), first.n_heads
-        self.act = ACTIVATIONS[first.activation]
+        self.act = activation(first.activation)
         self.lr = first.learning_rate
         group = first.optimizer.param_groups[0]
         self.betas = (float(group["betas"][0]), float(group["betas"][1]))
@@ -85,9 +86,7 @@ class StackedMLP:
         )
         self.target = self.flat.clone()
         self.leaves = [v.requires_grad_() for v in self.layers(self.flat)]
-        self.exp_avg = torch.zeros_like(self.flat)
-        self.exp_avg_sq = torch.zeros_like(self.flat)
-        self.steps = np.zeros(self.R, np.int64)
+        self.optimizer = RowAdam(self.flat, self.lr, self.betas, self.eps)
         self.device = device
 
     def _order(self) -> list[str]:
@@ -162,23 +161,8 @@ class StackedMLP:
 
     def adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
         """One Adam step of the runs in ``train`` (the others keep parameters and moments)."""
-        b1, b2 = self.betas
         grad = torch.cat([g.reshape(self.R, -1) for g in grads], dim=1)
-        self.steps[train] += 1
-        step = np.maximum(self.steps, 1).astype(np.float64)
-        dev = self.device
-        ss = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)[:, None]
-        bc = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)[:, None]
-        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
-        with torch.no_grad():
-            idle = torch.as_tensor(np.flatnonzero(~train), device=dev)
-            saved = [t[idle].clone() for t in (p, m, v)] if len(idle) else None
-            m.lerp_(grad, 1 - b1)
-            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-            p.addcdiv_(m * ss, v.sqrt().div_(bc).add_(self.eps), value=-1.0)
-            if saved is not None:  # runs that wait keep parameters and moments exactly
-                for t, old in zip((p, m, v), saved, strict=True):
-                    t[idle] = old
+        self.optimizer.step(grad, train)
 
     def blend_target(self, tau: float, train: np.ndarray) -> None:
         """``target <- target + tau (online - target)`` (``TorchMLP.blend_from``) per run."""

@@ -174,7 +174,7 @@ class BatchedDQN:
         self.flat_target = self.flat.clone()
         self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
         # Adam with a step count per run (a waiting run does not step)
-        self.adam = RowAdam(self.flat, self.lr, self.betas, self.adam_eps)
+        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps)
         self.version = 0  # bumped at every parameter change (caches of predictions)
         self._cache: tuple[int, bytes, np.ndarray] | None = None
         self.num_timesteps = np.zeros(R, np.int64)
@@ -324,7 +324,7 @@ class BatchedDQN:
         """torch.optim.Adam's update with a step count per run (:class:`RowAdam`); runs not
         in ``train`` keep their parameters and moments exactly."""
         self.version += 1
-        self.adam.step(grad, train)
+        self.adam.step([grad], train)
 
     @property
     def adam_steps(self) -> np.ndarray:
@@ -489,7 +489,7 @@ class DQNRunView:
                 arrays[f"{prefix}.{2 * i}.bias"] = (
                     params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
                 )
-        exp_avg, exp_avg_sq = b.adam.moments(r)
+        ((exp_avg, exp_avg_sq),) = b.adam.moments(r)
         moments = zip(b.layers(exp_avg[None]), b.layers(exp_avg_sq[None]), strict=True)
         for j, (m, v) in enumerate(moments):
             tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])

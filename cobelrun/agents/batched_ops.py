@@ -17,7 +17,7 @@ Measured on the 2-core benchmark machine (torch 2.13, CPU, one thread; ``docs/sp
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -65,43 +65,57 @@ ACTIVATION_NAMES = tuple(_ACTIVATIONS)
 
 
 class RowAdam:
-    """``torch.optim.Adam`` over the rows of a ``(R, P)`` parameter tensor, one run per row.
+    """``torch.optim.Adam`` over stacked parameters ``(R, ...)``, one run per row.
 
-    Each row is its own optimizer parameter (a leaf tensor sharing the row's memory), so each
-    run has its own step count and moments, exactly as a sequential run's optimizer has; a
-    run whose gradient is not given in a step is skipped by the optimizer (parameters,
-    moments and step count unchanged). The fused kernel does one pass over all rows.
+    Each run's slice of each tensor is its own optimizer parameter (a leaf tensor sharing
+    that memory), so each run has its own step count and moments, exactly as a sequential
+    run's optimizer has; a run whose gradients are not given in a step is skipped by the
+    optimizer (parameters, moments and step count unchanged). The fused kernel does one pass
+    over all of them.
 
     Parameters
     ----------
-    flat
-        ``(R, P)`` parameters, updated in place.
+    tensors
+        Stacked parameters, each ``(R, ...)``, contiguous; updated in place.
     lr, betas, eps
         Adam's settings (those of the sequential agent's optimizer).
     """
 
     def __init__(
-        self, flat: torch.Tensor, lr: float, betas: tuple[float, float], eps: float
+        self, tensors: Sequence[torch.Tensor], lr: float, betas: tuple[float, float], eps: float
     ) -> None:
-        self.flat = flat
-        self.rows = [flat[r].detach().requires_grad_() for r in range(flat.shape[0])]
-        fused = flat.device.type in ("cpu", "cuda")
-        self.opt = torch.optim.Adam(self.rows, lr=lr, betas=betas, eps=eps, fused=fused)
-        self.steps = np.zeros(flat.shape[0], np.int64)
+        self.tensors = list(tensors)
+        self.R = int(self.tensors[0].shape[0])
+        # params[r][k]: run r's slice of tensor k
+        self.params = [[t[r].detach().requires_grad_() for t in self.tensors]
+                       for r in range(self.R)]  # fmt: skip
+        fused = self.tensors[0].device.type in ("cpu", "cuda")
+        flat = [p for row in self.params for p in row]
+        self.opt = torch.optim.Adam(flat, lr=lr, betas=betas, eps=eps, fused=fused)
+        self.steps = np.zeros(self.R, np.int64)
 
-    def step(self, grad: torch.Tensor, train: np.ndarray) -> None:
-        """One Adam step of the rows with ``train[r]``, with gradient ``grad[r]``."""
-        for r, row in enumerate(self.rows):
-            row.grad = grad[r] if train[r] else None
+    def step(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
+        """One Adam step of the runs with ``train[r]``; ``grads[k][r]`` is run ``r``'s
+        gradient of tensor ``k``."""
+        for r, row in enumerate(self.params):
+            on = bool(train[r])
+            for p, g in zip(row, grads, strict=True):
+                p.grad = g[r] if on else None
         self.opt.step()
-        for row in self.rows:
-            row.grad = None
+        for row in self.params:
+            for p in row:
+                p.grad = None
         self.steps[train] += 1
 
-    def moments(self, run: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Run ``run``'s first and second moments ``(P,)`` (zeros before its first step)."""
-        state = self.opt.state.get(self.rows[run], {})
-        if "exp_avg" not in state:
-            zeros = torch.zeros_like(self.flat[run])
-            return zeros, zeros
-        return state["exp_avg"], state["exp_avg_sq"]
+    def moments(self, run: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Run ``run``'s first and second moments of each tensor (zeros before its first
+        step)."""
+        out = []
+        for p in self.params[run]:
+            state = self.opt.state.get(p, {})
+            if "exp_avg" not in state:
+                zeros = torch.zeros_like(p)
+                out.append((zeros, zeros))
+            else:
+                out.append((state["exp_avg"], state["exp_avg_sq"]))
+        return out

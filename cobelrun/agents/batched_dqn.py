@@ -56,6 +56,7 @@ from cobelrun.records import TrialBatch
 
 __all__ = ["BatchedDQN", "DQNRunView", "resolve_device", "unsupported"]
 
+
 def resolve_device(device: str) -> torch.device:
     """``"auto"``: CUDA when present, else the CPU; any other name as torch reads it."""
     if device == "auto":
@@ -324,7 +325,8 @@ class BatchedDQN:
         """torch.optim.Adam's update with a step count per run (:class:`RowAdam`); runs not
         in ``train`` keep their parameters and moments exactly."""
         self.version += 1
-        self.adam.step([grad], train)
+        runs = np.flatnonzero(train)
+        self.adam.step([grad if len(runs) == self.R else grad[torch.as_tensor(runs)]], runs)
 
     @property
     def adam_steps(self) -> np.ndarray:

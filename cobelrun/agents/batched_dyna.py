@@ -157,9 +157,10 @@ class StackedMLP:
         return {k: v[run].detach().cpu().numpy().copy()
                 for k, v in zip(self._order(), src, strict=True)}  # fmt: skip
 
-    def adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
-        """One Adam step of the runs in ``train`` (the others keep parameters and moments)."""
-        self.optimizer.step(grads, train)
+    def adam(self, grads: Sequence[torch.Tensor], runs: np.ndarray) -> None:
+        """One Adam step of the runs ``runs`` (``grads[k][i]``: run ``runs[i]``'s gradient of
+        layer ``k``; the other runs keep parameters and moments)."""
+        self.optimizer.step(grads, runs)
 
     def blend_target(self, tau: float, train: np.ndarray) -> None:
         """``target <- target + tau (online - target)`` (``TorchMLP.blend_from``) per run."""
@@ -226,32 +227,30 @@ class BatchedDyna:
         return agent
 
     # -- values --------------------------------------------------------------------------------
-    def _w(self) -> torch.Tensor:
-        """Dyna-DSR's reward weights ``(R, d)``."""
+    def _w(self, layers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
+        """Dyna-DSR's reward weights ``(R', d)`` (of ``layers``, default every run's)."""
         assert self.reward is not None and not self.reward.has_bias
-        return self.reward.leaves[0].detach().reshape(self.R, -1)
+        w = (self.reward.leaves if layers is None else layers)[0].detach()
+        return w.reshape(w.shape[0], -1)
 
     def q_of_states(self, states: np.ndarray) -> np.ndarray:
         """Action values ``(R, A)`` of one state per run."""
         with torch.no_grad():
-            out = self._net(
-                self.net, self.net.leaves, states[:, None]
-            )  # (R, H, 1, out)
+            out = self._net(self.net, self.net.leaves, states[:, None])  # (R, H, 1, out)
             if self.dsr:
                 return torch.einsum("rhd,rd->rh", out[:, :, 0], self._w()).numpy()
             return out[:, 0, 0].numpy()
 
-    def _net(
-        self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray
-    ) -> torch.Tensor:
-        """``net`` on the observations of ``states`` ``(R, n)`` or ``(R, H, n)``."""
+    def _net(self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray,
+             obs: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+        """``net`` on the observations of ``states`` ``(R', n)`` or ``(R', H, n)`` (``obs``:
+        the runs' observation matrices, default every run's)."""
         s_t = torch.as_tensor(states, device=self.device)
         if self.onehot:
             return net.forward(layers, s_t, states=True)
-        if s_t.dim() == 2:
-            x = self.obs[torch.arange(self.R)[:, None], s_t]
-        else:
-            x = self.obs[torch.arange(self.R)[:, None, None], s_t]
+        obs = self.obs if obs is None else obs
+        rows = torch.arange(obs.shape[0])
+        x = obs[rows[:, None], s_t] if s_t.dim() == 2 else obs[rows[:, None, None], s_t]
         return net.forward(layers, x)
 
     # -- learning ------------------------------------------------------------------------------
@@ -259,25 +258,42 @@ class BatchedDyna:
                term: np.ndarray, train: np.ndarray) -> None:  # fmt: skip
         """One replay update of every run in ``train`` on its ``(n,)`` experiences (rows of
         ``S, A, ...``; rows of other runs are ignored)."""
-        R, net = self.R, self.net
+        net, rw = self.net, self.reward
+        runs = np.flatnonzero(train)
+        if len(runs) == 0:
+            return
+        # only the runs that learn this step are computed: the others' rows are left out
+        # (their trials or phases are over; runs wait for the slowest in lock-step)
+        if len(runs) == self.R:
+            online, target_net, obs = net.leaves, net.target, self.obs
+            rw_online = None if rw is None else rw.leaves
+        else:
+            sel = torch.as_tensor(runs)
+            S, A, rew, S2, term = (v[runs] for v in (S, A, rew, S2, term))
+            online = [t.detach()[sel].requires_grad_() for t in net.leaves]
+            target_net = [t[sel] for t in net.target]
+            obs = self.obs[sel]
+            rw_online = (
+                None if rw is None else [t.detach()[sel].requires_grad_() for t in rw.leaves]
+            )
+        R = len(runs)
         rows = torch.arange(R)[:, None]
         ar = np.arange(R)[:, None]
         s2_t = torch.as_tensor(S2)
-        x2 = self.obs[rows, s2_t]  # (R, n, d)
+        x2 = obs[rows, s2_t]  # (R, n, d)
         a_t = torch.as_tensor(A)
         n = S.shape[1]
-        mask = torch.as_tensor(train, dtype=torch.float32)
-        agents = self.agents
+        agents = [self.agents[r] for r in runs]
         # one-hot observations: every state's outputs once (n_states rows per head) instead
         # of every sample's (n rows); a sample's values are its state's row
         table = self.onehot
         with torch.no_grad():
             if table:
-                nxt = net.forward(net.target, None, states=True)  # (R, H, S, out)
+                nxt = net.forward(target_net, None, states=True)  # (R, H, S, out)
             else:
-                nxt = self._net(net, net.target, S2)  # (R, H, n, out)
+                nxt = self._net(net, target_net, S2, obs)  # (R, H, n, out)
         if self.dsr:
-            w = self._w()
+            w = self._w(rw_online)
             q_next = torch.einsum("rhnd,rd->rnh", nxt, w).numpy()
         else:
             q_next = nxt[:, 0].numpy()  # (R, n or S, A)
@@ -285,8 +301,7 @@ class BatchedDyna:
             q_next = q_next[ar, S2]  # (R, n, A)
         best = np.zeros((R, n), np.int64)
         y = np.zeros((R, n), np.float32)
-        for r in np.flatnonzero(train):
-            ag = agents[r]
+        for r, ag in enumerate(agents):
             qn = q_next[r]
             if ag.use_mask:
                 qn = np.where(allowed_next(ag._loop_mask, S2[r]), qn, -np.inf)
@@ -309,12 +324,10 @@ class BatchedDyna:
                 # only the taken action's head is trained on a sample; the squared error
                 # summed over samples is, per (head, state) row with c samples whose targets
                 # sum to T, c |out|^2 - 2 out.T (+ a constant): the same gradient
-                out = net.forward(net.leaves, None, states=True)  # (R, H, S, d)
+                out = net.forward(online, None, states=True)  # (R, H, S, d)
                 n_states = out.shape[2]
                 key = torch.as_tensor(A * n_states + S)  # (R, n): row (head, state)
-                count = torch.zeros(R, net.H * n_states).scatter_add_(
-                    1, key, torch.ones(R, n)
-                )
+                count = torch.zeros(R, net.H * n_states).scatter_add_(1, key, torch.ones(R, n))
                 tsum = torch.zeros(R, net.H * n_states, d).scatter_add_(
                     1, key[..., None].expand(R, n, d), target
                 )
@@ -326,35 +339,32 @@ class BatchedDyna:
                 idx, valid = group_by_head(A, net.H)  # (R, H, M)
                 rows3 = torch.arange(R)[:, None, None]
                 idx_t = torch.as_tensor(idx)
-                out = self._net(net, net.leaves, S[ar[..., None], idx])  # (R, H, M, d)
+                out = self._net(net, online, S[ar[..., None], idx], obs)  # (R, H, M, d)
                 err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
                 loss_sr = err.sum(dim=(1, 2)) / (n * d)
-            rw = self.reward
-            assert rw is not None
-            pr = self._net(rw, rw.leaves, S2)[:, 0, :, 0]  # (R, n)
+            assert rw is not None and rw_online is not None
+            pr = self._net(rw, rw_online, S2, obs)[:, 0, :, 0]  # (R, n)
             loss_r = ((pr - torch.as_tensor(rew, dtype=torch.float32)) ** 2).mean(dim=1)
-            grads = torch.autograd.grad(
-                ((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves]
-            )
-            net.adam(grads[: len(net.leaves)], train)
-            rw.adam(grads[len(net.leaves) :], train)
+            grads = torch.autograd.grad((loss_sr + loss_r).sum(), [*online, *rw_online])
+            net.adam(grads[: len(online)], runs)
+            rw.adam(grads[len(online) :], runs)
         elif table:  # the same identity per (state, action) entry of the Q table
-            out = net.forward(net.leaves, None, states=True)[:, 0]  # (R, S, A)
+            out = net.forward(online, None, states=True)[:, 0]  # (R, S, A)
             n_states, d_out = out.shape[1], out.shape[2]
             key = torch.as_tensor(S * d_out + A)
             count = torch.zeros(R, n_states * d_out).scatter_add_(1, key, torch.ones(R, n))
             ysum = torch.zeros(R, n_states * d_out).scatter_add_(1, key, torch.as_tensor(y))
             o = out.reshape(R, n_states * d_out)
             loss = ((count * o - 2 * ysum) * o).sum(dim=1) / (n * d_out)
-            grads = torch.autograd.grad((loss * mask).sum(), net.leaves)
-            net.adam(grads, train)
+            grads = torch.autograd.grad(loss.sum(), online)
+            net.adam(grads, runs)
         else:
-            out = self._net(net, net.leaves, S)[:, 0]  # (R, n, A)
+            out = self._net(net, online, S, obs)[:, 0]  # (R, n, A)
             pred = out.gather(2, a_t[..., None])[..., 0]
             d_out = out.shape[-1]
             loss = ((pred - torch.as_tensor(y)) ** 2).sum(dim=1) / (n * d_out)
-            grads = torch.autograd.grad((loss * mask).sum(), net.leaves)
-            net.adam(grads, train)
+            grads = torch.autograd.grad(loss.sum(), online)
+            net.adam(grads, runs)
         net.blend_target(self.tau, train)
         self.version += 1
 

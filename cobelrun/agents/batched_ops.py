@@ -94,18 +94,17 @@ class RowAdam:
         self.opt = torch.optim.Adam(flat, lr=lr, betas=betas, eps=eps, fused=fused)
         self.steps = np.zeros(self.R, np.int64)
 
-    def step(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
-        """One Adam step of the runs with ``train[r]``; ``grads[k][r]`` is run ``r``'s
-        gradient of tensor ``k``."""
-        for r, row in enumerate(self.params):
-            on = bool(train[r])
-            for p, g in zip(row, grads, strict=True):
-                p.grad = g[r] if on else None
+    def step(self, grads: Sequence[torch.Tensor], runs: np.ndarray) -> None:
+        """One Adam step of the runs ``runs`` (indices, increasing); ``grads[k][i]`` is run
+        ``runs[i]``'s gradient of tensor ``k``. The other runs are left exactly as they are."""
+        for i, r in enumerate(runs):
+            for p, g in zip(self.params[r], grads, strict=True):
+                p.grad = g[i]
         self.opt.step()
-        for row in self.params:
-            for p in row:
+        for r in runs:
+            for p in self.params[r]:
                 p.grad = None
-        self.steps[train] += 1
+        self.steps[runs] += 1
 
     def moments(self, run: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Run ``run``'s first and second moments of each tensor (zeros before its first

@@ -7,7 +7,8 @@ hard) target update and ``gradient_steps`` Adam steps on a batch drawn from the 
 operations, so a run spends most of its time in per-call overhead. :class:`BatchedDQN` keeps
 the R runs' networks as stacked tensors with a leading run axis (``W[l]``: ``(R, in, out)``)
 and performs every step of every run at once with batched matrix products
-(``torch.baddbmm``), one backward pass and one Adam update of the stacked parameters.
+(``torch.baddbmm``), one backward pass and one fused Adam step of the stacked parameters
+(:class:`~cobelrun.agents.batched_ops.RowAdam`: a step count per run).
 
 Each run is still its own agent, with the sequential agent's update rule read top to bottom
 in :meth:`BatchedDQN._gradient_step`:

@@ -4,12 +4,15 @@ Each run is a real agent built from its own seed (:class:`~cobelrun.agents.dyna_
 or :class:`~cobelrun.agents.dyna_dsr.DynaDSR`): it keeps its random generator, its tabular
 model memory and its observation matrix, and draws exactly what a sequential run draws, in
 the same order (action selection, replay sampling, Dyna-DSR's tie-break noise). Only the
-networks are stacked: :class:`StackedMLP` holds every run's multi-head MLP as one ``(R, P)``
-tensor whose layers are views ``(R * heads, in, out)``, so one ``torch.baddbmm`` per layer
-evaluates all runs and heads, one backward pass gives every run's gradient and one Adam
-update (with a step count per run, runs whose trial is over left exactly as they are)
-trains them all. The update rules are those of ``DynaDQN.update`` / ``DynaDSR.update``, per
-run; the loss of each run is its own mean squared error, so runs do not interact.
+networks are stacked: :class:`StackedMLP` holds every run's multi-head MLP as one
+contiguous ``(R, heads, in, out)`` tensor per layer (viewed as ``(R * heads, in, out)``), so
+one ``torch.baddbmm`` per layer evaluates all runs and heads, one backward pass gives every
+run's gradient and one fused Adam step (:class:`~cobelrun.agents.batched_ops.RowAdam`: a step
+count per run) trains them all. A step computes only the runs that learn in it; runs whose
+trial or phase is over are left exactly as they are. The update rules are those of
+``DynaDQN.update`` / ``DynaDSR.update``, per run; the loss of each run is its own mean squared
+error, so runs do not interact. With one-hot observations the networks run on every state
+once instead of on every replayed sample (:meth:`BatchedDyna.update`).
 
 The per-run agents double as what monitors and the recorder see
 (:class:`DynaRunView`): before an agent is asked for activations, predictions or its saved

@@ -205,3 +205,79 @@ def test_dyna_batched_runs_match_sequential(tmp_path, agent):
     arrays, meta = read_agent(f_bat / "agents.npz", 1)
     agent_obj.load_state(arrays, meta, source="batched")
     assert int(agent_obj.memory.n_visited[0]) > 0
+
+
+def test_row_adam_is_one_adam_per_run():
+    """RowAdam steps each run as its own torch.optim.Adam would (own step count); a run left
+    out of a step keeps its parameters, moments and step count exactly."""
+    import torch
+
+    from cobelrun.agents.batched_ops import RowAdam
+
+    gen = torch.Generator().manual_seed(3)
+    stacked = [torch.randn(3, 4, 5, generator=gen), torch.randn(3, 1, 5, generator=gen)]
+    refs = [[t[r].clone().requires_grad_() for t in stacked] for r in range(3)]
+    opts = [torch.optim.Adam(p, lr=0.01, betas=(0.9, 0.99), eps=1e-7) for p in refs]
+    adam = RowAdam(stacked, lr=0.01, betas=(0.9, 0.99), eps=1e-7)
+    for runs in ([0, 1, 2], [0, 2], [1], [0, 1, 2]):
+        runs = np.array(runs)
+        grads = [torch.randn(len(runs), *t.shape[1:], generator=gen) for t in stacked]
+        before = [t[1].clone() for t in stacked]
+        adam.step(grads, runs)
+        for i, r in enumerate(runs):
+            for p, g in zip(refs[r], grads, strict=True):
+                p.grad = g[i].clone()
+            opts[r].step()
+        if 1 not in runs:
+            for t, old in zip(stacked, before, strict=True):
+                assert torch.equal(t[1], old)
+    assert adam.steps.tolist() == [3, 3, 3]
+    for r in range(3):
+        for t, ref, (m, v) in zip(stacked, refs[r], adam.moments(r), strict=True):
+            torch.testing.assert_close(t[r], ref.detach(), rtol=1e-5, atol=1e-6)
+            state = opts[r].state[ref]
+            torch.testing.assert_close(m, state["exp_avg"], rtol=1e-5, atol=1e-7)
+            torch.testing.assert_close(v, state["exp_avg_sq"], rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("agent", ["dyna_dsr", "dyna_dqn"])
+def test_dyna_state_table_update_equals_the_per_sample_update(agent):
+    """With one-hot observations the batched Dyna update runs the networks on every state once
+    and sums the loss per (head, state) row; it trains the networks as the per-sample update
+    does (runs left out of a step included)."""
+    import torch
+
+    from cobelrun.agents.batched_dyna import BatchedDyna
+
+    task = build_task(compose(None, [*FIG7, f"agent={agent}", "task.runs=3",
+                                     "task.batch_runs=false"]))  # fmt: skip
+
+    def learner() -> BatchedDyna:
+        agents = [task.make_agent(seed=run_seed(0, r)[0]) for r in range(3)]
+        for ag in agents:
+            ag._loop_mask = ag._mask()
+        return BatchedDyna(agents, successor=agent == "dyna_dsr")
+
+    table, per_sample = learner(), learner()
+    per_sample.onehot = False
+    assert table.onehot
+    rng = np.random.default_rng(1)
+    n_states, n = table.agents[0].n_states, 101
+    for step in range(4):
+        S, S2 = rng.integers(n_states, size=(2, 3, n))
+        A = rng.integers(4, size=(3, n))
+        rew = rng.random((3, n)) * (rng.random((3, n)) < 0.2)
+        term = (rng.random((3, n)) < 0.1).astype(float)
+        train = np.array([True, step != 1, True])
+        for lrn in (table, per_sample):
+            lrn.update(S, A, rew, S2, term, train)
+    nets = [(table.net, per_sample.net)]
+    if table.reward is not None:
+        nets.append((table.reward, per_sample.reward))
+    for a, b in nets:
+        assert a.optimizer.steps.tolist() == [4, 3, 4]
+        for x, y in zip([*a.leaves, *a.target], [*b.leaves, *b.target], strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-6)
+    moved = [(x - y).abs().max() for x, y in zip(table.net.leaves, learner().net.leaves,
+                                                  strict=True)]  # fmt: skip
+    assert max(moved) > 1e-3  # the updates did change the networks

@@ -7,7 +7,8 @@ hard) target update and ``gradient_steps`` Adam steps on a batch drawn from the 
 operations, so a run spends most of its time in per-call overhead. :class:`BatchedDQN` keeps
 the R runs' networks as stacked tensors with a leading run axis (``W[l]``: ``(R, in, out)``)
 and performs every step of every run at once with batched matrix products
-(``torch.baddbmm``), one backward pass and one Adam update of the stacked parameters.
+(``torch.baddbmm``), one backward pass and one fused Adam step of the stacked parameters
+(:class:`~cobelrun.agents.batched_ops.RowAdam`: a step count per run).
 
 Each run is still its own agent, with the sequential agent's update rule read top to bottom
 in :meth:`BatchedDQN._gradient_step`:
@@ -48,20 +49,13 @@ import torch
 import torch.nn.functional as F
 
 from cobelrun.agents.base import ArraySpec, TrialCallback, state_of
+from cobelrun.agents.batched_ops import ACTIVATION_NAMES, RowAdam, activation
 from cobelrun.agents.torch_init import INITS
 from cobelrun.envs.base import Posed
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 
 __all__ = ["BatchedDQN", "DQNRunView", "resolve_device", "unsupported"]
-
-ACTIVATIONS = {
-    "tanh": torch.tanh,
-    "relu": torch.relu,
-    "elu": F.elu,
-    "sigmoid": torch.sigmoid,
-    "linear": lambda x: x,
-}
 
 
 def resolve_device(device: str) -> torch.device:
@@ -86,7 +80,7 @@ def unsupported(agent: Any) -> str | None:
         return f"observations of shape {space.shape} (batched runs take vectors)"
     if not isinstance(space, gym.spaces.Box | gym.spaces.Discrete):
         return f"{type(space).__name__} observations"
-    if hyper["activation"] not in ACTIVATIONS:
+    if hyper["activation"] not in ACTIVATION_NAMES:
         return f"agent.activation {hyper['activation']}"
     group = m.policy.optimizer.param_groups[0]
     if group.get("weight_decay", 0) or group.get("amsgrad") or group.get("maximize"):
@@ -141,7 +135,7 @@ class BatchedDQN:
         self.lr = float(group["lr"])
         self.betas = (float(group["betas"][0]), float(group["betas"][1]))
         self.adam_eps = float(group["eps"])
-        self.act = ACTIVATIONS[template.hyper["activation"]]
+        self.act = activation(template.hyper["activation"])
         self.capacity = max(1, min(int(m.buffer_size), int(capacity)))
 
         # -- per-run streams, exactly those of a sequential DQNAgent with the same seed
@@ -181,11 +175,10 @@ class BatchedDQN:
         self.flat = torch.cat(pieces, dim=1).to(dev)
         self.flat_target = self.flat.clone()
         self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
-        self.exp_avg = torch.zeros_like(self.flat)
-        self.exp_avg_sq = torch.zeros_like(self.flat)
+        # Adam with a step count per run (a waiting run does not step)
+        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps)
         self.version = 0  # bumped at every parameter change (caches of predictions)
         self._cache: tuple[int, bytes, np.ndarray] | None = None
-        self.adam_steps = np.zeros(R, np.int64)  # per run (a waiting run does not step)
         self.num_timesteps = np.zeros(R, np.int64)
         self.n_calls = np.zeros(R, np.int64)
         # replay buffers: (R, capacity, ...) with a write position per run
@@ -330,31 +323,16 @@ class BatchedDQN:
             self._adam(grad, train)
 
     def _adam(self, grad: torch.Tensor, train: np.ndarray) -> None:
-        """torch.optim.Adam's update (its single-tensor formula) with a step count per run;
-        runs not in ``train`` keep their parameters and moments exactly."""
-        b1, b2 = self.betas
-        self.adam_steps[train] += 1
-        step = np.maximum(self.adam_steps, 1).astype(np.float64)
-        dev = self.device
-        step_size = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)
-        bc2_sqrt = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)
-        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
+        """torch.optim.Adam's update with a step count per run (:class:`RowAdam`); runs not
+        in ``train`` keep their parameters and moments exactly."""
         self.version += 1
-        if train.all():
-            m.lerp_(grad, 1 - b1)
-            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-            denom = v.sqrt().div_(bc2_sqrt[:, None]).add_(self.adam_eps)
-            p.addcdiv_(m * step_size[:, None], denom, value=-1.0)
-            return
-        keep = torch.as_tensor(train, device=dev)[:, None]
-        m_new = torch.lerp(m, grad, 1 - b1)
-        v_new = v * b2 + (grad * grad) * (1 - b2)
-        p_new = p - (m_new * step_size[:, None]) / (
-            v_new.sqrt() / bc2_sqrt[:, None] + self.adam_eps
-        )
-        m.copy_(torch.where(keep, m_new, m))
-        v.copy_(torch.where(keep, v_new, v))
-        p.copy_(torch.where(keep, p_new, p))
+        runs = np.flatnonzero(train)
+        self.adam.step([grad if len(runs) == self.R else grad[torch.as_tensor(runs)]], runs)
+
+    @property
+    def adam_steps(self) -> np.ndarray:
+        """Adam steps taken by each run."""
+        return self.adam.steps
 
     # -- trials ----------------------------------------------------------------------------
     def run_phase(
@@ -514,12 +492,13 @@ class DQNRunView:
                 arrays[f"{prefix}.{2 * i}.bias"] = (
                     params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
                 )
-        moments = zip(b.layers(b.exp_avg), b.layers(b.exp_avg_sq), strict=True)
+        ((exp_avg, exp_avg_sq),) = b.adam.moments(r)
+        moments = zip(b.layers(exp_avg[None]), b.layers(exp_avg_sq[None]), strict=True)
         for j, (m, v) in enumerate(moments):
             tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])
             arrays[f"optimizer.{j}.step"] = np.array(float(b.adam_steps[r]), np.float32)
-            arrays[f"optimizer.{j}.exp_avg"] = tr(m[r].detach().cpu().numpy()).copy()
-            arrays[f"optimizer.{j}.exp_avg_sq"] = tr(v[r].detach().cpu().numpy()).copy()
+            arrays[f"optimizer.{j}.exp_avg"] = tr(m[0].detach().cpu().numpy()).copy()
+            arrays[f"optimizer.{j}.exp_avg_sq"] = tr(v[0].detach().cpu().numpy()).copy()
         arrays["num_timesteps"] = np.array(b.num_timesteps[r], np.int64)
         arrays["n_calls"] = np.array(b.n_calls[r], np.int64)
         schema = self.state_schema()

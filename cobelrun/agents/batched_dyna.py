@@ -4,12 +4,15 @@ Each run is a real agent built from its own seed (:class:`~cobelrun.agents.dyna_
 or :class:`~cobelrun.agents.dyna_dsr.DynaDSR`): it keeps its random generator, its tabular
 model memory and its observation matrix, and draws exactly what a sequential run draws, in
 the same order (action selection, replay sampling, Dyna-DSR's tie-break noise). Only the
-networks are stacked: :class:`StackedMLP` holds every run's multi-head MLP as one ``(R, P)``
-tensor whose layers are views ``(R * heads, in, out)``, so one ``torch.baddbmm`` per layer
-evaluates all runs and heads, one backward pass gives every run's gradient and one Adam
-update (with a step count per run, runs whose trial is over left exactly as they are)
-trains them all. The update rules are those of ``DynaDQN.update`` / ``DynaDSR.update``, per
-run; the loss of each run is its own mean squared error, so runs do not interact.
+networks are stacked: :class:`StackedMLP` holds every run's multi-head MLP as one
+contiguous ``(R, heads, in, out)`` tensor per layer (viewed as ``(R * heads, in, out)``), so
+one ``torch.baddbmm`` per layer evaluates all runs and heads, one backward pass gives every
+run's gradient and one fused Adam step (:class:`~cobelrun.agents.batched_ops.RowAdam`: a step
+count per run) trains them all. A step computes only the runs that learn in it; runs whose
+trial or phase is over are left exactly as they are. The update rules are those of
+``DynaDQN.update`` / ``DynaDSR.update``, per run; the loss of each run is its own mean squared
+error, so runs do not interact. With one-hot observations the networks run on every state
+once instead of on every replayed sample (:meth:`BatchedDyna.update`).
 
 The per-run agents double as what monitors and the recorder see
 (:class:`DynaRunView`): before an agent is asked for activations, predictions or its saved
@@ -18,7 +21,6 @@ state, its networks get the run's current weights.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -27,7 +29,8 @@ import numpy as np
 import torch
 
 from cobelrun.agents.base import TrialCallback, state_of
-from cobelrun.agents.networks import ACTIVATIONS, TorchMLP
+from cobelrun.agents.batched_ops import RowAdam, activation
+from cobelrun.agents.networks import TorchMLP
 from cobelrun.agents.policy import allowed_next, select
 from cobelrun.envs.base import Posed
 from cobelrun.records import TrialBatch
@@ -62,15 +65,16 @@ def group_by_head(actions: np.ndarray, heads: int) -> tuple[np.ndarray, np.ndarr
 class StackedMLP:
     """The same :class:`~cobelrun.agents.networks.TorchMLP` shape for R runs, stacked.
 
-    ``flat`` is ``(R, P)``; :meth:`layers` views it as ``[w0, b0, w1, b1, ...]`` with ``w``
-    ``(R, H, in, out)`` and ``b`` ``(R, H, 1, out)`` (H heads per run). Adam follows
-    ``torch.optim.Adam``'s formula with a step count per run.
+    :attr:`leaves` are ``[w0, b0, w1, b1, ...]`` with ``w`` ``(R, H, in, out)`` and ``b``
+    ``(R, H, 1, out)`` (H heads per run), each one contiguous tensor (so that ``(R * H, in,
+    out)`` is a view, not a copy), :attr:`target` the target networks alike. Adam is
+    ``torch.optim.Adam`` with a step count per run (:class:`RowAdam`).
     """
 
     def __init__(self, nets: Sequence[TorchMLP], device: torch.device) -> None:
         first = nets[0]
         self.R, self.H = len(nets), first.n_heads
-        self.act = ACTIVATIONS[first.activation]
+        self.act = activation(first.activation)
         self.lr = first.learning_rate
         group = first.optimizer.param_groups[0]
         self.betas = (float(group["betas"][0]), float(group["betas"][1]))
@@ -78,16 +82,13 @@ class StackedMLP:
         self.has_bias = first.bias
         self.keys = list(first.get_weights())  # w0, w1, ..., b0, b1, ...
         self.n_layers = len(first.weights)
-        per_run = [[torch.as_tensor(n.get_weights()[k]) for k in self._order()] for n in nets]
-        self.shapes = [tuple(t.shape) for t in per_run[0]]  # (H, in, out) / (H, 1, out)
-        self.flat = torch.stack([torch.cat([t.reshape(-1) for t in ts]) for ts in per_run]).to(
-            device
-        )
-        self.target = self.flat.clone()
-        self.leaves = [v.requires_grad_() for v in self.layers(self.flat)]
-        self.exp_avg = torch.zeros_like(self.flat)
-        self.exp_avg_sq = torch.zeros_like(self.flat)
-        self.steps = np.zeros(self.R, np.int64)
+        weights = [n.get_weights() for n in nets]
+        self.leaves = [
+            torch.stack([torch.as_tensor(w[k]) for w in weights]).to(device).requires_grad_()
+            for k in self._order()
+        ]  # (R, H, in, out) / (R, H, 1, out)
+        self.target = [t.detach().clone() for t in self.leaves]
+        self.optimizer = RowAdam([t.detach() for t in self.leaves], self.lr, self.betas, self.eps)
         self.device = device
 
     def _order(self) -> list[str]:
@@ -98,44 +99,44 @@ class StackedMLP:
                 out.append(f"b{i}")
         return out
 
-    def layers(self, flat: torch.Tensor) -> list[torch.Tensor]:
-        rows, out, start = flat.shape[0], [], 0
-        for shape in self.shapes:
-            size = math.prod(shape)
-            out.append(flat[:, start : start + size].view(rows, *shape))  # a view, not a copy
-            start += size
-        return out
-
-    def forward(self, layers: Sequence[torch.Tensor], x: torch.Tensor,
+    def forward(self, layers: Sequence[torch.Tensor], x: torch.Tensor | None,
                 keep: dict[str, torch.Tensor] | None = None, *,
                 states: bool = False) -> torch.Tensor:  # fmt: skip
         """Outputs ``(R', H, n, out)`` of inputs ``x`` ``(R', n, in)`` (every head sees every
         input) or ``(R', H, n, in)`` (each head its own inputs). With ``states``, ``x`` holds
         indices ``(R', n)`` or ``(R', H, n)`` of one-hot inputs: the first layer is then a row
-        lookup, which equals the matrix product with a one-hot vector exactly."""
-        rows = x.shape[0]
-        per_head = x.dim() == (3 if states else 4)
-        n = x.shape[2] if per_head else x.shape[1]
+        lookup, which equals the matrix product with a one-hot vector exactly; ``x=None``
+        with ``states``: every one-hot input in order (``n = in``; the first layer's
+        pre-activations are its weights)."""
         step = 2 if self.has_bias else 1
         first = 0
         if states:
             w0 = layers[0]  # (R', H, in, out)
-            r_i = torch.arange(rows, device=x.device)[:, None, None]
-            h_i = torch.arange(self.H, device=x.device)[None, :, None]
-            s_i = x if per_head else x[:, None, :]
-            h = w0[r_i, h_i, s_i]  # (R', H, n, out)
+            if x is None:
+                rows, h = w0.shape[0], w0
+            else:
+                rows = x.shape[0]
+                r_i = torch.arange(rows, device=x.device)[:, None, None]
+                h_i = torch.arange(self.H, device=x.device)[None, :, None]
+                h = w0[r_i, h_i, x if x.dim() == 3 else x[:, None, :]]  # (R', H, n, out)
             if self.has_bias:
                 h = h + layers[1]
+            n = h.shape[2]
             h = h.reshape(rows * self.H, n, h.shape[-1])
             first = 1
             if self.n_layers > 1:
                 h = self.act(h)
                 if keep is not None:
                     keep["layer1"] = h
-        elif per_head:
-            h = x.reshape(rows * self.H, n, x.shape[3])
         else:
-            h = x[:, None].expand(rows, self.H, n, x.shape[2]).reshape(rows * self.H, n, x.shape[2])
+            assert x is not None
+            rows = x.shape[0]
+            n = x.shape[2] if x.dim() == 4 else x.shape[1]
+            if x.dim() == 4:  # each head its own inputs
+                h = x.reshape(rows * self.H, n, x.shape[3])
+            else:
+                h = x[:, None].expand(rows, self.H, n, x.shape[2])
+                h = h.reshape(rows * self.H, n, x.shape[2])
         for i in range(first, self.n_layers):
             w = layers[step * i].reshape(rows * self.H, *layers[step * i].shape[2:])
             if self.has_bias:
@@ -152,42 +153,28 @@ class StackedMLP:
             keep["output"] = h
         return h
 
-    def weights_of(self, run: int, flat: torch.Tensor | None = None) -> dict[str, np.ndarray]:
-        """Run ``run``'s weights as ``TorchMLP.get_weights`` names them."""
-        src = (self.flat if flat is None else flat)[run : run + 1]
-        views = self.layers(src)
-        return {
-            k: v[0].detach().cpu().numpy().copy() for k, v in zip(self._order(), views, strict=True)
-        }
+    def weights_of(self, run: int, *, target: bool = False) -> dict[str, np.ndarray]:
+        """Run ``run``'s weights (or its target network's) as ``TorchMLP.get_weights`` names
+        them."""
+        src = self.target if target else self.leaves
+        return {k: v[run].detach().cpu().numpy().copy()
+                for k, v in zip(self._order(), src, strict=True)}  # fmt: skip
 
-    def adam(self, grads: Sequence[torch.Tensor], train: np.ndarray) -> None:
-        """One Adam step of the runs in ``train`` (the others keep parameters and moments)."""
-        b1, b2 = self.betas
-        grad = torch.cat([g.reshape(self.R, -1) for g in grads], dim=1)
-        self.steps[train] += 1
-        step = np.maximum(self.steps, 1).astype(np.float64)
-        dev = self.device
-        ss = torch.as_tensor(self.lr / (1 - b1**step), dtype=torch.float32, device=dev)[:, None]
-        bc = torch.as_tensor(np.sqrt(1 - b2**step), dtype=torch.float32, device=dev)[:, None]
-        p, m, v = self.flat, self.exp_avg, self.exp_avg_sq
-        with torch.no_grad():
-            idle = torch.as_tensor(np.flatnonzero(~train), device=dev)
-            saved = [t[idle].clone() for t in (p, m, v)] if len(idle) else None
-            m.lerp_(grad, 1 - b1)
-            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-            p.addcdiv_(m * ss, v.sqrt().div_(bc).add_(self.eps), value=-1.0)
-            if saved is not None:  # runs that wait keep parameters and moments exactly
-                for t, old in zip((p, m, v), saved, strict=True):
-                    t[idle] = old
+    def adam(self, grads: Sequence[torch.Tensor], runs: np.ndarray) -> None:
+        """One Adam step of the runs ``runs`` (``grads[k][i]``: run ``runs[i]``'s gradient of
+        layer ``k``; the other runs keep parameters and moments)."""
+        self.optimizer.step(grads, runs)
 
     def blend_target(self, tau: float, train: np.ndarray) -> None:
         """``target <- target + tau (online - target)`` (``TorchMLP.blend_from``) per run."""
         with torch.no_grad():
-            idle = torch.as_tensor(np.flatnonzero(~train), device=self.device)
-            saved = self.target[idle].clone() if len(idle) else None
-            self.target.lerp_(self.flat, tau)
-            if saved is not None:
-                self.target[idle] = saved
+            if train.all():
+                for t, p in zip(self.target, self.leaves, strict=True):
+                    t.lerp_(p, tau)
+                return
+            idx = torch.as_tensor(np.flatnonzero(train), device=self.device)
+            for t, p in zip(self.target, self.leaves, strict=True):
+                t[idx] = torch.lerp(t[idx], p[idx], tau)
 
 
 class BatchedDyna:
@@ -234,41 +221,39 @@ class BatchedDyna:
         if self._synced[run] != self.version:
             if self.dsr:
                 agent.sr.set_weights(self.net.weights_of(run))
-                agent.sr_target.set_weights(self.net.weights_of(run, self.net.target))
+                agent.sr_target.set_weights(self.net.weights_of(run, target=True))
                 agent.reward_model.set_weights(self.reward.weights_of(run))  # type: ignore[union-attr]
             else:
                 agent.q_net.set_weights(self.net.weights_of(run))
-                agent.q_target.set_weights(self.net.weights_of(run, self.net.target))
+                agent.q_target.set_weights(self.net.weights_of(run, target=True))
             self._synced[run] = self.version
         return agent
 
     # -- values --------------------------------------------------------------------------------
-    def _w(self) -> torch.Tensor:
-        """Dyna-DSR's reward weights ``(R, d)``."""
-        assert self.reward is not None
-        return self.reward.flat.detach()
+    def _w(self, layers: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
+        """Dyna-DSR's reward weights ``(R', d)`` (of ``layers``, default every run's)."""
+        assert self.reward is not None and not self.reward.has_bias
+        w = (self.reward.leaves if layers is None else layers)[0].detach()
+        return w.reshape(w.shape[0], -1)
 
     def q_of_states(self, states: np.ndarray) -> np.ndarray:
         """Action values ``(R, A)`` of one state per run."""
         with torch.no_grad():
-            out = self._net(
-                self.net, self.net.layers(self.net.flat), states[:, None]
-            )  # (R, H, 1, out)
+            out = self._net(self.net, self.net.leaves, states[:, None])  # (R, H, 1, out)
             if self.dsr:
                 return torch.einsum("rhd,rd->rh", out[:, :, 0], self._w()).numpy()
             return out[:, 0, 0].numpy()
 
-    def _net(
-        self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray
-    ) -> torch.Tensor:
-        """``net`` on the observations of ``states`` ``(R, n)`` or ``(R, H, n)``."""
+    def _net(self, net: StackedMLP, layers: Sequence[torch.Tensor], states: np.ndarray,
+             obs: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+        """``net`` on the observations of ``states`` ``(R', n)`` or ``(R', H, n)`` (``obs``:
+        the runs' observation matrices, default every run's)."""
         s_t = torch.as_tensor(states, device=self.device)
         if self.onehot:
             return net.forward(layers, s_t, states=True)
-        if s_t.dim() == 2:
-            x = self.obs[torch.arange(self.R)[:, None], s_t]
-        else:
-            x = self.obs[torch.arange(self.R)[:, None, None], s_t]
+        obs = self.obs if obs is None else obs
+        rows = torch.arange(obs.shape[0])
+        x = obs[rows[:, None], s_t] if s_t.dim() == 2 else obs[rows[:, None, None], s_t]
         return net.forward(layers, x)
 
     # -- learning ------------------------------------------------------------------------------
@@ -276,25 +261,50 @@ class BatchedDyna:
                term: np.ndarray, train: np.ndarray) -> None:  # fmt: skip
         """One replay update of every run in ``train`` on its ``(n,)`` experiences (rows of
         ``S, A, ...``; rows of other runs are ignored)."""
-        R, net = self.R, self.net
+        net, rw = self.net, self.reward
+        runs = np.flatnonzero(train)
+        if len(runs) == 0:
+            return
+        # only the runs that learn this step are computed: the others' rows are left out
+        # (their trials or phases are over; runs wait for the slowest in lock-step)
+        if len(runs) == self.R:
+            online, target_net, obs = net.leaves, net.target, self.obs
+            rw_online = None if rw is None else rw.leaves
+        else:
+            sel = torch.as_tensor(runs)
+            S, A, rew, S2, term = (v[runs] for v in (S, A, rew, S2, term))
+            online = [t.detach()[sel].requires_grad_() for t in net.leaves]
+            target_net = [t[sel] for t in net.target]
+            obs = self.obs[sel]
+            rw_online = (
+                None if rw is None else [t.detach()[sel].requires_grad_() for t in rw.leaves]
+            )
+        R = len(runs)
         rows = torch.arange(R)[:, None]
+        ar = np.arange(R)[:, None]
         s2_t = torch.as_tensor(S2)
-        x2 = self.obs[rows, s2_t]  # (R, n, d)
+        x2 = obs[rows, s2_t]  # (R, n, d)
         a_t = torch.as_tensor(A)
         n = S.shape[1]
-        mask = torch.as_tensor(train, dtype=torch.float32)
-        agents = self.agents
+        agents = [self.agents[r] for r in runs]
+        # one-hot observations: every state's outputs once (n_states rows per head) instead
+        # of every sample's (n rows); a sample's values are its state's row
+        table = self.onehot
         with torch.no_grad():
-            nxt = self._net(net, net.layers(net.target), S2)  # (R, H, n, out)
+            if table:
+                nxt = net.forward(target_net, None, states=True)  # (R, H, S, out)
+            else:
+                nxt = self._net(net, target_net, S2, obs)  # (R, H, n, out)
         if self.dsr:
-            w = self._w()
+            w = self._w(rw_online)
             q_next = torch.einsum("rhnd,rd->rnh", nxt, w).numpy()
         else:
-            q_next = nxt[:, 0].numpy()  # (R, n, A)
+            q_next = nxt[:, 0].numpy()  # (R, n or S, A)
+        if table:
+            q_next = q_next[ar, S2]  # (R, n, A)
         best = np.zeros((R, n), np.int64)
         y = np.zeros((R, n), np.float32)
-        for r in np.flatnonzero(train):
-            ag = agents[r]
+        for r, ag in enumerate(agents):
             qn = q_next[r]
             if ag.use_mask:
                 qn = np.where(allowed_next(ag._loop_mask, S2[r]), qn, -np.inf)
@@ -308,34 +318,56 @@ class BatchedDyna:
             cont = np.stack([np.ones(n) if agents[r].always_bootstrap else 1.0 - term[r]
                              for r in range(R)])  # fmt: skip
             b_t = torch.as_tensor(best)
-            m_best = nxt[rows, b_t, torch.arange(n)[None]]  # (R, n, d)
+            m_best = nxt[rows, b_t, s2_t if table else torch.arange(n)[None]]  # (R, n, d)
             target = (
                 x2 + self.gamma * torch.as_tensor(cont, dtype=torch.float32)[..., None] * m_best
             )
-            # only the taken action's head is trained on a sample: each head runs on its own
-            # samples (padded to the largest group) instead of all heads on all samples
-            idx, valid = group_by_head(A, net.H)  # (R, H, M)
-            rows3 = torch.arange(R)[:, None, None]
-            idx_t = torch.as_tensor(idx)
-            out = self._net(net, net.leaves, S[np.arange(R)[:, None, None], idx])  # (R, H, M, d)
-            err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
-            loss_sr = err.sum(dim=(1, 2)) / (n * out.shape[-1])
-            rw = self.reward
-            assert rw is not None
-            pr = self._net(rw, rw.leaves, S2)[:, 0, :, 0]  # (R, n)
+            d = target.shape[-1]
+            if table:
+                # only the taken action's head is trained on a sample; the squared error
+                # summed over samples is, per (head, state) row with c samples whose targets
+                # sum to T, c |out|^2 - 2 out.T (+ a constant): the same gradient
+                out = net.forward(online, None, states=True)  # (R, H, S, d)
+                n_states = out.shape[2]
+                key = torch.as_tensor(A * n_states + S)  # (R, n): row (head, state)
+                count = torch.zeros(R, net.H * n_states).scatter_add_(1, key, torch.ones(R, n))
+                tsum = torch.zeros(R, net.H * n_states, d).scatter_add_(
+                    1, key[..., None].expand(R, n, d), target
+                )
+                o = out.reshape(R, net.H * n_states, d)
+                loss_sr = ((count[..., None] * o - 2 * tsum) * o).sum(dim=(1, 2)) / (n * d)
+            else:
+                # each head runs on its own samples (padded to the largest group) instead of
+                # all heads on all samples
+                idx, valid = group_by_head(A, net.H)  # (R, H, M)
+                rows3 = torch.arange(R)[:, None, None]
+                idx_t = torch.as_tensor(idx)
+                out = self._net(net, online, S[ar[..., None], idx], obs)  # (R, H, M, d)
+                err = ((out - target[rows3, idx_t]) ** 2).sum(dim=3) * torch.as_tensor(valid)
+                loss_sr = err.sum(dim=(1, 2)) / (n * d)
+            assert rw is not None and rw_online is not None
+            pr = self._net(rw, rw_online, S2, obs)[:, 0, :, 0]  # (R, n)
             loss_r = ((pr - torch.as_tensor(rew, dtype=torch.float32)) ** 2).mean(dim=1)
-            grads = torch.autograd.grad(
-                ((loss_sr + loss_r) * mask).sum(), [*net.leaves, *rw.leaves]
-            )
-            net.adam(grads[: len(net.leaves)], train)
-            rw.adam(grads[len(net.leaves) :], train)
+            grads = torch.autograd.grad((loss_sr + loss_r).sum(), [*online, *rw_online])
+            net.adam(grads[: len(online)], runs)
+            rw.adam(grads[len(online) :], runs)
+        elif table:  # the same identity per (state, action) entry of the Q table
+            out = net.forward(online, None, states=True)[:, 0]  # (R, S, A)
+            n_states, d_out = out.shape[1], out.shape[2]
+            key = torch.as_tensor(S * d_out + A)
+            count = torch.zeros(R, n_states * d_out).scatter_add_(1, key, torch.ones(R, n))
+            ysum = torch.zeros(R, n_states * d_out).scatter_add_(1, key, torch.as_tensor(y))
+            o = out.reshape(R, n_states * d_out)
+            loss = ((count * o - 2 * ysum) * o).sum(dim=1) / (n * d_out)
+            grads = torch.autograd.grad(loss.sum(), online)
+            net.adam(grads, runs)
         else:
-            out = self._net(net, net.leaves, S)[:, 0]  # (R, n, A)
+            out = self._net(net, online, S, obs)[:, 0]  # (R, n, A)
             pred = out.gather(2, a_t[..., None])[..., 0]
             d_out = out.shape[-1]
             loss = ((pred - torch.as_tensor(y)) ** 2).sum(dim=1) / (n * d_out)
-            grads = torch.autograd.grad((loss * mask).sum(), net.leaves)
-            net.adam(grads, train)
+            grads = torch.autograd.grad(loss.sum(), online)
+            net.adam(grads, runs)
         net.blend_target(self.tau, train)
         self.version += 1
 

@@ -83,6 +83,14 @@ class SceneStyle:
         Light coefficients of TinyRenderer's Phong shading.
     shadow : bool
         Cast shadows (slower).
+    panel_width : float or None
+        Split every wall into panels about this long (cell units), each with its own colour drawn
+        from ``panel_seed`` (replacing ``wall_colors``): walls with non-repeating detail along
+        them, like the photographed office walls of the paper's Fig. 8 scene, so the view's
+        layout changes with the position, not only with the heading. None (default): one colour
+        per wall.
+    panel_seed : int
+        Seed of the panel colours (the same seed gives the same walls).
     """
 
     wall_height: float = 0.6
@@ -97,6 +105,8 @@ class SceneStyle:
     diffuse: float = 0.5
     specular: float = 0.05
     shadow: bool = False
+    panel_width: float | None = None
+    panel_seed: int = 0
 
     def __post_init__(self) -> None:
         cues = tuple(_check_cue(i, c) for i, c in enumerate(self.cues or ()))
@@ -140,12 +150,55 @@ class SceneStyle:
                 kw[key] = float(kw[key])
                 if kw[key] < 0:
                     raise ConfigError(f"scene.{key} must be >= 0, got {kw[key]}")
+        if kw.get("panel_width") is not None:
+            try:
+                kw["panel_width"] = float(kw["panel_width"])
+            except (TypeError, ValueError):
+                kw["panel_width"] = -1.0
+            if not kw["panel_width"] > 0:
+                raise ConfigError(
+                    f"scene.panel_width must be a length > 0 or null, got {cfg['panel_width']!r}"
+                )
+        if "panel_seed" in kw:
+            v = kw["panel_seed"]
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 0:
+                raise ConfigError(f"scene.panel_seed must be an integer >= 0, got {v!r}")
+            kw["panel_seed"] = int(v)
         return cls(**kw)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["cues"] = [dict(c) for c in self.cues]
+        if self.panel_width is None:  # absent without panels: earlier cache keys stay valid
+            del d["panel_width"], d["panel_seed"]
         return json.loads(json.dumps(d))
+
+    def panels(
+        self, walls: Sequence[tuple[float, float, float, float, int]]
+    ) -> list[tuple[float, float, float, float, tuple[float, float, float]]]:
+        """The coloured pieces ``(x0, y0, x1, y1, rgb)`` that make up ``walls``.
+
+        Without ``panel_width`` one piece per wall in its facing's colour; with it, each wall is
+        cut into ``max(1, round(length / panel_width))`` equal panels whose colours are drawn in
+        order from ``numpy.random.default_rng(panel_seed)`` (each channel uniform in 0.1..0.95);
+        the first and last panel reach ``wall_thickness / 2`` past the wall's ends, as a whole
+        wall's box does, so corners stay closed.
+        """
+        if self.panel_width is None:
+            return [(x0, y0, x1, y1, self.wall_colors[f]) for x0, y0, x1, y1, f in walls]
+        rng = np.random.default_rng(self.panel_seed)
+        out = []
+        for x0, y0, x1, y1, _ in walls:
+            n = max(1, round(float(np.hypot(x1 - x0, y1 - y0)) / self.panel_width))
+            cols = rng.uniform(0.1, 0.95, size=(n, 3))
+            ext = self.wall_thickness / 2 / max(float(np.hypot(x1 - x0, y1 - y0)), 1e-12)
+            for k in range(n):
+                a = k / n if k else -ext
+                b = (k + 1) / n if k < n - 1 else 1.0 + ext
+                rgb = tuple(round(float(v), 6) for v in cols[k])
+                out.append((x0 + a * (x1 - x0), y0 + a * (y1 - y0),
+                            x0 + b * (x1 - x0), y0 + b * (y1 - y0), rgb))  # fmt: skip
+        return out
 
 
 def _rgb(value: Any, where: str) -> tuple[float, float, float]:
@@ -534,23 +587,21 @@ class Scene:
         else:
             for x, y in s.cells:
                 self._box([0.5, 0.5, 0.01], [x, y, -0.01], st.floor_color, floor_tex)
-        # walls
+        # walls (cut into coloured panels when style.panel_width is set)
         h, t = st.wall_height, st.wall_thickness
-        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is not None else ():
-            # a free-form wall: a box along the segment, rotated to its direction
-            length = float(np.hypot(wx1 - wx0, wy1 - wy0)) + t
-            yaw = float(np.arctan2(wy1 - wy0, wx1 - wx0))
-            self._box([length / 2, t / 2, h / 2], [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2],
-                      st.wall_colors[facing], wall_tex, yaw=yaw)  # fmt: skip
-        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is None else ():
-            length = max(abs(wx1 - wx0), abs(wy1 - wy0)) + t
-            if facing in (0, 2):
-                half = [t / 2, length / 2, h / 2]
+        panels = st.panels(s.walls())
+        whole = st.panel_width is None  # one box per wall, half a thickness past each end
+        for wx0, wy0, wx1, wy1, rgb in panels:
+            length = float(np.hypot(wx1 - wx0, wy1 - wy0)) + (t if whole else 0.0)
+            mid = [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2]
+            if s.segments is not None:
+                # a free-form wall: a box along the segment, rotated to its direction
+                yaw = float(np.arctan2(wy1 - wy0, wx1 - wx0))
+                self._box([length / 2, t / 2, h / 2], mid, rgb, wall_tex, yaw=yaw)
+            elif np.isclose(wx0, wx1):
+                self._box([t / 2, length / 2, h / 2], mid, rgb, wall_tex)
             else:
-                half = [length / 2, t / 2, h / 2]
-            self._box(
-                half, [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2], st.wall_colors[facing], wall_tex
-            )
+                self._box([length / 2, t / 2, h / 2], mid, rgb, wall_tex)
         # distal cues outside the maze
         radius = max(hx, hy)
         for cue in st.cues:

@@ -247,3 +247,33 @@ def test_bad_panels_are_one_line(scene, msg):
     with pytest.raises(ConfigError) as err:
         SceneStyle.from_config(scene)
     assert str(err.value) == msg
+
+
+# ---------------------------------------------------------------------- vertical field of view
+@pytest.mark.parametrize("vfov", [None, 90.0, 40.0])
+def test_vfov_sets_how_many_rows_a_wall_covers(vfov):
+    from cobelrun.render.scene import CameraSpec, Scene, SceneSpec
+
+    spec = SceneSpec.from_topology(topo.hexagonal(9, 9), {"texture": None})
+    cam = CameraSpec(height=96, width=96, fov=60.0, vfov=vfov)
+    cx, cy = 4.0, 3.0 * np.sqrt(3) / 2 + np.sqrt(3) / 2  # the centre node
+    with Scene(spec) as scene:
+        img = scene.render(cx, cy, 0.0, cam).astype(int)  # facing the east wall (green)
+    column = img[:, 48]
+    wall_rows = int(np.sum((column[:, 1] > column[:, 0] + 40) & (column[:, 1] > column[:, 2] + 40)))
+    # a pinhole camera: the wall's height h at distance d covers H * (h / d) / (2 tan(vfov / 2)) rows
+    d = 8.5 - spec.style.wall_thickness / 2 - cx
+    half = np.tan(np.deg2rad(30.0 if vfov is None else vfov / 2))  # square pixels: vfov = fov
+    assert wall_rows == pytest.approx(96 * spec.style.wall_height / d / (2 * half), abs=1.5)
+
+
+def test_vfov_keeps_earlier_camera_keys_and_bad_values_are_one_line():
+    from cobelrun.errors import ConfigError
+    from cobelrun.render.scene import CameraSpec
+
+    assert "vfov" not in CameraSpec().to_dict()  # earlier render-cache keys stay valid
+    assert CameraSpec(vfov=90.0).to_dict()["vfov"] == 90.0
+    for bad in (0, 180.0, "wide", True):
+        with pytest.raises(ConfigError) as err:
+            ImageObservation(height=12, width=48, fov=240, n_cameras=4, vfov=bad)
+        assert str(err.value) == f"camera vfov must be in (0, 170) degrees or null, got {bad}"

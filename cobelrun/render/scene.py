@@ -365,6 +365,10 @@ class CameraSpec:
         Downward tilt in degrees (0 = level).
     near, far : float
         Clipping planes (cell units).
+    vfov : float or None
+        Vertical field of view in degrees. None (default): square pixels, i.e. the vertical field
+        follows from the horizontal one and the image's aspect. Fig. 8's original stitched 90 x 90
+        degree cameras and squeezed the panorama to 12 rows, so its 12 rows span 90 degrees.
     """
 
     height: int = 84
@@ -375,6 +379,7 @@ class CameraSpec:
     pitch: float = 0.0
     near: float = 0.05
     far: float = 50.0
+    vfov: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("height", "width", "n_cameras"):
@@ -393,9 +398,17 @@ class CameraSpec:
             )
         if not 0 < self.near < self.far:
             raise ConfigError(f"camera needs 0 < near < far, got near={self.near}, far={self.far}")
+        v = self.vfov
+        if v is not None and (
+            isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < 170
+        ):
+            raise ConfigError(f"camera vfov must be in (0, 170) degrees or null, got {self.vfov}")
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: (int(v) if isinstance(v, np.integer) else v) for k, v in asdict(self).items()}
+        d = {k: (int(v) if isinstance(v, np.integer) else v) for k, v in asdict(self).items()}
+        if self.vfov is None:  # absent with square pixels: earlier cache keys stay valid
+            del d["vfov"]
+        return d
 
     def splits(self) -> list[tuple[int, float, float]]:
         """Per camera: (pixel columns, yaw offset from the heading in degrees, horizontal fov)."""
@@ -646,7 +659,11 @@ class Scene:
             target = [eye[0] + fwd[0], eye[1] + fwd[1], eye[2] + fwd[2]]
             view = p.computeViewMatrix(eye, target, [0, 0, 1], physicsClientId=c)
             aspect = cols / camera.height
-            vfov = np.rad2deg(2 * np.arctan(np.tan(np.deg2rad(hfov) / 2) / aspect))
+            if camera.vfov is None:  # square pixels
+                vfov = np.rad2deg(2 * np.arctan(np.tan(np.deg2rad(hfov) / 2) / aspect))
+            else:  # pybullet's aspect is the ratio of the frustum's tangents, not of the pixels
+                vfov = camera.vfov
+                aspect = np.tan(np.deg2rad(hfov) / 2) / np.tan(np.deg2rad(vfov) / 2)
             proj = p.computeProjectionMatrixFOV(
                 vfov, aspect, camera.near, camera.far, physicsClientId=c
             )

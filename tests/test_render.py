@@ -185,3 +185,95 @@ def test_tmaze_3d_task_end_to_end_offline(cobel, tmp_path):
     run_dir = out.stdout.strip().splitlines()[-1]
     trials = pd.read_parquet(f"{run_dir}/trials.parquet")
     assert len(trials) == 4 and {"response", "steps", "reward"} <= set(trials.columns)
+
+
+# ---------------------------------------------------------------------- wall panels
+def test_panels_cut_walls_into_seeded_colours():
+    from cobelrun.render.scene import SceneSpec, SceneStyle
+
+    spec = SceneSpec.from_topology(topo.hexagonal(9, 9), {"panel_width": 1.0, "panel_seed": 3})
+    walls = spec.walls()
+    pieces = spec.style.panels(walls)
+    # the arena's 9 x 7.93 outline: 9 + 8 + 9 + 8 panels of about one unit each
+    assert len(pieces) == sum(max(1, round(np.hypot(w[2] - w[0], w[3] - w[1]))) for w in walls)
+    assert len(pieces) == 34
+    t = spec.style.wall_thickness
+    lengths = [np.hypot(p[2] - p[0], p[3] - p[1]) for p in pieces]
+    total = sum(np.hypot(w[2] - w[0], w[3] - w[1]) + t for w in walls)
+    assert sum(lengths) == pytest.approx(total)  # contiguous, half a thickness past each end
+    assert len({p[4] for p in pieces}) == 34  # every panel its own colour
+    again = SceneStyle.from_config({"panel_width": 1.0, "panel_seed": 3}).panels(walls)
+    other = SceneStyle.from_config({"panel_width": 1.0, "panel_seed": 4}).panels(walls)
+    assert again == pieces and other != pieces
+    # without panels: one piece per wall in its facing's colour
+    plain = SceneStyle().panels(walls)
+    assert [p[4] for p in plain] == [SceneStyle().wall_colors[w[4]] for w in walls]
+
+
+def test_panels_keep_earlier_scene_keys_and_change_the_view():
+    from cobelrun.render.scene import SceneStyle
+
+    assert "panel_width" not in SceneStyle().to_dict()  # earlier render-cache keys stay valid
+    assert SceneStyle.from_config({"panel_width": 1}).to_dict()["panel_width"] == 1.0
+
+    def hex_env(**scene):
+        obs = ImageObservation(height=20, width=80, fov=240, n_cameras=4, scene=scene)
+        return TopologyEnv(topology=topo.hexagonal(9, 9), observation=obs, max_steps=50)
+
+    plain, a, b = hex_env(), hex_env(panel_width=1.0), hex_env(panel_width=1.0)
+    c = hex_env(panel_width=1.0, panel_seed=1)
+    # node 0 faces east along the north wall: panels bring colours the plain walls do not have
+    assert np.array_equal(a.observe_pose(0, 0), b.observe_pose(0, 0))
+    assert not np.array_equal(a.observe_pose(0, 0), c.observe_pose(0, 0))
+    colours = lambda env: len(np.unique(env.observe_pose(0, 0).reshape(3, -1), axis=1).T)  # noqa: E731
+    assert colours(a) > colours(plain) + 20
+    for env in (plain, a, b, c):
+        env.close()
+
+
+@pytest.mark.parametrize(
+    ("scene", "msg"),
+    [
+        ({"panel_width": 0}, "scene.panel_width must be a length > 0 or null, got 0"),
+        ({"panel_width": "wide"}, "scene.panel_width must be a length > 0 or null, got 'wide'"),
+        ({"panel_seed": -1}, "scene.panel_seed must be an integer >= 0, got -1"),
+        ({"panel_seed": 1.5}, "scene.panel_seed must be an integer >= 0, got 1.5"),
+    ],
+)
+def test_bad_panels_are_one_line(scene, msg):
+    from cobelrun.errors import ConfigError
+    from cobelrun.render.scene import SceneStyle
+
+    with pytest.raises(ConfigError) as err:
+        SceneStyle.from_config(scene)
+    assert str(err.value) == msg
+
+
+# ---------------------------------------------------------------------- vertical field of view
+@pytest.mark.parametrize("vfov", [None, 90.0, 40.0])
+def test_vfov_sets_how_many_rows_a_wall_covers(vfov):
+    from cobelrun.render.scene import CameraSpec, Scene, SceneSpec
+
+    spec = SceneSpec.from_topology(topo.hexagonal(9, 9), {"texture": None})
+    cam = CameraSpec(height=96, width=96, fov=60.0, vfov=vfov)
+    cx, cy = 4.0, 3.0 * np.sqrt(3) / 2 + np.sqrt(3) / 2  # the centre node
+    with Scene(spec) as scene:
+        img = scene.render(cx, cy, 0.0, cam).astype(int)  # facing the east wall (green)
+    column = img[:, 48]
+    wall_rows = int(np.sum((column[:, 1] > column[:, 0] + 40) & (column[:, 1] > column[:, 2] + 40)))
+    # a pinhole camera: the wall's height h at distance d covers H * (h / d) / (2 tan(vfov / 2)) rows
+    d = 8.5 - spec.style.wall_thickness / 2 - cx
+    half = np.tan(np.deg2rad(30.0 if vfov is None else vfov / 2))  # square pixels: vfov = fov
+    assert wall_rows == pytest.approx(96 * spec.style.wall_height / d / (2 * half), abs=1.5)
+
+
+def test_vfov_keeps_earlier_camera_keys_and_bad_values_are_one_line():
+    from cobelrun.errors import ConfigError
+    from cobelrun.render.scene import CameraSpec
+
+    assert "vfov" not in CameraSpec().to_dict()  # earlier render-cache keys stay valid
+    assert CameraSpec(vfov=90.0).to_dict()["vfov"] == 90.0
+    for bad in (0, 180.0, "wide", True):
+        with pytest.raises(ConfigError) as err:
+            ImageObservation(height=12, width=48, fov=240, n_cameras=4, vfov=bad)
+        assert str(err.value) == f"camera vfov must be in (0, 170) degrees or null, got {bad}"

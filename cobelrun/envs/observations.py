@@ -159,6 +159,8 @@ class ImageObservation(ObservationModule):
         Cameras stitched side by side (e.g. 4 for a 240 degree panorama, as Fig. 8).
     eye_height, pitch : float
         Camera height (cell units) and downward tilt (degrees).
+    vfov : float, optional
+        Vertical field of view in degrees (default: square pixels; Fig. 8's original: 90).
     channels_first : bool
         ``(C, H, W)`` layout (default, what SB3's CnnPolicy expects) or ``(H, W, C)``.
     dtype : {"uint8", "float32"}
@@ -197,6 +199,7 @@ class ImageObservation(ObservationModule):
         scene: Mapping[str, Any] | None = None,
         render_size: Sequence[int] | None = None,
         cache_dir: str | None = None,
+        vfov: float | None = None,
     ) -> None:
         from cobelrun.render.scene import RENDERERS, CameraSpec, SceneStyle
 
@@ -226,7 +229,8 @@ class ImageObservation(ObservationModule):
                     f"observation render_size {[rh, rw]} must be at least the image size {[self.height, self.width]}"
                 )
         self.camera = CameraSpec(height=rh, width=rw, fov=float(fov), n_cameras=int(n_cameras),
-                                 eye_height=float(eye_height), pitch=float(pitch))  # fmt: skip
+                                 eye_height=float(eye_height), pitch=float(pitch),
+                                 vfov=vfov)  # fmt: skip
         self.style = SceneStyle.from_config(scene)
         self.channels_first = bool(channels_first)
         self.dtype = dtype

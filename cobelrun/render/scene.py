@@ -83,6 +83,14 @@ class SceneStyle:
         Light coefficients of TinyRenderer's Phong shading.
     shadow : bool
         Cast shadows (slower).
+    panel_width : float or None
+        Split every wall into panels about this long (cell units), each with its own colour drawn
+        from ``panel_seed`` (replacing ``wall_colors``): walls with non-repeating detail along
+        them, like the photographed office walls of the paper's Fig. 8 scene, so the view's
+        layout changes with the position, not only with the heading. None (default): one colour
+        per wall.
+    panel_seed : int
+        Seed of the panel colours (the same seed gives the same walls).
     """
 
     wall_height: float = 0.6
@@ -97,6 +105,8 @@ class SceneStyle:
     diffuse: float = 0.5
     specular: float = 0.05
     shadow: bool = False
+    panel_width: float | None = None
+    panel_seed: int = 0
 
     def __post_init__(self) -> None:
         cues = tuple(_check_cue(i, c) for i, c in enumerate(self.cues or ()))
@@ -140,12 +150,55 @@ class SceneStyle:
                 kw[key] = float(kw[key])
                 if kw[key] < 0:
                     raise ConfigError(f"scene.{key} must be >= 0, got {kw[key]}")
+        if kw.get("panel_width") is not None:
+            try:
+                kw["panel_width"] = float(kw["panel_width"])
+            except (TypeError, ValueError):
+                kw["panel_width"] = -1.0
+            if not kw["panel_width"] > 0:
+                raise ConfigError(
+                    f"scene.panel_width must be a length > 0 or null, got {cfg['panel_width']!r}"
+                )
+        if "panel_seed" in kw:
+            v = kw["panel_seed"]
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 0:
+                raise ConfigError(f"scene.panel_seed must be an integer >= 0, got {v!r}")
+            kw["panel_seed"] = int(v)
         return cls(**kw)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["cues"] = [dict(c) for c in self.cues]
+        if self.panel_width is None:  # absent without panels: earlier cache keys stay valid
+            del d["panel_width"], d["panel_seed"]
         return json.loads(json.dumps(d))
+
+    def panels(
+        self, walls: Sequence[tuple[float, float, float, float, int]]
+    ) -> list[tuple[float, float, float, float, tuple[float, float, float]]]:
+        """The coloured pieces ``(x0, y0, x1, y1, rgb)`` that make up ``walls``.
+
+        Without ``panel_width`` one piece per wall in its facing's colour; with it, each wall is
+        cut into ``max(1, round(length / panel_width))`` equal panels whose colours are drawn in
+        order from ``numpy.random.default_rng(panel_seed)`` (each channel uniform in 0.1..0.95);
+        the first and last panel reach ``wall_thickness / 2`` past the wall's ends, as a whole
+        wall's box does, so corners stay closed.
+        """
+        if self.panel_width is None:
+            return [(x0, y0, x1, y1, self.wall_colors[f]) for x0, y0, x1, y1, f in walls]
+        rng = np.random.default_rng(self.panel_seed)
+        out = []
+        for x0, y0, x1, y1, _ in walls:
+            n = max(1, round(float(np.hypot(x1 - x0, y1 - y0)) / self.panel_width))
+            cols = rng.uniform(0.1, 0.95, size=(n, 3))
+            ext = self.wall_thickness / 2 / max(float(np.hypot(x1 - x0, y1 - y0)), 1e-12)
+            for k in range(n):
+                a = k / n if k else -ext
+                b = (k + 1) / n if k < n - 1 else 1.0 + ext
+                rgb = tuple(round(float(v), 6) for v in cols[k])
+                out.append((x0 + a * (x1 - x0), y0 + a * (y1 - y0),
+                            x0 + b * (x1 - x0), y0 + b * (y1 - y0), rgb))  # fmt: skip
+        return out
 
 
 def _rgb(value: Any, where: str) -> tuple[float, float, float]:
@@ -312,6 +365,10 @@ class CameraSpec:
         Downward tilt in degrees (0 = level).
     near, far : float
         Clipping planes (cell units).
+    vfov : float or None
+        Vertical field of view in degrees. None (default): square pixels, i.e. the vertical field
+        follows from the horizontal one and the image's aspect. Fig. 8's original stitched 90 x 90
+        degree cameras and squeezed the panorama to 12 rows, so its 12 rows span 90 degrees.
     """
 
     height: int = 84
@@ -322,6 +379,7 @@ class CameraSpec:
     pitch: float = 0.0
     near: float = 0.05
     far: float = 50.0
+    vfov: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("height", "width", "n_cameras"):
@@ -340,9 +398,17 @@ class CameraSpec:
             )
         if not 0 < self.near < self.far:
             raise ConfigError(f"camera needs 0 < near < far, got near={self.near}, far={self.far}")
+        v = self.vfov
+        if v is not None and (
+            isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < 170
+        ):
+            raise ConfigError(f"camera vfov must be in (0, 170) degrees or null, got {self.vfov}")
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: (int(v) if isinstance(v, np.integer) else v) for k, v in asdict(self).items()}
+        d = {k: (int(v) if isinstance(v, np.integer) else v) for k, v in asdict(self).items()}
+        if self.vfov is None:  # absent with square pixels: earlier cache keys stay valid
+            del d["vfov"]
+        return d
 
     def splits(self) -> list[tuple[int, float, float]]:
         """Per camera: (pixel columns, yaw offset from the heading in degrees, horizontal fov)."""
@@ -534,23 +600,21 @@ class Scene:
         else:
             for x, y in s.cells:
                 self._box([0.5, 0.5, 0.01], [x, y, -0.01], st.floor_color, floor_tex)
-        # walls
+        # walls (cut into coloured panels when style.panel_width is set)
         h, t = st.wall_height, st.wall_thickness
-        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is not None else ():
-            # a free-form wall: a box along the segment, rotated to its direction
-            length = float(np.hypot(wx1 - wx0, wy1 - wy0)) + t
-            yaw = float(np.arctan2(wy1 - wy0, wx1 - wx0))
-            self._box([length / 2, t / 2, h / 2], [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2],
-                      st.wall_colors[facing], wall_tex, yaw=yaw)  # fmt: skip
-        for wx0, wy0, wx1, wy1, facing in s.walls() if s.segments is None else ():
-            length = max(abs(wx1 - wx0), abs(wy1 - wy0)) + t
-            if facing in (0, 2):
-                half = [t / 2, length / 2, h / 2]
+        panels = st.panels(s.walls())
+        whole = st.panel_width is None  # one box per wall, half a thickness past each end
+        for wx0, wy0, wx1, wy1, rgb in panels:
+            length = float(np.hypot(wx1 - wx0, wy1 - wy0)) + (t if whole else 0.0)
+            mid = [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2]
+            if s.segments is not None:
+                # a free-form wall: a box along the segment, rotated to its direction
+                yaw = float(np.arctan2(wy1 - wy0, wx1 - wx0))
+                self._box([length / 2, t / 2, h / 2], mid, rgb, wall_tex, yaw=yaw)
+            elif np.isclose(wx0, wx1):
+                self._box([t / 2, length / 2, h / 2], mid, rgb, wall_tex)
             else:
-                half = [length / 2, t / 2, h / 2]
-            self._box(
-                half, [(wx0 + wx1) / 2, (wy0 + wy1) / 2, h / 2], st.wall_colors[facing], wall_tex
-            )
+                self._box([length / 2, t / 2, h / 2], mid, rgb, wall_tex)
         # distal cues outside the maze
         radius = max(hx, hy)
         for cue in st.cues:
@@ -595,7 +659,11 @@ class Scene:
             target = [eye[0] + fwd[0], eye[1] + fwd[1], eye[2] + fwd[2]]
             view = p.computeViewMatrix(eye, target, [0, 0, 1], physicsClientId=c)
             aspect = cols / camera.height
-            vfov = np.rad2deg(2 * np.arctan(np.tan(np.deg2rad(hfov) / 2) / aspect))
+            if camera.vfov is None:  # square pixels
+                vfov = np.rad2deg(2 * np.arctan(np.tan(np.deg2rad(hfov) / 2) / aspect))
+            else:  # pybullet's aspect is the ratio of the frustum's tangents, not of the pixels
+                vfov = camera.vfov
+                aspect = np.tan(np.deg2rad(hfov) / 2) / np.tan(np.deg2rad(vfov) / 2)
             proj = p.computeProjectionMatrixFOV(
                 vfov, aspect, camera.near, camera.far, physicsClientId=c
             )

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -147,7 +148,12 @@ def test_slurm_launcher_against_stand_in_slurm_commands(cobel, tmp_path):
         f"state_{array_id}_0",
         f"state_{array_id}_1",
     ]
-    assert {p.read_text() for p in state.glob("state_*")} == {"COMPLETED"}
+    # submitit reads a task's result as soon as it is written; the stand-in marks the task
+    # COMPLETED only once its script has exited (as SLURM does), a moment later
+    deadline = time.monotonic() + 60
+    while {p.read_text() for p in state.glob("state_*")} != {"COMPLETED"}:
+        assert time.monotonic() < deadline, {p.name: p.read_text() for p in state.glob("state_*")}
+        time.sleep(0.2)
     single = cobel("run", "task=tmaze_extinction", "seed=4", *TINY, "--quiet",
                    f"hydra.run.dir={tmp_path / 'single'}")  # fmt: skip
     assert single.returncode == 0, single.stderr

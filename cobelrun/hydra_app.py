@@ -476,6 +476,14 @@ def foreign_sweeper(overrides: list[str]) -> str | None:
     return None
 
 
+def basic_sweeper(cfg: DictConfig, overrides: list[str]) -> bool:
+    """Whether ``cfg`` runs Hydra's basic sweeper without the user having chosen a sweeper
+    (a ``-cd`` folder whose config does not select cobel's, e.g. a saved run's ``.hydra``)."""
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    target = str(OmegaConf.select(cfg, "hydra.sweeper._target_", default="") or "")
+    return "hydra/sweeper" not in keys and target.endswith(".BasicSweeper")
+
+
 def report_foreign_sweep(sweep_dir: Path) -> int:
     """Print what a sweeper other than cobel's left (Optuna's best parameters and value)."""
     results = sweep_dir / "optimization_results.yaml"
@@ -516,6 +524,12 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
     if not informational:
         results_root()  # COBEL_RESULTS="" is refused before anything is composed
         cfg, jobs = validate(overrides, multirun, user_dir, config_name)
+        if multirun and user_dir is not None and basic_sweeper(cfg, overrides):
+            # a saved run's .hydra/config.yaml has no defaults list, so Hydra's basic sweeper
+            # would run the jobs without cobel's sweep folder, index and resume
+            overrides = [*overrides, "hydra/sweeper=cobel"]
+            parsed.overrides = overrides
+            cfg, jobs = validate(overrides, multirun, user_dir, config_name)
         if multirun and foreign_sweeper(overrides):
             keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
             if "hydra.sweep.dir" not in keys:

@@ -112,6 +112,15 @@ def test_cli_config_dir_runs_the_saved_config(cobel, tmp_path):
     assert cfg["agent"]["epsilon"] == 0.3 and cfg["seed"] == 9
     pd.testing.assert_frame_equal(pd.read_parquet(second / "trials.parquet"),
                                   pd.read_parquet(first / "trials.parquet"))  # fmt: skip
+    # a sweep over the saved config is a cobel sweep: indexed, every job done
+    sweep = tmp_path / "sweep"
+    proc = cobel("run", "-m", "-cd", str(first / ".hydra"), "-cn", "config", "seed=9,10",
+                 f"hydra.sweep.dir={sweep}", "hydra/launcher=basic", "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    index = pd.read_csv(sweep / "jobs.csv")
+    assert list(index["status"]) == ["done", "done"] and list(index["seed"]) == [9, 10]
+    pd.testing.assert_frame_equal(pd.read_parquet(sweep / "0" / "trials.parquet"),
+                                  pd.read_parquet(first / "trials.parquet"))  # fmt: skip
     # a user's folder with its own task next to the built-in groups
     user = tmp_path / "myconf"
     (user / "task").mkdir(parents=True)

@@ -80,12 +80,9 @@ class Spec(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
-class TrialChangesSpec(Spec):
-    """The changes one trial of a phase's ``cycle`` makes (see :class:`cobelrun.protocol.Changes`)."""
-
-    rewards: Annotated[dict[State, float], Expect("a mapping state -> number")] = {}
-    terminals: Annotated[dict[State, bool], Expect("a mapping state -> true/false")] = {}
-    starts: Annotated[list[State] | None, Expect("a list of states")] = None
+class _ChangesSpec(Spec):
+    """What a phase and a trial of its ``cycle`` share: ``rewards: null`` (or ``terminals``) in
+    YAML means "no change", like an empty mapping."""
 
     @model_validator(mode="before")
     @classmethod
@@ -96,7 +93,15 @@ class TrialChangesSpec(Spec):
         return data
 
 
-class PhaseSpec(Spec):
+class TrialChangesSpec(_ChangesSpec):
+    """The changes one trial of a phase's ``cycle`` makes (see :class:`cobelrun.protocol.Changes`)."""
+
+    rewards: Annotated[dict[State, float], Expect("a mapping state -> number")] = {}
+    terminals: Annotated[dict[State, bool], Expect("a mapping state -> true/false")] = {}
+    starts: Annotated[list[State] | None, Expect("a list of states")] = None
+
+
+class PhaseSpec(_ChangesSpec):
     """One phase of a protocol (see :class:`cobelrun.protocol.Phase`)."""
 
     name: Annotated[str, Field(min_length=1), Expect("a non-empty string")]
@@ -111,15 +116,6 @@ class PhaseSpec(Spec):
         Field(min_length=1),
         Expect("a non-empty list of per-trial changes {rewards, terminals, starts}"),
     ] = None
-
-    @model_validator(mode="before")
-    @classmethod
-    def _nulls_are_empty(cls, data: Any) -> Any:
-        # ``rewards: null`` in YAML means "no change", like an empty mapping
-        if isinstance(data, Mapping):
-            data = {k: ({} if k in ("rewards", "terminals") and v is None else v)
-                    for k, v in data.items()}  # fmt: skip
-        return data
 
 
 class ProtocolSpec(Spec):

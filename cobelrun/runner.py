@@ -325,7 +325,8 @@ def execute(
     monitors = [TrialKeysMonitor(), *task.monitors.values()]
     recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
                            background=background_writes, geometry=geometry,
-                           save_agents=bool(task.save_agents))  # fmt: skip
+                           save_agents=bool(task.save_agents),
+                           trials=task.runs * task.protocol.n_trials)  # fmt: skip
     cpu0 = time.thread_time()
     try:
         if task.batch:
@@ -383,6 +384,8 @@ def execute(
         if cpu_times is not None:
             cpu_times["simulation_thread"] = time.thread_time() - cpu0
             cpu_times["writer_thread"] = recorder.writer_cpu_s
+            if recorder.step_process_cpu_s is not None:
+                cpu_times["step_writer_process"] = recorder.step_process_cpu_s
 
 
 #: seconds between two :func:`trim_memory` calls (between runs). Every 50 runs, as before,

@@ -22,9 +22,9 @@ import collections
 import contextlib
 import dataclasses
 import functools
+import gc
 import os
 import pickle
-import struct
 import sys
 import threading
 import time
@@ -270,13 +270,22 @@ class _StepProcess:
         self._conn, child = ctx.Pipe(duplex=True)
         self.tables = tables
         self.cpu_s = 0.0
+        #: the child's own memory (not shared with the parent) when it closed, MB
+        self.private_mb: float | None = None
         self._closed = False
         self._shm = mmap.mmap(-1, self.SLOTS * self.SLOT_BYTES)  # MAP_SHARED | MAP_ANONYMOUS
         self._free = list(range(self.SLOTS))
         self._proc = ctx.Process(target=_step_child,
                                  args=(recorder, child, tables, os.getpid(), self._shm),
                                  name="cobel-steps", daemon=True)  # fmt: skip
-        self._proc.start()
+        # the parent's objects out of the child's garbage collections: a collection writes to
+        # every object it scans, and each write copies a shared page (the Python docs' advice
+        # for fork without exec)
+        gc.freeze()
+        try:
+            self._proc.start()
+        finally:
+            gc.unfreeze()
         child.close()
 
     def submit(self, batches: list[tuple[TrialBatch, BatchInfo]]) -> None:
@@ -326,7 +335,7 @@ class _StepProcess:
                 if kind == "error":
                     error = error or value
                 elif kind == "closed":
-                    self.cpu_s = float(value)
+                    self.cpu_s, self.private_mb = float(value["cpu_s"]), value["private_mb"]
                     break
             if error is not None:
                 raise error
@@ -400,6 +409,16 @@ def _receive(conn: Any, shm: Any) -> tuple[tuple[Any, ...], int | None]:
     return pickle.loads(head, buffers=buffers), slot
 
 
+def _private_mb() -> float | None:
+    """This process's private memory in MB (``/proc/self/smaps_rollup``; None elsewhere)."""
+    try:
+        with open("/proc/self/smaps_rollup", encoding="ascii") as fh:
+            kb = sum(int(line.split()[1]) for line in fh if line.startswith("Private_"))
+    except (OSError, ValueError, IndexError):
+        return None
+    return round(kb / 1024, 1)
+
+
 def _step_child(
     recorder: RunRecorder, conn: Any, tables: list[str], parent: int, shm: Any
 ) -> None:  # fmt: skip
@@ -416,8 +435,18 @@ def _step_child(
         pass
     if os.getppid() != parent:  # the parent died before the line above
         os._exit(1)
+    from cobelrun.runner import trim_memory
+
+    try:  # Arrow's allocator hands freed pages back at once (its default keeps them 1 s+)
+        pa.jemalloc_set_decay_ms(0)
+    except NotImplementedError:  # another allocator
+        pass
     failed = False
+    trimmed = time.monotonic()
     while True:
+        if time.monotonic() - trimmed >= 1.0:
+            trim_memory()
+            trimmed = time.monotonic()
         try:
             (kind, *payload), slot = _receive(conn, shm)
         except (EOFError, OSError):  # the parent is gone: leave the parts, as a kill would
@@ -441,7 +470,7 @@ def _step_child(
                 if not failed:
                     failed = True
                     conn.send(("error", exc))
-        conn.send(("closed", time.process_time()))
+        conn.send(("closed", {"cpu_s": time.process_time(), "private_mb": _private_mb()}))
         os._exit(0)  # no atexit handlers, no inherited buffers flushed
 
 
@@ -855,6 +884,11 @@ class RunRecorder:
     def step_process_cpu_s(self) -> float | None:
         """CPU seconds of the step writer process (after :meth:`close`; None without one)."""
         return self._steps.cpu_s if self._steps is not None else None
+
+    @property
+    def step_process_private_mb(self) -> float | None:
+        """Memory of the step writer process not shared with this one, when it closed (MB)."""
+        return self._steps.private_mb if self._steps is not None else None
 
     # -- closing -------------------------------------------------------------------------------
     def close(self) -> None:

@@ -386,6 +386,11 @@ def execute(
             cpu_times["writer_thread"] = recorder.writer_cpu_s
             if recorder.step_process_cpu_s is not None:
                 cpu_times["step_writer_process"] = recorder.step_process_cpu_s
+                LOG.info(
+                    "step writer process: %.1f s of CPU, %s MB of its own memory at the end",
+                    recorder.step_process_cpu_s,
+                    recorder.step_process_private_mb,
+                )
 
 
 #: seconds between two :func:`trim_memory` calls (between runs). Every 50 runs, as before,

@@ -42,6 +42,7 @@ from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import BatchInfo, Monitor, Table
 from cobelrun.records import TrialBatch
+from cobelrun.safety import trim_memory
 from cobelrun.signals import Interrupted, SignalGuard
 
 __all__ = ["Interrupted", "RecordConfig", "RunRecorder", "SignalGuard"]
@@ -435,8 +436,6 @@ def _step_child(
         pass
     if os.getppid() != parent:  # the parent died before the line above
         os._exit(1)
-    from cobelrun.runner import trim_memory
-
     try:  # Arrow's allocator hands freed pages back at once (its default keeps them 1 s+)
         pa.jemalloc_set_decay_ms(0)
     except NotImplementedError:  # another allocator

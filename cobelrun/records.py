@@ -8,7 +8,6 @@ batches into table columns; writers persist them. No per-step Python is needed o
 from __future__ import annotations
 
 from collections.abc import Callable
-
 from dataclasses import dataclass, field
 from typing import Any
 

@@ -54,9 +54,6 @@ STEP_NS = 100_000_000
 PATH_LIFETIME_NS = 10 * STEP_NS
 #: Parquet key/value metadata schema version of cobel's tables
 SCHEMA_VERSION = "2"
-#: ``record.step_writer: auto`` forks the step writer process for jobs of this many trials
-#: (runs x trials per run) or more: 100 runs of Fig. 6B
-STEP_PROCESS_TRIALS = 20_000
 
 
 @dataclass(frozen=True)
@@ -88,10 +85,11 @@ class RecordConfig:
         epsilon, mean trial return) through SB3's logger as CSV, and TensorBoard when installed,
         into ``training/run_NNNN/``.
     step_writer
-        Where the per-step tables are built and written: ``"thread"`` (the writer thread),
+        Where the per-step tables are built and written: ``"thread"`` (the writer thread) or
         ``"process"`` (a child process forked when the recorder starts: its Python work never
-        waits for the simulation's GIL; Linux, main thread, background writes) or ``"auto"``
-        (the process for jobs of at least :data:`STEP_PROCESS_TRIALS` trials).
+        waits for the simulation's GIL; Linux, main thread, background writes, else the
+        thread). The process pays only with a core to spare for it: on 2 cores it was slower
+        (docs/speed.md).
     """
 
     steps: bool = True
@@ -102,7 +100,7 @@ class RecordConfig:
     flush_seconds: float = 2.0
     images: bool = False
     training_log: bool = False
-    step_writer: str = "auto"
+    step_writer: str = "thread"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "task.record") -> RecordConfig:
@@ -517,7 +515,6 @@ class RunRecorder:
         background: bool = True,
         geometry: Any = None,
         save_agents: bool = False,
-        trials: int | None = None,
     ) -> None:
         self.folder = folder
         self.env = env
@@ -564,20 +561,17 @@ class RunRecorder:
         self._agents_merge: Future | None = None
         self._steps: _StepProcess | None = None
         joined = sorted({t.name for m in self._joinable for t in m.tables()})
-        if joined and self._step_process(background, trials):
+        if joined and self._step_process(background):
             self._steps = _StepProcess(self, joined)
 
-    def _step_process(self, background: bool, trials: int | None) -> bool:
+    def _step_process(self, background: bool) -> bool:
         """Whether the per-step tables go to a child process (``record.step_writer``)."""
-        mode = self.record_cfg.step_writer
-        if mode == "thread" or not background:
-            return False
-        possible = sys.platform.startswith("linux") and (
-            threading.current_thread() is threading.main_thread()
+        return (
+            self.record_cfg.step_writer == "process"
+            and background
+            and sys.platform.startswith("linux")
+            and threading.current_thread() is threading.main_thread()
         )
-        if mode == "process":
-            return possible
-        return possible and trials is not None and trials >= STEP_PROCESS_TRIALS
 
     def _declared_tables(self) -> dict[str, tuple[str, list[pa.Field]]]:
         tables: dict[str, tuple[str, list[pa.Field]]] = {}

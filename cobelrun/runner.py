@@ -325,8 +325,7 @@ def execute(
     monitors = [TrialKeysMonitor(), *task.monitors.values()]
     recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
                            background=background_writes, geometry=geometry,
-                           save_agents=bool(task.save_agents),
-                           trials=task.runs * task.protocol.n_trials)  # fmt: skip
+                           save_agents=bool(task.save_agents))  # fmt: skip
     cpu0 = time.thread_time()
     try:
         if task.batch:

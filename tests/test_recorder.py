@@ -334,20 +334,21 @@ def test_step_writer_process_reports_its_error_and_ends(tmp_path, monkeypatch):
     assert 0 < trials.num_rows < 6 * (12 + 7)
 
 
-def test_step_writer_auto_forks_only_for_large_jobs(tmp_path, monkeypatch):
-    """record.step_writer auto: the thread for a small job, the process from
-    STEP_PROCESS_TRIALS trials on; the manifest's CPU times then name the process."""
+def test_step_writer_process_only_when_asked(tmp_path, monkeypatch):
+    """record.step_writer: the thread by default; the process when asked, and then the
+    manifest's CPU times name it."""
     from cobelrun import recorder as rec
     from cobelrun.api import compose
     from cobelrun.runner import build_task, execute
 
     started = []
     monkeypatch.setattr(rec._StepProcess, "__init__", _record_start(started))
-    for runs, limit, expect in ((6, 10**9, []), (6, 6 * 19, [True])):
+    for writer, expect in (("thread", []), ("process", [True])):
         started.clear()
-        monkeypatch.setattr(rec, "STEP_PROCESS_TRIALS", limit)
-        task = build_task(compose("tmaze_extinction", [*SMALL[1:], f"task.runs={runs}"]))
-        out = tmp_path / f"r{limit}"
+        task = build_task(
+            compose("tmaze_extinction", [*SMALL, f"task.record.step_writer={writer}"])
+        )
+        out = tmp_path / writer
         out.mkdir()
         cpu: dict[str, float] = {}
         execute(task, out, cpu_times=cpu)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -64,13 +65,18 @@ def measure(runs: int, extra: list[str], out: Path, code: Path | None) -> dict:
     rss_kb, cpu = proc.stderr.strip().splitlines()[-1].split()
     manifest = json.loads((out / "manifest.json").read_text())
     files = [p for p in out.rglob("*") if p.is_file() and ".hydra" not in p.parts]
+    # the step writer process's own memory at its end (newer code logs it; record.step_writer)
+    own = re.search(
+        r"step writer process: .* s of CPU, ([0-9.]+) MB", (out / "cobel.log").read_text()
+    )
     sizes = {p.name: p.stat().st_size for p in files}
     return {
         "wall_s": round(wall, 2),
         "loop_s": float(manifest["wall_time_s"]),
         "cpu_s": round(float(cpu), 2),
         "thread_cpu_s": manifest.get("cpu_time_s"),  # simulation / writer thread (newer code)
-        "peak_rss_mb": round(int(rss_kb) / 1024, 1),
+        "peak_rss_mb": round(int(rss_kb) / 1024, 1),  # the largest process (cobel or its child)
+        "step_writer_private_mb": float(own.group(1)) if own else None,
         "folder_mb": round(sum(sizes.values()) / 1e6, 2),
         "files": len(files),
         "largest": sorted(sizes.items(), key=lambda kv: -kv[1])[:5],
@@ -133,6 +139,12 @@ def main() -> None:
                     threads = (f"; simulation thread CPU {sim:.1f} vs {base:.1f} s "
                                f"(+{100 * cost_sim:.0f}%), writer thread "
                                f"{full['thread_cpu_s']['writer_thread']:.1f} s")  # fmt: skip
+                    child = full["thread_cpu_s"].get("step_writer_process")
+                    if child is not None:
+                        threads += (
+                            f", step writer process {child:.1f} s "
+                            f"({full['step_writer_private_mb']} MB of its own)"
+                        )
                 print(f"{runs:>7} runs, {name}: loop {full['loop_s']:.1f} s vs trials only "
                       f"{reduced['loop_s']:.1f} s -> recording +{100 * cost:.0f}% "
                       f"(CPU {full['cpu_s']:.1f} vs {reduced['cpu_s']:.1f} s: "

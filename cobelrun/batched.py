@@ -125,24 +125,14 @@ def execute_batched(
         learner = template.batch_learner(seeds, steps, task.make_agent)
         views = [learner.view(i) for i in range(len(runs))]
         forks = [recorder.fork(r) for r in runs]
-        for fork, view in zip(forks, views, strict=True):
-            fork.start_run(view)
-        first = 1
-        for phase in protocol.phases:
-            for env in (*envs, task.env):
-                protocol.apply(phase, env)
-            max_steps = phase.max_steps or protocol.max_steps
-            callbacks = [fork.phase_callbacks(first) for fork in forks]
-            t_phase = time.perf_counter()
-            batches = learner.run_phase(envs, phase.trials, max_steps, phase.learning,
-                                        callbacks, views)  # fmt: skip
-            for fork, batch in zip(forks, batches, strict=True):
-                fork.record(phase.name, first, batch)
-            if phase_times is not None:
-                phase_times[phase.name] = (
-                    phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
-                )
-            first += phase.trials
+        try:
+            first = _run_chunk(task, envs, learner, views, forks, phase_times)
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error: keep the phases the chunk's runs finished, as a
+            # sequential run keeps its finished phases (the phase under way is lost in both)
+            for fork in forks:
+                recorder.commit(fork)
+            raise
         for run, fork, view in zip(runs, forks, views, strict=True):
             fork.end_run(view, first - 1)
             recorder.commit(fork)
@@ -151,3 +141,31 @@ def execute_batched(
         if progress is not None:
             done = runs[-1] + 1
             progress(done * per_run, task.runs * per_run, run=runs[-1], runs=task.runs)
+
+
+def _run_chunk(
+    task: Any, envs: list[Any], learner: Any, views: list[Any], forks: list[Any],
+    phase_times: dict[str, float] | None,
+) -> int:  # fmt: skip
+    """Every phase of one chunk of runs, each run's batches held by its fork; returns the
+    trial number after the last phase."""
+    protocol = task.protocol
+    for fork, view in zip(forks, views, strict=True):
+        fork.start_run(view)
+    first = 1
+    for phase in protocol.phases:
+        for env in (*envs, task.env):
+            protocol.apply(phase, env)
+        max_steps = phase.max_steps or protocol.max_steps
+        callbacks = [fork.phase_callbacks(first) for fork in forks]
+        t_phase = time.perf_counter()
+        batches = learner.run_phase(envs, phase.trials, max_steps, phase.learning,
+                                    callbacks, views)  # fmt: skip
+        for fork, batch in zip(forks, batches, strict=True):
+            fork.record(phase.name, first, batch)
+        if phase_times is not None:
+            phase_times[phase.name] = (
+                phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
+            )
+        first += phase.trials
+    return first

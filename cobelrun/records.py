@@ -7,6 +7,7 @@ batches into table columns; writers persist them. No per-step Python is needed o
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -100,8 +101,13 @@ class TrialBatch:
         return out
 
     @classmethod
-    def concat(cls, batches: list[TrialBatch]) -> TrialBatch:
-        """Consecutive batches as one (poses kept only if every batch has them)."""
+    def concat(
+        cls, batches: list[TrialBatch],
+        alloc: Callable[[tuple[int, ...], np.dtype], np.ndarray] | None = None,
+    ) -> TrialBatch:  # fmt: skip
+        """Consecutive batches as one (poses kept only if every batch has them);
+        ``alloc(shape, dtype)``, when given, provides the joined arrays (e.g. views of a
+        reused buffer) instead of fresh ones."""
         if not batches:
             return cls.from_trials([])
         offsets = [np.zeros(1, np.int64)]
@@ -111,7 +117,12 @@ class TrialBatch:
             total += b.n_steps
 
         def cat(name: str) -> np.ndarray:
-            return np.concatenate([getattr(b, name) for b in batches])
+            parts = [getattr(b, name) for b in batches]
+            if alloc is None:
+                return np.concatenate(parts)
+            shape = (sum(p.shape[0] for p in parts), *parts[0].shape[1:])
+            dtype = np.result_type(*parts)
+            return np.concatenate(parts, out=alloc(shape, dtype))
 
         poses = all(b.step_pose is not None for b in batches)
         extra_keys = set(batches[0].extra).intersection(*(b.extra for b in batches[1:]))

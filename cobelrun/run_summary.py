@@ -5,7 +5,7 @@ table with pyarrow (:func:`read_phase_rows`), so a run never imports pandas (~0.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -91,10 +91,9 @@ def phase_rows(columns: Mapping[str, Any], last: int = LAST_TRIALS) -> list[dict
     return rows
 
 
-def read_phase_rows(path: str | Path, last: int = LAST_TRIALS,
-                    batch_rows: int = 1 << 16) -> list[dict[str, Any]]:  # fmt: skip
-    """:func:`phase_rows` of a ``trials.parquet`` file, streamed: two passes over batches of
-    ``batch_rows`` rows, so memory stays flat however many runs the table holds (a 20,000-run
+def read_phase_rows(path: str | Path, last: int = LAST_TRIALS) -> list[dict[str, Any]]:
+    """:func:`phase_rows` of a ``trials.parquet`` file, streamed: two passes over its row
+    groups, so memory stays flat however many runs the table holds (a 20,000-run
     job has 4 million rows), and read with pyarrow without pandas (``pyarrow.parquet.read_table``
     and Arrow's ``to_numpy`` import pandas, ~0.3 s). Assumes one row per (run, trial), as every
     trials table cobel writes has."""
@@ -107,7 +106,7 @@ def read_phase_rows(path: str | Path, last: int = LAST_TRIALS,
     top: dict[str, int] = {}  # phase -> its last trial
     per_run: dict[str, np.ndarray] = {}  # phase -> rows (trials) per run
     seen = 0
-    for batch in file.iter_batches(batch_size=batch_rows, columns=["phase", "run", "trial"]):
+    for batch in _batches(file, ["phase", "run", "trial"]):
         trial = _column(batch.column("trial")).astype(np.int64)
         run = _column(batch.column("run")).astype(np.int64)
         for name, sel in _phases(batch.column("phase")):
@@ -125,9 +124,7 @@ def read_phase_rows(path: str | Path, last: int = LAST_TRIALS,
     sums = {name: dict.fromkeys(measures, 0.0) for name in first}
     ns = {name: dict.fromkeys(measures, 0) for name in first}
     if measures:
-        for batch in file.iter_batches(
-            batch_size=batch_rows, columns=["phase", "trial", *measures]
-        ):
+        for batch in _batches(file, ["phase", "trial", *measures]):
             trial = _column(batch.column("trial")).astype(np.int64)
             values = {c: _floats(_column(batch.column(c))) for c in measures}
             for name, sel in _phases(batch.column("phase")):
@@ -146,6 +143,15 @@ def read_phase_rows(path: str | Path, last: int = LAST_TRIALS,
             row[MEASURES[c]] = sums[name][c] / ns[name][c] if ns[name][c] else float("nan")
         rows.append(row)
     return rows
+
+
+def _batches(file: Any, columns: list[str]) -> Iterator[Any]:
+    """The record batches of ``columns``, one row group at a time. ``ParquetFile.iter_batches``
+    with a dictionary column (``phase``) kept memory it never gave back until the reader was
+    done: +40 MB of peak RSS for the 16 million rows of an 80,000-run job, growing with the
+    table; a reader per row group stays flat (cobel writes 65,536 rows per group)."""
+    for i in range(file.metadata.num_row_groups):
+        yield from file.read_row_group(i, columns=columns).to_batches()
 
 
 def _phases(column: Any) -> list[tuple[str, np.ndarray]]:

@@ -27,7 +27,7 @@ from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
 from cobelrun.protocol import Protocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
-from cobelrun.safety import check_memory, check_name, memory_plan
+from cobelrun.safety import check_memory, check_name, memory_plan, trim_memory
 from cobelrun.schema import RunSpec, validate_run
 
 __all__ = ["Interrupted", "Task", "build_task", "execute", "run", "run_seed"]
@@ -383,35 +383,19 @@ def execute(
         if cpu_times is not None:
             cpu_times["simulation_thread"] = time.thread_time() - cpu0
             cpu_times["writer_thread"] = recorder.writer_cpu_s
+            if recorder.step_process_cpu_s is not None:
+                cpu_times["step_writer_process"] = recorder.step_process_cpu_s
+                LOG.info(
+                    "step writer process: %.1f s of CPU, %s MB of its own memory at the end",
+                    recorder.step_process_cpu_s,
+                    recorder.step_process_private_mb,
+                )
 
 
 #: seconds between two :func:`trim_memory` calls (between runs). Every 50 runs, as before,
 #: was ~20 times a second for Fig. 6B: each call hands back the pages the writer thread freed,
 #: which the next runs fault in again
 TRIM_SECONDS = 1.0
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    import ctypes
-    import ctypes.util
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):  # not glibc
-        return None
-
-
-def trim_memory() -> None:
-    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``, as Dask's
-    workers do; a no-op elsewhere). Runs leave small freed blocks between long-lived ones
-    (the recorder's buffers), which glibc keeps: by the end of 1,000 Fig. 6B runs ~30 MB."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
 
 
 def run(

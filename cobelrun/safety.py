@@ -20,11 +20,12 @@ line:
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import re
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -233,3 +234,26 @@ def check_allocation(
         )
     if _PLAN is not None:
         _PLAN[0] += need
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+def trim_memory() -> None:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``, as Dask's
+    workers do; a no-op elsewhere). Runs leave small freed blocks between long-lived ones
+    (the recorder's buffers), which glibc keeps: by the end of 1,000 Fig. 6B runs ~30 MB."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)

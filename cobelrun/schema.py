@@ -153,6 +153,8 @@ class RecordSpec(Spec):
     flush_seconds: Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a number > 0")] = 2.0
     images: Flag = False
     training_log: Flag = False
+    #: who builds and writes the per-step tables: thread or process (cobelrun.recorder)
+    step_writer: Annotated[Literal["thread", "process"], Expect("thread or process")] = "thread"
 
 
 class TaskSpec(Spec):

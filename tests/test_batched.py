@@ -281,3 +281,30 @@ def test_dyna_state_table_update_equals_the_per_sample_update(agent):
     moved = [(x - y).abs().max() for x, y in zip(table.net.leaves, learner().net.leaves,
                                                   strict=True)]  # fmt: skip
     assert max(moved) > 1e-3  # the updates did change the networks
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt, RuntimeError])
+def test_interrupted_chunk_keeps_its_finished_phases(tmp_path, monkeypatch, exc):
+    """Ctrl-C (or an error) in a chunk's second phase: the first phase of every run of the
+    chunk is in the tables, exactly as the uninterrupted job recorded it, and the files are
+    complete (a sequential run keeps its finished phases too)."""
+    from cobelrun.agents.batched_dqn import BatchedDQN
+
+    args = [*GRID, "task.runs=3", "task.batch_runs=true"]
+    full, _, _ = run_task(tmp_path, "full", args)
+    calls = {"n": 0}
+    run_phase = BatchedDQN.run_phase
+
+    def stop_in_second_phase(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise exc("stopped")
+        return run_phase(self, *a, **k)
+
+    monkeypatch.setattr(BatchedDQN, "run_phase", stop_in_second_phase)
+    with pytest.raises(exc):
+        run_task(tmp_path, "stopped", args)
+    kept = pd.read_parquet(tmp_path / "stopped" / "trials.parquet")
+    want = full[full.phase == "train"].reset_index(drop=True)
+    assert len(want) == 3 * 6 and sorted(kept.run.unique()) == [0, 1, 2]
+    pd.testing.assert_frame_equal(kept, want)

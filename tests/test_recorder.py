@@ -219,13 +219,16 @@ def _run_in_process(tmp_path, name, overrides, background=True):
 SMALL = ["task.runs=6", "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=7"]
 
 
-@pytest.mark.parametrize("every", [1, 3])
-def test_step_rows_built_in_bulk_equal_rows_built_per_batch(tmp_path, monkeypatch, every):
-    """The trajectory monitor's rows, built from joined batches on the writer thread (parts of
-    a few batches each), are the rows it builds batch by batch: every step row, in order."""
+@pytest.mark.parametrize(("every", "writer"), [(1, "thread"), (3, "thread"), (1, "process"),
+                                               (3, "process")])  # fmt: skip
+def test_step_rows_built_in_bulk_equal_rows_built_per_batch(tmp_path, monkeypatch, every, writer):
+    """The trajectory monitor's rows, built from joined batches on the writer thread or in the
+    step writer process (parts of a few batches each; with 300 steps per join the process
+    waits for free slots), are the rows it builds batch by batch: every step row, in order."""
     from cobelrun.monitors import TrajectoryMonitor
 
-    overrides = [*SMALL, f"task.record.trial_every={every}", "task.save_agents=none"]
+    overrides = [*SMALL, f"task.record.trial_every={every}", "task.save_agents=none",
+                 f"task.record.step_writer={writer}"]  # fmt: skip
     monkeypatch.setattr(RunRecorder, "JOIN_STEPS", 300)  # many joins, each of several batches
     joined = _run_in_process(tmp_path, "joined", overrides)
     monkeypatch.setattr(TrajectoryMonitor, "joinable", False)
@@ -304,3 +307,63 @@ def test_streamed_summary_equals_the_summary_of_the_whole_table(tmp_path):
     got = pd.DataFrame(read_phase_rows(path))
     pd.testing.assert_frame_equal(got, summary(rows), check_dtype=False)
     assert list(got["phase"]) == ["acquisition", "extinction"] and got["runs"].tolist() == [700] * 2
+
+
+def test_step_writer_process_reports_its_error_and_ends(tmp_path, monkeypatch):
+    """A write that fails in the step writer process (a full disk) fails the run in the
+    parent with that error at its next flush, as the writer thread's errors do; the child is
+    gone afterwards, and the trials written up to then are a finished table."""
+    import errno
+    import multiprocessing
+
+    from cobelrun.io.parquet import PartedTableWriter
+
+    write_part = PartedTableWriter.write_part
+
+    def full_disk(self, columns):
+        if self.path.name == "steps.parquet":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write_part(self, columns)
+
+    monkeypatch.setattr(PartedTableWriter, "write_part", full_disk)  # inherited by the fork
+    monkeypatch.setattr(RunRecorder, "JOIN_STEPS", 300)
+    with pytest.raises(OSError, match="No space left"):
+        _run_in_process(tmp_path, "run", [*SMALL, "task.record.step_writer=process"])
+    assert multiprocessing.active_children() == []
+    trials = pq.read_table(tmp_path / "run" / "trials.parquet")
+    assert 0 < trials.num_rows < 6 * (12 + 7)
+
+
+def test_step_writer_process_only_when_asked(tmp_path, monkeypatch):
+    """record.step_writer: the thread by default; the process when asked, and then the
+    manifest's CPU times name it."""
+    from cobelrun import recorder as rec
+    from cobelrun.api import compose
+    from cobelrun.runner import build_task, execute
+
+    started = []
+    monkeypatch.setattr(rec._StepProcess, "__init__", _record_start(started))
+    for writer, expect in (("thread", []), ("process", [True])):
+        started.clear()
+        task = build_task(
+            compose("tmaze_extinction", [*SMALL, f"task.record.step_writer={writer}"])
+        )
+        out = tmp_path / writer
+        out.mkdir()
+        cpu: dict[str, float] = {}
+        execute(task, out, cpu_times=cpu)
+        assert started == expect
+        assert ("step_writer_process" in cpu) == bool(expect)
+        assert pq.read_table(out / "steps.parquet").num_rows > 0
+
+
+def _record_start(started):
+    from cobelrun import recorder as rec
+
+    init = rec._StepProcess.__init__
+
+    def wrapped(self, *args, **kwargs):
+        started.append(True)
+        init(self, *args, **kwargs)
+
+    return wrapped

@@ -110,7 +110,10 @@ class BatchInfo:
 
     @classmethod
     def joined(cls, infos: Sequence[BatchInfo], n_trials: Sequence[int]) -> BatchInfo:
-        """The info of batches joined in this order (``n_trials[i]`` trials in batch ``i``)."""
+        """The info of batches joined in this order (``n_trials[i]`` trials in batch ``i``);
+        one info is its own join (it may be a join already)."""
+        if len(infos) == 1:
+            return infos[0]
         first = infos[0]
         counts = np.asarray(n_trials, np.int64)
         starts = np.repeat(np.array([i.first_trial for i in infos], np.int32), counts)

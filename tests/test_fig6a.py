@@ -104,3 +104,21 @@ def test_fig6a_dqn_learns_the_right_arm_then_extinguishes_slower_than_dyna_q(cob
     dyna = _trials(cobel, tmp_path, "task=tmaze_extinction", "task.runs=20", "seed=0")
     dyna_rate = dyna.groupby("trial")["response"].mean()
     assert rate.loc[101:110].mean() >= dyna_rate.loc[101:110].mean() + 0.2
+
+
+def test_fig6a_paper_plans_one_job_per_seed(tmp_path):
+    """fig6a_paper: 50 DQN jobs (seeds 0-49, 84 x 84 offline images, one run each) beside
+    the Dyna-Q task; --quick plans one DQN job with Fig. 6A's CI budget."""
+    from cobelrun.figures.registry import get, plan_runs
+
+    planned = plan_runs(get("fig6a_paper"), root=tmp_path)
+    dqn = [p for p in planned if p.label == "dqn"]
+    assert [p.params["seed"] for p in dqn] == list(range(50))
+    assert {p.cfg.task.name for p in dqn} == {"tmaze_extinction_3d_paper"}
+    assert all(p.cfg.task.runs == 1 and p.cfg.env.observation.height == 84 for p in dqn)
+    assert len({p.config_hash for p in dqn}) == 50
+    assert [p.label for p in planned if p.label != "dqn"] == ["dyna_q"]
+    quick = [p for p in plan_runs(get("fig6a_paper"), quick=True, root=tmp_path)
+             if p.label == "dqn"]  # fmt: skip
+    assert len(quick) == 1 and quick[0].params["seed"] == 0
+    assert quick[0].cfg.task.protocol.phases[0].trials == 5

@@ -16,6 +16,8 @@ simulations on CoBeL-RL v2.0.0 with keras-rl2, 200 agents, run here; docs/two_af
 
 from __future__ import annotations
 
+import functools
+
 from cobelrun.figures.choice import epsilon_of, plot_mean_reward
 from cobelrun.figures.registry import Figure, FigureData
 
@@ -23,7 +25,7 @@ from cobelrun.figures.registry import Figure, FigureData
 ORIGINAL = (((6, 10), 0.616, 0.699), ((41, 50), 0.839, 0.961))
 
 
-def draw(data: FigureData):
+def draw(data: FigureData, heading: str = "Fig. 9C: two-alternative forced choice (DQN)"):
     import matplotlib.pyplot as plt
 
     trials = data.trials("dqn")
@@ -41,15 +43,28 @@ def draw(data: FigureData):
     if "greedy_correct" in late:
         note += (f"; greedy: {early['greedy_correct'].mean():.2f}, "
                  f"{late['greedy_correct'].mean():.2f}")  # fmt: skip
-    ax.set_title(f"Fig. 9C: two-alternative forced choice (DQN)\n{note}", fontsize=9)
+    ax.set_title(f"{heading}\n{note}", fontsize=9)
     ax.spines[["top", "right"]].set_visible(False)
     return fig, table
 
 
-FIGURE = Figure(
-    name="fig9",
-    title="Two-alternative forced choice with DQN (mean reward per trial, greedy probe)",
-    runs={"dqn": ["task=two_afc"]},
-    quick={"*": ["task.runs=10"]},
-    draw=draw,
-)
+FIGURES = [
+    Figure(
+        name="fig9",
+        title="Two-alternative forced choice with DQN (mean reward per trial, greedy probe)",
+        runs={"dqn": ["task=two_afc"]},
+        quick={"*": ["task.runs=10"]},
+        draw=draw,
+    ),
+    # the paper's "learn the task within a couple of trials": task=two_afc_fast (Q starting at
+    # 0.5, 4 gradient steps per step; docs/two_afc.md), beside the original's means
+    Figure(
+        name="fig9_fast",
+        title="Fig. 9 learning in a couple of trials (two_afc_fast: Q from 0.5, 4 updates/step)",
+        runs={"dqn": ["task=two_afc_fast"]},
+        quick={"*": ["task.runs=10"]},
+        draw=functools.partial(
+            draw, heading="Fig. 9C, two_afc_fast: Q starts at 0.5, 4 gradient steps per step"
+        ),
+    ),
+]

@@ -11,11 +11,17 @@ __all__ = ["INITS", "keras_init"]
 
 
 def keras_init(net: torch.nn.Module) -> None:
-    """Keras' layer defaults in place: Glorot-uniform weights, zero biases (dense and conv)."""
+    """Keras' layer defaults in place: Glorot-uniform weights, zero biases (dense and conv).
+
+    The weights are drawn on the CPU (the generator the agent seeds) and copied to the
+    network's device, so a network on CUDA starts from the same weights as on the CPU.
+    """
     with torch.no_grad():
         for layer in net.modules():
             if isinstance(layer, torch.nn.Linear | torch.nn.Conv2d):
-                torch.nn.init.xavier_uniform_(layer.weight)
+                w = torch.empty(layer.weight.shape, dtype=layer.weight.dtype)
+                torch.nn.init.xavier_uniform_(w)
+                layer.weight.copy_(w)
                 if layer.bias is not None:
                     torch.nn.init.zeros_(layer.bias)
 

@@ -301,8 +301,12 @@ class BatchedDQN:
             if len(runs) == self.R:
                 t.mul_(1 - self.tau).add_(p, alpha=self.tau)
                 return
+            # the same two operations as for all runs (SB3's polyak_update: mul_, add_ with
+            # alpha), so a run's target does not depend on which runs wait (tested)
             idx = torch.as_tensor(runs, device=self.device)
-            t[idx] = t[idx] * (1 - self.tau) + p[idx] * self.tau
+            sub = t[idx].mul_(1 - self.tau)
+            sub.add_(p[idx], alpha=self.tau)
+            t[idx] = sub
 
     def _gradient_step(self, train: np.ndarray) -> None:
         """One Adam step of every run with ``train[r]`` (the others are left exactly as they
@@ -457,9 +461,12 @@ class BatchedDQN:
             greedy = q[:, 0].argmax(dim=1).cpu().numpy()
             actions = np.zeros(R, np.int64)
             for r in runs:
+                # SB3's DQN holds exploration_rate 0.0 until its first step ends, so a run's very
+                # first learning step is greedy (its uniform is still drawn)
+                run_eps = eps if not learn or self.n_calls[r] > 0 else 0.0
                 if learn and self.num_timesteps[r] < self.learning_starts:
                     actions[r] = self.spaces[r].sample()
-                elif (learn or eps > 0) and self.np_rngs[r].rand() < eps:
+                elif (learn or eps > 0) and self.np_rngs[r].rand() < run_eps:
                     actions[r] = self.spaces[r].sample()
                 else:
                     actions[r] = greedy[r]

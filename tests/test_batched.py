@@ -545,7 +545,8 @@ def test_two_afc_fast_learns_within_a_couple_of_trials(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
 def test_two_afc_fast_other_seeds(tmp_path, seed):
-    """The same acceptance for seeds 1-4 (measured: 0.764-0.802 over trials 6-10)."""
+    """The same acceptance for seeds 1-4 (measured: 0.764-0.800 over trials 6-10, 0.845-0.872
+    over 41-50)."""
     fast, _, _ = run_task(tmp_path, "fast", ["task=two_afc_fast", "task.save_agents=none",
                                              f"seed={seed}"])  # fmt: skip
     early, late = _early_late(fast)

@@ -134,14 +134,14 @@ class BatchedSumTree:
         return self.sums[run, leaf + self.size]
 
     def update(self, run_idx: np.ndarray, leaf_idx: np.ndarray, values: np.ndarray) -> None:
-        """Set leaf ``leaf_idx[k]`` of run ``run_idx[k]`` to ``values[k]`` (``run_idx``
-        broadcasts against ``leaf_idx``; a leaf given twice takes its last value, as in
+        """Set leaf ``leaf_idx[k]`` of run ``run_idx[k]`` to ``values[k]`` (``run_idx`` and
+        ``leaf_idx`` broadcast together; a leaf given twice takes its last value, as in
         :meth:`SumTree.update`) and refresh the ancestors of every changed leaf, all runs at
         once, level by level from the leaves up."""
-        leaf = np.asarray(leaf_idx, dtype=np.int64)
-        run = np.broadcast_to(np.asarray(run_idx, dtype=np.int64), leaf.shape).reshape(-1)
+        run, leaf = np.broadcast_arrays(np.asarray(run_idx, dtype=np.int64),
+                                        np.asarray(leaf_idx, dtype=np.int64))  # fmt: skip
+        run, leaf = run.reshape(-1), leaf.reshape(-1)
         vals = np.asarray(values, dtype=np.float64).reshape(-1)
-        leaf = leaf.reshape(-1)
         if leaf.shape != vals.shape:
             raise ValueError(f"{leaf.size} indices but {vals.size} values")
         if leaf.size == 0:

@@ -215,15 +215,18 @@ def test_dqn_trial_end_updates_and_loss() -> None:
     """keras-rl's schedule: one gradient step per step from the first, one more per trial end."""
     import torch.nn.functional as F
 
-    counts = {}
-    for extra in (0, 1, 3):
-        env = TwoAFCEnv()
-        env.np_random = np.random.default_rng(0)
-        agent = DQNAgent(env, seed=0, learning_starts=0, trial_end_updates=extra, loss="mse",
-                         max_grad_norm=None)  # fmt: skip
-        agent.train(10, 1)
-        counts[extra] = agent.model._n_updates
-    assert counts == {0: 10, 1: 20, 3: 40}  # one-step trials: every step ends a trial
+    for prioritized in (False, True):  # PER's own gradient step makes them too
+        counts = {}
+        for extra in (0, 1, 3):
+            env = TwoAFCEnv()
+            env.np_random = np.random.default_rng(0)
+            agent = DQNAgent(env, seed=0, learning_starts=0, trial_end_updates=extra, loss="mse",
+                             max_grad_norm=None, prioritized=prioritized)  # fmt: skip
+            agent.train(10, 1)
+            counts[extra] = agent.model._n_updates
+            if prioritized:
+                assert agent.model.replay_buffer.n_sampled == counts[extra]
+        assert counts == {0: 10, 1: 20, 3: 40}  # one-step trials: every step ends a trial
     assert agent.model.td_loss is F.mse_loss and agent.model.max_grad_norm is None
     _env, agent = make("dqn", learning_starts=0, trial_end_updates=1)
     batch = agent.train(3, 10)  # multi-step trials: one extra update per trial only

@@ -31,8 +31,13 @@ The arithmetic differs from the sequential path only in how floating-point sums 
 until a rounding difference first flips a greedy choice (``tests/test_batched.py`` measures
 how often that happens and checks the learning curves statistically).
 
-Supported: vector (``Box``) or ``Discrete`` observations with the MLP policy, uniform replay,
-``train_freq`` 1. Other settings (CNN, Dict observations, prioritized replay, dropout) run
+Prioritized replay (``agent.prioritized``, :mod:`cobelrun.agents.per`) is batched too: one
+:class:`~cobelrun.agents.per.BatchedSumTree` holds every run's priorities, and each run samples
+from its own ``numpy.random.Generator`` (seeded as the sequential buffer's), with its own
+maximum priority and beta schedule (see :meth:`BatchedDQN._sample_prioritized`).
+
+Supported: vector (``Box``) or ``Discrete`` observations with the MLP policy, uniform or
+prioritized replay, ``train_freq`` 1. Other settings (CNN, Dict observations, dropout) run
 sequentially; :func:`unsupported` says why.
 """
 
@@ -50,6 +55,7 @@ import torch.nn.functional as F
 
 from cobelrun.agents.base import ArraySpec, TrialCallback, state_of
 from cobelrun.agents.batched_ops import ACTIVATION_NAMES, RowAdam, activation
+from cobelrun.agents.per import BatchedSumTree
 from cobelrun.agents.torch_init import INITS
 from cobelrun.envs.base import Posed
 from cobelrun.errors import ConfigError
@@ -71,8 +77,6 @@ def unsupported(agent: Any) -> str | None:
     hyper = agent.hyper
     if hyper["policy"] != "MlpPolicy":
         return f"agent.policy {hyper['policy']} (batched runs support MlpPolicy networks)"
-    if agent.prioritized:
-        return "agent.prioritized replay (batched runs use uniform replay)"
     if int(m.train_freq.frequency) != 1 or m.train_freq.unit.value != "step":
         return "agent.train_freq other than 1 step"
     space = m.observation_space
@@ -141,13 +145,15 @@ class BatchedDQN:
         # -- per-run streams, exactly those of a sequential DQNAgent with the same seed
         init, q_init = template.hyper.get("init", "torch"), template.hyper.get("q_init")
         self.np_rngs: list[np.random.RandomState] = []
+        self.per_rngs: list[np.random.Generator] = []  # prioritized replay's sampling streams
         self.spaces: list[gym.spaces.Discrete] = []
         sizes = [self.obs_dim, *template.hyper["net_arch"], self.n_actions]
         weights: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
         biases: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
         for seq in seeds:
-            np_seed, torch_seed, space_seed, _per = seq.generate_state(4)
+            np_seed, torch_seed, space_seed, per_seed = seq.generate_state(4)
             self.np_rngs.append(np.random.RandomState(int(np_seed)))
+            self.per_rngs.append(np.random.default_rng(int(per_seed)))
             sp = gym.spaces.Discrete(self.n_actions)
             sp.seed(int(space_seed))
             self.spaces.append(sp)
@@ -191,6 +197,18 @@ class BatchedDQN:
         self.pos = np.zeros(R, np.int64)
         self.full = np.zeros(R, bool)
         self._rows = torch.arange(R, device=dev)
+        # prioritized replay (PrioritizedReplayBuffer's state, one entry per run)
+        self.prioritized = bool(template.prioritized)
+        if self.prioritized:
+            per = m.replay_buffer
+            self.alpha, self.beta0 = float(per.alpha), float(per.beta0)
+            self.beta_steps, self.per_epsilon = int(per.beta_steps), float(per.epsilon)
+            self.tree = BatchedSumTree(R, cap)
+            self.max_priority = np.ones(R)
+            # max_priority ** alpha, the priority of a new transition (a Python float power,
+            # as PrioritizedReplayBuffer.add computes it)
+            self.new_priority = np.full(R, 1.0**self.alpha)
+            self.n_sampled = np.zeros(R, np.int64)
 
     def view(self, run: int) -> DQNRunView:
         """Run ``run`` seen as one agent (for monitors and saving)."""
@@ -260,6 +278,8 @@ class BatchedDQN:
                rewards: np.ndarray, dones: np.ndarray) -> None:  # fmt: skip
         """One transition per run in ``runs`` into its buffer (SB3's ReplayBuffer.add)."""
         pos = self.pos[runs]
+        if self.prioritized:  # PrioritizedReplayBuffer.add: the run's largest priority so far
+            self.tree.update(runs, pos, self.new_priority[runs])
         r_t = torch.as_tensor(runs, device=self.device)
         p_t = torch.as_tensor(pos, device=self.device)
         dev = self.device
@@ -281,8 +301,12 @@ class BatchedDQN:
             if len(runs) == self.R:
                 t.mul_(1 - self.tau).add_(p, alpha=self.tau)
                 return
+            # the same two operations as for all runs (SB3's polyak_update: mul_, add_ with
+            # alpha), so a run's target does not depend on which runs wait (tested)
             idx = torch.as_tensor(runs, device=self.device)
-            t[idx] = t[idx] * (1 - self.tau) + p[idx] * self.tau
+            sub = t[idx].mul_(1 - self.tau)
+            sub.add_(p[idx], alpha=self.tau)
+            t[idx] = sub
 
     def _gradient_step(self, train: np.ndarray) -> None:
         """One Adam step of every run with ``train[r]`` (the others are left exactly as they
@@ -290,9 +314,16 @@ class BatchedDQN:
         R, B = self.R, self.batch_size
         runs = np.flatnonzero(train)
         idx = np.zeros((R, B), np.int64)
-        for r in runs:  # SB3: np.random.randint(0, upper_bound, size=batch_size)
-            upper = self.capacity if self.full[r] else self.pos[r]
-            idx[r] = self.np_rngs[r].randint(0, upper, size=B)
+        weights = None
+        if self.prioritized:
+            idx[runs], w = self._sample_prioritized(runs)
+            weights = torch.zeros((R, B), dtype=torch.float32)
+            weights[torch.as_tensor(runs)] = torch.as_tensor(w)
+            weights = weights.to(self.device)
+        else:
+            for r in runs:  # SB3: np.random.randint(0, upper_bound, size=batch_size)
+                upper = self.capacity if self.full[r] else self.pos[r]
+                idx[r] = self.np_rngs[r].randint(0, upper, size=B)
         ii = torch.as_tensor(idx, device=self.device)
         rows = self._rows[:, None]
         obs, nxt = self.buf_obs[rows, ii], self.buf_next[rows, ii]
@@ -312,15 +343,66 @@ class BatchedDQN:
             per = F.smooth_l1_loss(current, target, reduction="none")
         else:
             per = F.mse_loss(current, target, reduction="none")
+        if weights is not None:  # PrioritizedDQN: importance weights on each sample's loss
+            per = weights * per
         mask = torch.as_tensor(train, device=self.device)
         loss = (per.mean(dim=1) * mask).sum()  # each run's mean loss; runs are independent
         grads = torch.autograd.grad(loss, self._leaves)
+        if self.prioritized:  # p_i = |TD error_i| + epsilon, after the step's gradient
+            td = (target - current).detach()[torch.as_tensor(runs, device=self.device)]
+            self._update_priorities(runs, idx[runs], td.cpu().numpy())
         with torch.no_grad():
             grad = torch.cat([g.reshape(R, -1) for g in grads], dim=1)
             if self.max_grad_norm is not None:  # clip_grad_norm_ over all of a run's gradients
                 total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
                 grad.mul_(torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0))
             self._adam(grad, train)
+
+    def _sample_prioritized(self, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Buffer indices ``(len(runs), B)`` and importance weights (float32) of one
+        :meth:`PrioritizedReplayBuffer.sample <cobelrun.agents.per.PrioritizedReplayBuffer.sample>`
+        per run in ``runs``: stratified proportional draws (one uniform per equal slice of the
+        run's total, from the run's own generator), ``w_i = (N P(i))^-beta / max_j w_j`` with
+        the run's beta, which then moves one step along its schedule."""
+        B = self.batch_size
+        tree = self.tree
+        n = np.where(self.full[runs], self.capacity, self.pos[runs])
+        total, low = tree.total()[runs], tree.min()[runs]
+        rand = np.empty((len(runs), B))
+        for j, r in enumerate(runs):  # each run's generator, in the sequential buffer's order
+            rand[j] = self.per_rngs[r].random(B)
+        u = (np.arange(B) + rand) * (total / B)[:, None]
+        idx = tree.find(np.minimum(u, np.nextafter(total, 0.0)[:, None]), runs)
+        idx = np.minimum(idx, (n - 1)[:, None])
+        frac = np.minimum(1.0, self.n_sampled[runs] / self.beta_steps)
+        beta = self.beta0 + frac * (1.0 - self.beta0)
+        probs = tree.get(runs[:, None], idx) / total[:, None]
+        # the largest weight, from the smallest priority: a Python float power per run, as in
+        # the sequential buffer (numpy's vectorised power may round differently)
+        max_weight = np.array([(int(k) * float(lo) / float(t)) ** -float(b)
+                               for k, lo, t, b in zip(n, low, total, beta, strict=True)])  # fmt: skip
+        scaled = n[:, None] * probs
+        powered = scaled ** -beta[:, None]
+        one = beta == 1.0  # numpy computes an array ** -1.0 (scalar) as a reciprocal
+        if one.any():
+            powered[one] = 1.0 / scaled[one]
+        weights = powered / max_weight[:, None]
+        self.n_sampled[runs] += 1
+        return idx, weights.astype(np.float32)
+
+    def _update_priorities(self, runs: np.ndarray, idx: np.ndarray, td: np.ndarray) -> None:
+        """:meth:`PrioritizedReplayBuffer.update_priorities
+        <cobelrun.agents.per.PrioritizedReplayBuffer.update_priorities>` for each run in
+        ``runs``: ``p_i = |delta_i| + epsilon``, the run's largest priority so far, and the
+        sampled leaves set to ``p_i^alpha`` (a leaf sampled twice takes its last value)."""
+        p = np.abs(np.asarray(td, dtype=np.float64)) + self.per_epsilon
+        top = p.max(axis=1)
+        grew = top > self.max_priority[runs]
+        if grew.any():
+            for r, v in zip(runs[grew], top[grew], strict=True):
+                self.max_priority[r] = v
+                self.new_priority[r] = float(v) ** self.alpha
+        self.tree.update(runs[:, None], idx, p**self.alpha)
 
     def _adam(self, grad: torch.Tensor, train: np.ndarray) -> None:
         """torch.optim.Adam's update with a step count per run (:class:`RowAdam`); runs not
@@ -379,9 +461,12 @@ class BatchedDQN:
             greedy = q[:, 0].argmax(dim=1).cpu().numpy()
             actions = np.zeros(R, np.int64)
             for r in runs:
+                # SB3's DQN holds exploration_rate 0.0 until its first step ends, so a run's very
+                # first learning step is greedy (its uniform is still drawn)
+                run_eps = eps if not learn or self.n_calls[r] > 0 else 0.0
                 if learn and self.num_timesteps[r] < self.learning_starts:
                     actions[r] = self.spaces[r].sample()
-                elif (learn or eps > 0) and self.np_rngs[r].rand() < eps:
+                elif (learn or eps > 0) and self.np_rngs[r].rand() < run_eps:
                     actions[r] = self.spaces[r].sample()
                 else:
                     actions[r] = greedy[r]

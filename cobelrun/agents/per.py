@@ -2,6 +2,9 @@
 
 - :class:`SumTree`: a binary tree over priorities (sums and minima) with vectorised update and
   prefix-sum search, O(log N) per item.
+- :class:`BatchedSumTree`: R independent sum trees in one ``(R, 2 size)`` array pair, for the
+  batched DQN (:mod:`cobelrun.agents.batched_dqn`): updates, prefix-sum search, totals and
+  minima of every run at once, with the same numerics as R :class:`SumTree` objects.
 - :class:`PrioritizedReplayBuffer`: an SB3 :class:`~stable_baselines3.common.buffers.ReplayBuffer`
   that samples transition ``i`` with probability ``P(i) = p_i^alpha / sum_k p_k^alpha``
   (stratified: one draw per equal slice of the total), returns importance-sampling weights
@@ -88,6 +91,94 @@ class SumTree:
         node = np.ones(u.shape, dtype=np.int64)
         while node[0] < self.size:
             left = self.sums[2 * node]
+            right = u >= left
+            u -= left * right
+            node = 2 * node + right
+        return node - self.size
+
+
+class BatchedSumTree:
+    """R independent :class:`SumTree` s of ``capacity`` leaves, held in one array pair.
+
+    ``sums`` and ``mins`` are ``(R, 2 size)`` arrays, row ``r`` laid out as one
+    :class:`SumTree`'s. Every operation works on all runs at once with vectorised numpy (the
+    only Python loop runs over the tree's ``log2(size)`` levels) and computes each node exactly
+    as :class:`SumTree` does (the same additions, minima and comparisons in the same order), so
+    row ``r`` holds bit for bit what a :class:`SumTree` given run ``r``'s updates holds.
+
+    A tree of a smaller (power of two) size than a :class:`SumTree` of ``buffer_size`` leaves
+    gives the same totals, minima and searches as long as only its leaves are used: the larger
+    tree's extra leaves add exact zeros (``x + 0.0 == x``) and ``inf`` minima.
+    """
+
+    def __init__(self, runs: int, capacity: int) -> None:
+        self.R = int(runs)
+        self.capacity = int(capacity)
+        self.size = 1 << max(int(np.ceil(np.log2(max(capacity, 1)))), 0)
+        self.depth = self.size.bit_length() - 1  # levels below the root
+        self.width = 2 * self.size
+        self.sums = np.zeros((self.R, self.width))
+        self.mins = np.full((self.R, self.width), np.inf)
+
+    def total(self) -> np.ndarray:
+        """Each run's sum of leaves ``(R,)``."""
+        return self.sums[:, 1].copy()
+
+    def min(self) -> np.ndarray:
+        """Each run's smallest leaf ``(R,)`` (``inf`` for a run with no leaf set)."""
+        return self.mins[:, 1].copy()
+
+    def get(self, run_idx: np.ndarray, leaf_idx: np.ndarray) -> np.ndarray:
+        """Leaf values ``value[run_idx, leaf_idx]`` (the arguments broadcast together)."""
+        run, leaf = np.broadcast_arrays(np.asarray(run_idx), np.asarray(leaf_idx))
+        return self.sums[run, leaf + self.size]
+
+    def update(self, run_idx: np.ndarray, leaf_idx: np.ndarray, values: np.ndarray) -> None:
+        """Set leaf ``leaf_idx[k]`` of run ``run_idx[k]`` to ``values[k]`` (``run_idx`` and
+        ``leaf_idx`` broadcast together; a leaf given twice takes its last value, as in
+        :meth:`SumTree.update`) and refresh the ancestors of every changed leaf, all runs at
+        once, level by level from the leaves up."""
+        run, leaf = np.broadcast_arrays(np.asarray(run_idx, dtype=np.int64),
+                                        np.asarray(leaf_idx, dtype=np.int64))  # fmt: skip
+        run, leaf = run.reshape(-1), leaf.reshape(-1)
+        vals = np.asarray(values, dtype=np.float64).reshape(-1)
+        if leaf.shape != vals.shape:
+            raise ValueError(f"{leaf.size} indices but {vals.size} values")
+        if leaf.size == 0:
+            return
+        width = self.width
+        flat = run * width + (leaf + self.size)
+        if flat.size > 1:  # the last value given for each (run, leaf): first in reversed order
+            flat, last = np.unique(flat[::-1], return_index=True)
+            vals = vals[::-1][last]
+        sums, mins = self.sums.reshape(-1), self.mins.reshape(-1)  # views
+        sums[flat] = vals
+        mins[flat] = vals
+        base = (flat // width) * width
+        pos = flat - base
+        for _ in range(self.depth):  # every changed leaf is at the same depth
+            pos >>= 1
+            left = base + 2 * pos
+            node = base + pos
+            sums[node] = sums[left] + sums[left + 1]
+            mins[node] = np.minimum(mins[left], mins[left + 1])
+
+    def find(self, u: np.ndarray, runs: np.ndarray | None = None) -> np.ndarray:
+        """Leaf index ``i`` with ``prefix_sum(i) <= u < prefix_sum(i + 1)`` in each run's tree.
+
+        ``u``: ``(R, ...)`` values, row ``r`` searched in run ``r``'s tree, or ``(len(runs),
+        ...)`` with ``runs`` naming the tree of each row. :meth:`SumTree.find`'s descent for
+        every value at once.
+        """
+        u = np.array(u, dtype=np.float64)
+        rows = np.arange(self.R) if runs is None else np.asarray(runs, dtype=np.int64)
+        if u.ndim == 0 or u.shape[0] != len(rows):
+            raise ValueError(f"find: expected {len(rows)} rows of values, got shape {u.shape}")
+        base = (rows * self.width).reshape(-1, *([1] * (u.ndim - 1)))
+        sums = self.sums.reshape(-1)
+        node = np.ones(u.shape, dtype=np.int64)
+        for _ in range(self.depth):
+            left = sums[base + 2 * node]
             right = u >= left
             u -= left * right
             node = 2 * node + right
@@ -199,13 +290,15 @@ class PrioritizedReplayBuffer(ReplayBuffer):
 class PrioritizedDQN(TrialDQN):
     """DQN whose gradient step applies PER's importance weights and refreshes priorities.
 
-    Reads top to bottom like SB3's ``DQN.train``; the differences are the per-sample weights on
-    the TD loss and the priority update with ``|TD error|``.
+    Reads top to bottom like :meth:`TrialDQN.train <cobelrun.agents.sb3.TrialDQN.train>`
+    (``trial_end_updates`` after a trial's last step included); the differences are the
+    per-sample weights on the TD loss and the priority update with ``|TD error|``.
     """
 
     replay_buffer: PrioritizedReplayBuffer
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        gradient_steps = self._steps_now(gradient_steps)
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         losses = []
@@ -228,3 +321,4 @@ class PrioritizedDQN(TrialDQN):
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/loss", np.mean(losses))
+        self._record_q_max()

@@ -122,9 +122,21 @@ class TrialDQN(DQN):
         self._trial_ended = out.n_episodes > 0
         return out
 
-    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+    def _steps_now(self, gradient_steps: int) -> int:
+        """Gradient steps of this call: ``trial_end_updates`` more after a trial's last step."""
         if self.trial_end_updates and getattr(self, "_trial_ended", False):
-            gradient_steps += self.trial_end_updates
+            return gradient_steps + self.trial_end_updates
+        return gradient_steps
+
+    def _record_q_max(self) -> None:
+        """Training log on: max Q at the current observation (no RNG draws)."""
+        if self.log_q:
+            with torch.no_grad():
+                obs, _ = self.policy.obs_to_tensor(self._last_obs)
+                self.logger.record("train/q_max", float(self.q_net(obs).max()))
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        gradient_steps = self._steps_now(gradient_steps)
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         losses = []
@@ -145,7 +157,4 @@ class TrialDQN(DQN):
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/loss", np.mean(losses))
-        if self.log_q:  # training log on: max Q at the current observation (no RNG draws)
-            with torch.no_grad():
-                obs, _ = self.policy.obs_to_tensor(self._last_obs)
-                self.logger.record("train/q_max", float(self.q_net(obs).max()))
+        self._record_q_max()

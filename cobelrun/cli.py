@@ -367,6 +367,14 @@ def figure_cmd(
         Path | None,
         typer.Option("--out", "-o", help="Output folder (default $COBEL_RESULTS/figures)."),
     ] = None,
+    from_: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--from",
+            help="Take finished runs the figure needs (same config hash) from this sweep or "
+            "run folder, e.g. a `cobel run -m` of its jobs; repeatable.",
+        ),
+    ] = None,
 ) -> None:
     """Build a paper figure: run what it needs (finished runs are reused), then draw it.
 
@@ -393,7 +401,8 @@ def figure_cmd(
             return
         chosen = list(known.values()) if name == "all" else [get(name)]
         for fig in chosen:
-            files = build(fig, quick=quick, out_dir=out, log=lambda m: typer.echo(m, err=True))
+            files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (),
+                          log=lambda m: typer.echo(m, err=True))  # fmt: skip
             for path in files.values():
                 typer.echo(str(path))
     except CobelError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import pandas as pd
 
 from cobelrun.figures.extinction import (
+    first_run,
     plot_cumulative_response,
     plot_escape_latency,
     plot_response_rate,
@@ -42,7 +43,7 @@ def draw(data: FigureData):
             ax.spines[["top", "right"]].set_visible(False)
         resp, lat = summarize(trials, "cumulative_response"), summarize(trials, "steps")
         rate = summarize(trials, "response")["mean"].rename("response_rate")
-        phase = trials[trials["run"] == trials["run"].min()].set_index("trial")["phase"]
+        phase = first_run(trials).set_index("trial")["phase"]  # seed sweeps: every job has run 0
         table = pd.concat(
             [
                 phase.rename("phase"),
@@ -82,10 +83,10 @@ FIGURES = [
     )
 ]
 
-# The paper's scale: 84 x 84 images, 50 runs, one job per seed (about 5 CPU-hours on a 2-core
-# machine; `cobel render-cache task=tmaze_extinction_3d_paper` first, so that the jobs need no
-# renderer; on a cluster, `cobel run -m` with the same overrides and hydra/launcher=submitit_slurm
-# runs the same jobs).
+# The paper's scale: 84 x 84 images, 50 runs, one job per seed (3.7 CPU-hours measured;
+# `cobel render-cache task=tmaze_extinction_3d_paper` first, so that the jobs need no renderer;
+# `cobel run -m` with the same overrides, on all cores or with hydra/launcher=slurm, runs the same
+# jobs in parallel, and `cobel figure fig6a_paper --from SWEEP_DIR` takes them).
 FIGURES.append(Figure(
     name="fig6a_paper",
     title="Fig. 6 at the paper's scale: DQN on 84 x 84 images, 50 runs (render cache needed)",

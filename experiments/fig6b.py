@@ -9,6 +9,7 @@ from __future__ import annotations
 import pandas as pd
 
 from cobelrun.figures.extinction import (
+    first_run,
     phase_boundaries,
     plot_cumulative_response,
     plot_escape_latency,
@@ -29,7 +30,7 @@ def draw(data: FigureData):
     axes[1].set_title("Dyna-Q: escape latency")
     fig.suptitle(f"Fig. 6B: extinction in the gridworld T-maze ({n} runs, mean ± SEM)")
     resp, lat = summarize(trials, "cumulative_response"), summarize(trials, "steps")
-    phase = trials[trials["run"] == trials["run"].min()].set_index("trial")["phase"]
+    phase = first_run(trials).set_index("trial")["phase"]
     table = pd.concat(
         [
             phase.rename("phase"),

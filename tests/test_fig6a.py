@@ -122,3 +122,39 @@ def test_fig6a_paper_plans_one_job_per_seed(tmp_path):
              if p.label == "dqn"]  # fmt: skip
     assert len(quick) == 1 and quick[0].params["seed"] == 0
     assert quick[0].cfg.task.protocol.phases[0].trials == 5
+
+
+def test_fig6a_draws_a_seed_sweep_with_one_run_per_job():
+    """A seed sweep gives every job a run 0 (fig6a_paper: 50 jobs): the figure's table keeps one
+    row per trial and counts every job's run, and the phase boundary is drawn once."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+
+    from cobelrun.figures.extinction import first_run, phase_boundaries
+    from cobelrun.figures.registry import get
+
+    rows = []
+    for job in range(3):
+        cum = 0
+        for trial in range(1, 7):
+            response = int(trial <= 3 or job == 0)
+            cum += response
+            phase = "acquisition" if trial <= 3 else "extinction"
+            rows.append(dict(job=job, run=0, trial=trial, phase=phase, response=response,
+                             cumulative_response=cum, steps=10 + trial))  # fmt: skip
+    trials = pd.DataFrame(rows)
+
+    class Data:
+        def trials(self, label):
+            return trials.copy()
+
+    assert first_run(trials)["job"].unique().tolist() == [0]
+    assert phase_boundaries(trials) == [(3.5, "extinction")]
+    _fig, table = get("fig6a").draw(Data())
+    dqn = table[table["agent"] == "dqn"]
+    assert dqn["trial"].tolist() == [1, 2, 3, 4, 5, 6]
+    assert set(dqn["runs"]) == {3}
+    assert dqn["response_rate"].round(3).tolist() == [1, 1, 1, 0.333, 0.333, 0.333]
+    assert dqn["phase"].tolist() == ["acquisition"] * 3 + ["extinction"] * 3

@@ -37,6 +37,28 @@ def test_figure_fig6b_quick_writes_png_pdf_csv_and_reuses_runs(cobel, tmp_path):
     assert (runs[0] / "trials.parquet").stat().st_mtime_ns == stamp
 
 
+def test_figure_from_takes_the_finished_runs_of_a_sweep(cobel, tmp_path):
+    """`cobel figure NAME --from SWEEP`: the jobs of a `cobel run -m` of the figure's overrides
+    (e.g. run in parallel or on a cluster) are copied into the run store by config hash, so the
+    figure runs nothing itself and draws the same table as from its own runs."""
+    sweep = tmp_path / "sweep"
+    quick = ["task=tmaze_extinction", "task.runs=5", "task.record.steps=false",
+             "task.record.mcap=false"]  # fmt: skip
+    proc = cobel("run", "-m", *quick, "seed=0", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
+    assert proc.returncode == 0, proc.stderr
+    proc = cobel("figure", "fig6b", "--quick", "--from", str(sweep), "--out", str(tmp_path / "a"))
+    assert proc.returncode == 0, proc.stderr
+    assert "1 runs taken from" in proc.stderr and "1 reused, 0 to run" in proc.stderr
+    own = cobel("figure", "fig6b", "--quick", "--out", str(tmp_path / "b"),
+                env={"COBEL_RESULTS": str(tmp_path / "own")})  # fmt: skip
+    assert own.returncode == 0 and "0 reused, 1 to run" in own.stderr
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "a" / "fig6b_quick.csv"),
+                                  pd.read_csv(tmp_path / "b" / "fig6b_quick.csv"))  # fmt: skip
+    bad = cobel("figure", "fig6b", "--quick", "--from", str(tmp_path / "nope"))
+    assert bad.returncode != 0
+    assert "no such folder" in bad.stderr and "Traceback" not in bad.stderr
+
+
 def test_figure_list_and_unknown_name(cobel):
     listing = cobel("figure", "--list")
     assert listing.returncode == 0 and "fig6b" in listing.stdout

@@ -11,9 +11,17 @@ from cobelrun.errors import CobelError
 from cobelrun.figures import save_figure
 
 
+def first_run(trials: pd.DataFrame) -> pd.DataFrame:
+    """The trials of one run (the first job's first run when ``trials`` spans several jobs)."""
+    keys = [k for k in ("job", "run") if k in trials.columns]
+    first = trials[keys].drop_duplicates().sort_values(keys).iloc[0]
+    mask = np.logical_and.reduce([trials[k] == first[k] for k in keys])
+    return trials[mask].sort_values("trial")
+
+
 def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
     """(x position between trials, next phase name) for every phase change."""
-    first = trials[trials["run"] == trials["run"].min()].sort_values("trial")
+    first = first_run(trials)
     change = first["phase"].ne(first["phase"].shift()) & (first["trial"] > first["trial"].min())
     return [
         (float(t) - 0.5, str(p))

@@ -248,6 +248,48 @@ def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) 
     return planned
 
 
+def finished_runs(folders: Sequence[Path]) -> dict[str, Path]:
+    """Completed run folders under ``folders`` (each a run folder or holding run folders, two
+    levels deep at most), by config hash; a one-line CobelError for a folder that is missing."""
+    from cobelrun.sweep import is_complete, read_json
+
+    found: dict[str, Path] = {}
+    for folder in folders:
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise CobelError(f"--from {folder}: no such folder (give a sweep or run folder)")
+        for manifest in sorted({*folder.glob("manifest.json"), *folder.glob("*/manifest.json"),
+                                *folder.glob("*/*/manifest.json")}):  # fmt: skip
+            data = read_json(manifest)
+            chash = data.get("config_hash") if data else None
+            if chash and chash not in found and is_complete(manifest.parent, chash, data):
+                found[chash] = manifest.parent
+    return found
+
+
+def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
+    """Copy the finished runs under ``folders`` that ``planned`` needs (same config hash) into
+    their run folders in the figure's run store; returns how many were copied."""
+    import shutil
+
+    from cobelrun.sweep import clear_outputs
+
+    found = finished_runs(folders)
+    taken = 0
+    for p in planned:
+        src = found.get(p.config_hash)
+        if src is None or src.resolve() == p.run_dir.resolve():
+            continue
+        clear_outputs(p.run_dir)
+        tmp = p.run_dir.with_name(p.run_dir.name + ".importing")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp)
+        shutil.rmtree(p.run_dir, ignore_errors=True)
+        tmp.rename(p.run_dir)  # the run folder appears whole or not at all
+        taken += 1
+    return taken
+
+
 def build(
     figure: Figure,
     *,
@@ -255,8 +297,13 @@ def build(
     out_dir: Path | None = None,
     root: Path | None = None,
     log: Callable[[str], None] | None = None,
+    reuse_from: Sequence[Path] = (),
 ) -> dict[str, Path]:
     """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
+
+    ``reuse_from``: folders (a sweep folder, a run folder, or folders of either) whose finished
+    runs are copied into the figure's run store when their config hash is one the figure needs,
+    e.g. a ``cobel run -m`` sweep of the figure's jobs run in parallel or on a cluster.
 
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
@@ -269,6 +316,11 @@ def build(
     out_dir = out_dir or root / FIGURE_DIR
     planned = plan_runs(figure, quick=quick, root=root)
     todo = [p for p in planned if not is_complete(p.run_dir, p.config_hash)]
+    if reuse_from:  # the folders are checked even when no run is missing
+        taken = import_runs(todo, reuse_from)
+        if log:
+            log(f"{figure.name}: {taken} runs taken from {', '.join(map(str, reuse_from))}")
+        todo = [p for p in todo if not is_complete(p.run_dir, p.config_hash)]
     if log:
         log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
             f"{len(todo)} to run")  # fmt: skip

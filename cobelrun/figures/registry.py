@@ -272,15 +272,12 @@ def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
     their run folders in the figure's run store; returns how many were copied."""
     import shutil
 
-    from cobelrun.sweep import clear_outputs
-
     found = finished_runs(folders)
     taken = 0
     for p in planned:
         src = found.get(p.config_hash)
         if src is None or src.resolve() == p.run_dir.resolve():
             continue
-        clear_outputs(p.run_dir)
         tmp = p.run_dir.with_name(p.run_dir.name + ".importing")
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(src, tmp)

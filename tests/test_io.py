@@ -210,3 +210,32 @@ def test_string_columns_of_few_values_keep_every_row(tmp_path):
     writer.write_part({"phase": phases, "trial": np.arange(5000)})
     writer.close()
     assert pq.read_table(tmp_path / "t.parquet").column("phase").to_pylist() == list(phases)
+
+
+@pytest.mark.parametrize("dtype", [object, str])
+def test_string_columns_of_long_runs_keep_every_row(tmp_path, dtype):
+    """Columns of long runs of one value (the phase of each run's batches) are built from
+    their runs; runs of different lengths, a value that comes back, non-ASCII and empty
+    text, a missing value inside a run and too many runs (the other paths) all come out as
+    written."""
+    from cobelrun.io.parquet import PartedTableWriter
+
+    schema = pa.schema([("phase", pa.string())])
+    writer = PartedTableWriter(tmp_path / "t.parquet", tmp_path / "parts", schema)
+    rng = np.random.default_rng(1)
+    values = np.array(["training", "räume", "", "training2"], dtype=object)
+    lengths = rng.integers(16, 300, 60)
+    runs = np.repeat(values[rng.integers(0, 4, 60)], lengths).astype(dtype)
+    short = np.repeat(values[rng.integers(0, 4, 600)], 2).astype(dtype)
+    columns = [runs, short, runs[:1], runs[:0]]
+    if dtype is object:
+        with_none = runs.copy()
+        with_none[40] = None
+        columns.append(with_none)
+    for column in columns:
+        table = writer.to_table({"phase": column})
+        assert table.column("phase").type == pa.string()
+        assert table.column("phase").to_pylist() == list(column)
+    writer.write_part({"phase": runs})
+    writer.close()
+    assert pq.read_table(tmp_path / "t.parquet").column("phase").to_pylist() == list(runs)

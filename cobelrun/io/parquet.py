@@ -62,6 +62,9 @@ def _to_arrow(v: np.ndarray, typ: pa.DataType) -> pa.Array:
         bits = np.packbits(v, bitorder="little")
         return pa.Array.from_buffers(typ, v.shape[0], [None, pa.py_buffer(bits)])
     if typ == pa.string() and v.dtype.kind in "OU":
+        repeated = _string_runs(v)
+        if repeated is not None:
+            return repeated
         items = v.tolist()
         repeated = _repeated_strings(v, items)
         if repeated is not None:
@@ -85,6 +88,40 @@ def _string_array(items: list[str]) -> pa.Array | None:
     ])  # fmt: skip
 
 
+def _string_runs(v: np.ndarray) -> pa.Array | None:
+    """A string column made of long runs of one value (the trials table's ``phase``: one run
+    per run and phase) by its runs: only the first value of each run is looked at in Python,
+    the rest is one vectorised comparison of neighbours and an Arrow ``take``. None where the
+    column has more than one run per 16 rows or values that are not ``str``."""
+    n = v.shape[0]
+    if n < 2:
+        return None
+    starts = np.flatnonzero(v[1:] != v[:-1]) + 1
+    if starts.size + 1 > n // 16:
+        return None
+    heads = v[np.concatenate(([0], starts))].tolist()
+    values = sorted(set(heads)) if all(type(x) is str for x in heads) else None
+    if values is None:
+        return None
+    code = {value: k for k, value in enumerate(values)}
+    lengths = np.diff(np.concatenate(([0], starts, [n])))
+    index = np.repeat(np.array([code[h] for h in heads], np.int32), lengths)
+    return _take_strings(values, index)
+
+
+def _take_strings(values: list[str], index: np.ndarray) -> pa.Array | None:
+    """``values[index]`` as a ``pa.string()`` array, built by Arrow (None past 2 GiB of text)."""
+    dictionary = _string_array(values)
+    if dictionary is None:
+        return None
+    indices = pa.Array.from_buffers(pa.int32(), index.shape[0], [None, pa.py_buffer(index)])
+    try:
+        taken = dictionary.take(indices)
+    except pa.ArrowInvalid:  # more than 2 GiB of text: int32 offsets overflow
+        return None
+    return taken if taken.type == pa.string() else None
+
+
 def _repeated_strings(v: np.ndarray, items: list[Any]) -> pa.Array | None:
     """A string column of few distinct values (the trials table's ``phase``: 200 rows per run
     and two values) by index: the distinct strings encoded once, then taken by Arrow (no
@@ -96,15 +133,7 @@ def _repeated_strings(v: np.ndarray, items: list[Any]) -> pa.Array | None:
     index = np.empty(len(items), np.int32)
     for k, value in enumerate(values):
         index[v == value] = k
-    dictionary = _string_array(values)
-    if dictionary is None:
-        return None
-    indices = pa.Array.from_buffers(pa.int32(), len(items), [None, pa.py_buffer(index)])
-    try:
-        taken = dictionary.take(indices)
-    except pa.ArrowInvalid:  # more than 2 GiB of text: int32 offsets overflow
-        return None
-    return taken if taken.type == pa.string() else None
+    return _take_strings(values, index)
 
 
 class ParquetStreamWriter:

@@ -249,7 +249,7 @@ class TrialKeysMonitor(Monitor):
         n = batch.n_trials
         return {"trials": {
             "run": np.full(n, info.run, np.int32), "trial": info.trials(n),
-            "phase": np.full(n, info.phase, dtype=object),
+            "phase": np.full(n, info.phase),  # fixed-width str: cheap to join and compare
             "trial_in_phase": np.arange(info.first_in_phase, info.first_in_phase + n,
                                         dtype=np.int32),
             "start_state": batch.start_state, "end_state": batch.end_state,

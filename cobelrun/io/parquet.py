@@ -100,9 +100,9 @@ def _string_runs(v: np.ndarray) -> pa.Array | None:
     if starts.size + 1 > n // 16:
         return None
     heads = v[np.concatenate(([0], starts))].tolist()
-    values = sorted(set(heads)) if all(type(x) is str for x in heads) else None
-    if values is None:
+    if not all(type(x) is str for x in heads):
         return None
+    values = sorted(set(heads))
     code = {value: k for k, value in enumerate(values)}
     lengths = np.diff(np.concatenate(([0], starts, [n])))
     index = np.repeat(np.array([code[h] for h in heads], np.int32), lengths)

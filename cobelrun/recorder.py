@@ -258,7 +258,7 @@ class _StepProcess:
     """
 
     SLOTS = 3
-    #: a joined flush of 262,144 steps (RunRecorder.JOIN_STEPS) is ~8.5 MB
+    #: a joined flush of 131,072 steps (RunRecorder.JOIN_STEPS) is ~4.3 MB
     SLOT_BYTES = 12 << 20
 
     def __init__(self, recorder: RunRecorder, tables: list[str]) -> None:
@@ -496,10 +496,13 @@ class RunRecorder:
 
     #: rows per part of a table (and per Parquet row group of per-trial and event tables)
     ROW_GROUP_ROWS = 1 << 16
-    #: steps of joined batches per part of a per-step table
-    JOIN_STEPS = 1 << 18
-    #: Parquet row group of per-step tables (~30 MB of Arrow buffers before encoding)
-    STEP_ROW_GROUP_ROWS = 1 << 19
+    #: steps of joined batches per part of a per-step table (every flush is held in up to
+    #: four forms at once: the runs' batches, their join, the columns, the Arrow part; at
+    #: 1 << 18 the peak RSS of 1,000 Fig. 6B runs was 318-333 MB, at 1 << 17 286-290 MB)
+    JOIN_STEPS = 1 << 17
+    #: Parquet row group of per-step tables (262,144 rows, Polars' default; ~15 MB of Arrow
+    #: buffers before encoding)
+    STEP_ROW_GROUP_ROWS = 1 << 18
     #: MCAP trial tables handed to the writer thread together
     MCAP_TABLES = 64
 

@@ -43,8 +43,8 @@ def _columns(unit: str):
 def run_progress(label: str, *, enabled: bool = True) -> Iterator[Callable[..., None] | None]:
     """Yield ``update(trials_done, trials_total, run=r, runs=R)`` for a trials bar, or None.
 
-    The runner calls it after every phase of every run: the bar counts trials over all runs
-    of the task and notes the current run.
+    The runner calls it after every piece of a phase (cobelrun.runner.PhasePacer) of every
+    run: the bar counts trials over all runs of the task and notes the current run.
     """
     if not enabled or not progress_enabled():
         yield None

@@ -836,7 +836,7 @@ class RunRecorder:
         if self.mcap is None:
             return
         response = trial_cols.get("response")
-        # every run's trials, one protobuf message per run and phase (issue 19)
+        # every run's trials, one protobuf message per run and phase or piece (issue 19)
         self._mcap_tables.append((
             run, phase, int(trial[0]), t0, batch.steps, batch.reward, batch.start_state,
             batch.end_state, batch.terminated, None if response is None else np.asarray(response),

@@ -296,6 +296,45 @@ def agents_to_save(spec: Any, runs: int) -> frozenset[int]:
     return frozenset(spec)
 
 
+class PhasePacer:
+    """How many trials the runner hands an agent at once: a phase in pieces of about
+    ``seconds`` each, so that a long phase (a deep agent's thousands of trials) is recorded as
+    it goes (a stopped run keeps the trials it finished, a killed one those of its last flush)
+    and its progress shows, while a fast phase (Dyna-Q's hundred trials in a millisecond)
+    stays one call.
+
+    Every agent gives the same trials however a phase is split (``train(8)`` equals
+    ``train(3)`` then ``train(5)``: tests/test_agent_conformance.py), so the pieces change
+    when rows are written, never what they hold. The size comes from the last piece's time per
+    trial of the same phase (name), at most 4x the last piece; the first piece of a phase
+    never seen is ``FIRST`` trials.
+    """
+
+    #: trials in the first piece of a phase not timed yet
+    FIRST = 8
+    #: growth limit from one piece to the next
+    GROWTH = 4
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = float(seconds)
+        self._last: dict[str, tuple[int, float]] = {}  # phase -> (trials, seconds) of a piece
+
+    def next(self, phase: str, remaining: int) -> int:
+        """Trials of the next piece of ``phase`` (``remaining`` left in it)."""
+        last = self._last.get(phase)
+        if last is None:
+            return min(remaining, self.FIRST)
+        n, dt = last
+        fit = remaining if dt <= 0 else int(self.seconds * n / dt)
+        if fit >= remaining:  # the rest of the phase fits in one piece
+            return remaining
+        return max(1, min(fit, n * self.GROWTH))
+
+    def observe(self, phase: str, trials: int, seconds: float) -> None:
+        """The time a piece of ``trials`` trials of ``phase`` took."""
+        self._last[phase] = (trials, seconds)
+
+
 def execute(
     task: Task,
     run_dir: Path,
@@ -334,6 +373,7 @@ def execute(
             execute_batched(task, recorder, task.batch, progress, phase_times, run_seed=run_seed)
             return None
         trimmed = time.monotonic()
+        pacer = PhasePacer(task.record.flush_seconds)
         for run in range(task.runs):
             agent_seed, env_seed = run_seed(task.seed, run)
             if supports(base, Changeable):
@@ -353,15 +393,23 @@ def execute(
                 max_steps = phase.max_steps or task.protocol.max_steps
                 go = agent.train if phase.learning else agent.test
                 t_phase = time.perf_counter()
-                # a phase with a per-trial cycle runs (and records) one trial at a time
-                chunks = (
-                    [(k, 1) for k in range(phase.trials)] if phase.cycle else [(0, phase.trials)]
-                )
-                for k, n in chunks:
+                k = 0
+                while k < phase.trials:
+                    # a phase with a per-trial cycle runs (and records) one trial at a time; a
+                    # long one in pieces of ~flush_seconds (PhasePacer)
+                    n = 1 if phase.cycle else pacer.next(phase.name, phase.trials - k)
                     task.protocol.apply_trial(phase, k, env)
                     callbacks = recorder.phase_callbacks(first + k, run)
+                    t_piece = time.perf_counter()
                     batch = go(n, max_steps, callbacks) if callbacks else go(n, max_steps)
+                    pacer.observe(phase.name, n, time.perf_counter() - t_piece)
                     recorder.record(run, phase.name, first + k, batch, first_in_phase=k + 1)
+                    k += n
+                    if progress is not None and k < phase.trials:
+                        progress(
+                            run * task.protocol.n_trials + first - 1 + k,
+                            task.runs * task.protocol.n_trials, run=run, runs=task.runs,
+                        )  # fmt: skip
                 if phase_times is not None:
                     phase_times[phase.name] = (
                         phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase

@@ -153,6 +153,20 @@ def test_same_seed_same_trials(name: str) -> None:
         assert_same_batch(a, b)
 
 
+@pytest.mark.parametrize("name", AGENT_CONFIGS)
+def test_a_phase_in_pieces_gives_the_same_trials(name: str) -> None:
+    """train(8) equals train(3) then train(5) (and so for test): the runner may hand an agent
+    a long phase in pieces (cobelrun.runner.PhasePacer) without changing what it learns."""
+    from cobelrun.records import TrialBatch
+
+    _env, whole = build(name)
+    _env, pieces = build(name)
+    assert_same_batch(whole.train(8, 15), TrialBatch.concat([pieces.train(3, 15),
+                                                             pieces.train(5, 15)]))  # fmt: skip
+    assert_same_batch(whole.test(5, 15), TrialBatch.concat([pieces.test(2, 15),
+                                                            pieces.test(3, 15)]))  # fmt: skip
+
+
 def _bad_files(path: Path, agent: Agent, tmp: Path) -> dict[str, tuple[Path, str]]:
     """Crafted variants of a good file: case -> (file, expected message regex)."""
     with np.load(path, allow_pickle=False) as data:

@@ -431,7 +431,8 @@ class BatchedDQN:
 
         Learning follows the sequential agent's SB3 loop: the phase starts with a reset, after
         every step come the target update and the gradient steps, an ended trial's env is
-        reset at once (as SB3's vectorised env does) and a run stops after its last trial.
+        reset at once (as SB3's vectorised env does) and a run stops after its last trial
+        (without the reset after it, as the sequential agent's TrialRecorder).
         Without learning it is the base loop: greedy or ``test_epsilon``-greedy actions.
         """
         R = self.R
@@ -508,10 +509,8 @@ class BatchedDQN:
             obs = np.where(ended[:, None], obs, nxt)
             for r in np.flatnonzero(ended):
                 last = len(finished[r]) >= n_trials
-                if last:
+                if last:  # no reset after the call's last trial (as the sequential agent)
                     active[r] = False
-                    if learn:  # SB3's vectorised env resets at once; the reset is not used
-                        envs[r].reset()
                 else:
                     begin(r)
         return [TrialBatch.from_trials(f) for f in finished]

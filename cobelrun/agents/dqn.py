@@ -528,7 +528,7 @@ class DQNAgent(Agent):
         self, n_trials: int, max_steps: int, callbacks: Sequence[TrialCallback]
     ) -> TrialBatch:
         rec = self.recorder
-        rec.begin(max_steps, callbacks, self)
+        rec.begin(max_steps, callbacks, self, quota=n_trials)
         if n_trials == 0:
             return rec.batch()
         m = self.model

@@ -32,12 +32,19 @@ class TrialRecorder(gym.Wrapper):
     terminal state and, for :class:`~cobelrun.envs.base.Posed` environments, the start pose and
     the pose after each step. :class:`TrialCallback` hooks run here too; returning ``False``
     from ``on_step`` truncates the trial.
+
+    Once ``quota`` trials are finished, the reset that SB3's vectorised env makes right after
+    the last one is not passed on (it returns the last observation and starts no trial): the
+    next call's first trial starts with its own reset, so every trial costs one reset, as in
+    the base loop, and a phase run in pieces draws the same start states as in one call.
     """
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
         self.max_steps: int | None = None
         self.finished: list[dict[str, Any]] = []
+        #: trials of the current call (None: no limit)
+        self.quota: int | None = None
         self.callbacks: Sequence[TrialCallback] = ()
         self.agent: Any = None
         self._current: dict[str, Any] | None = None
@@ -45,9 +52,13 @@ class TrialRecorder(gym.Wrapper):
         self._obs: Any = None
         self._info: dict[str, Any] = {}
 
-    def begin(self, max_steps: int, callbacks: Sequence[TrialCallback], agent: Any) -> None:
-        """Start recording a new batch of trials."""
+    def begin(
+        self, max_steps: int, callbacks: Sequence[TrialCallback], agent: Any,
+        quota: int | None = None,
+    ) -> None:  # fmt: skip
+        """Start recording a new batch of (at most ``quota``) trials."""
         self.max_steps, self.callbacks, self.agent = max_steps, callbacks, agent
+        self.quota = quota
         self.finished = []
         self._current = None
 
@@ -55,6 +66,8 @@ class TrialRecorder(gym.Wrapper):
         return np.array(self.env.unwrapped.agent_pose(), np.float64)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        if self.quota is not None and len(self.finished) >= self.quota:
+            return self._obs, self._info  # after the call's last trial: no trial follows
         obs, info = self.env.reset(**kwargs)
         s = state_of(obs, info)
         self._current = {"states": [s], "actions": [], "rewards": [], "terminated": False,

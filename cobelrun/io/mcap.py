@@ -18,7 +18,7 @@ Channels (all in the frame ``maze``, world units; see ``docs/mcap.md``)
     event per trial of the runs kept in full, trials 1-based.
 ``/trials``
     ``cobel.TrialTable`` (protobuf, :data:`TRIAL_TABLE_PROTO`): the trials of every run, one
-    message per run and phase with a packed column per field (steps, reward, start and end
+    message per run and phase (per piece of a long phase) with a packed column per field (steps, reward, start and end
     state, terminated, response), logged at the phase's first trial start.
 
 Log times are nanoseconds since the Unix epoch, starting at the run's real wall-clock start
@@ -462,7 +462,8 @@ class McapRecorder:
         terminated: np.ndarray,
         response: np.ndarray | None = None,
     ) -> None:
-        """Write the trials of one phase of one run as one ``cobel.TrialTable`` on ``/trials``.
+        """Write trials of one phase of one run (the phase or a piece of it) as one
+        ``cobel.TrialTable`` on ``/trials``.
 
         Parameters
         ----------

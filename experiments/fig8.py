@@ -43,9 +43,11 @@ def draw(data: FigureData):
             last = (df, grid)
     unit_table = pd.concat(units, ignore_index=True)
     snapshots = pd.concat(snaps, ignore_index=True)
-    # runs of several jobs get distinct run numbers
-    snapshots["run"] = snapshots["job"] * 1000 + snapshots["run"]
-    unit_table["run"] = unit_table["job"] * 1000 + unit_table["run"]
+    # runs of several jobs (one per seed) numbered 0, 1, ... in (job, run) order
+    pairs = sorted(set(zip(snapshots["job"], snapshots["run"], strict=True)))
+    number = {key: k for k, key in enumerate(pairs)}
+    for t in (snapshots, unit_table):
+        t["run"] = [number[key] for key in zip(t["job"], t["run"], strict=True)]
     rho = spearman_rho(snapshots)
     n_runs = snapshots["run"].nunique()
 
@@ -67,7 +69,8 @@ def draw(data: FigureData):
     snap = df[(df["run"] == run0) & (df["trial"] == t_last)]
     maps, explored, unit_ids, heads = maps_array(snap, grid)
     first = unit_table[(unit_table["job"] == data.runs["dqn"][0].job)
-                       & (unit_table["run"] == run0) & (unit_table["trial"] == t_last)]  # fmt: skip
+                       & (unit_table["run"] == number[(data.runs["dqn"][0].job, run0)])
+                       & (unit_table["trial"] == t_last)]  # fmt: skip
     cells = first[first["is_place_cell"]].sort_values("spatial_information", ascending=False)
     picks = cells["unit"].head(3).tolist()
     note = "place cells" if picks else "no place cells: units with the most information"
@@ -99,11 +102,13 @@ def draw(data: FigureData):
 FIGURE = Figure(
     name="fig8",
     title="Place cells in a DQN on a hexagonal maze (counts over training, maps, RSA)",
-    runs={"dqn": ["task=place_cells"]},
+    # one job per run (seeds 0-4): a finished run is kept when the figure is stopped, and the
+    # jobs can run in parallel (`cobel run -m ... hydra/launcher=joblib`, then --from)
+    runs={"dqn": ["task=place_cells", "task.runs=1", "seed=range(0,5)"]},
     # CI budget: 2 runs x 500 trials, snapshots every 100 (docs/place_cells.md: runtime)
     quick={
         "*": [
-            "task.runs=2",
+            "seed=0,1",
             "task.protocol.phases.0.trials=500",
             "task.monitors.maps.every=100",
             "task.record.steps=false",

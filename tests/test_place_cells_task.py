@@ -67,6 +67,29 @@ def test_dqn_fig8_network_and_analysis_layer():
     assert np.array_equal(agent.predict(obs), agent.predict(obs))
 
 
+@pytest.mark.parametrize("prioritized", [False, True])
+def test_dropout_only_in_the_online_network_while_learning(prioritized):
+    """keras-rl trains with dropout in the online network and takes the TD targets from the
+    target network's ``predict`` (inference mode, no dropout); so does SB3's DQN (its policy's
+    set_training_mode leaves the target network in eval mode). Every forward pass of a
+    training call is recorded: the target network's all in eval mode, some of the online
+    network's (the gradient steps; acting runs in eval mode) in training mode."""
+    pytest.importorskip("stable_baselines3")
+    from cobelrun.agents.dqn import DQNAgent
+
+    agent = DQNAgent(hex_env(), policy="CnnPolicy", convs=[[32, 5, 1], [64, 4, 2], [64, 3, 2]],
+                     features_dim=50, dropout=0.35, net_arch=[], learning_starts=5,
+                     batch_size=8, prioritized=prioritized, seed=0)  # fmt: skip
+    modes: dict[str, list[bool]] = {"online": [], "target": []}
+    policy = agent.model.policy
+    for name, net in (("online", policy.q_net), ("target", policy.q_net_target)):
+        drop = next(m for m in net.modules() if m.__class__.__name__ == "Dropout")
+        drop.register_forward_hook(lambda m, i, o, name=name: modes[name].append(m.training))
+    agent.train(2, 20)
+    assert modes["target"] and not any(modes["target"])
+    assert any(modes["online"])  # the gradient steps (acting runs in eval mode)
+
+
 def test_keras_init_and_q_init():
     """init=keras: Glorot-uniform weights within their bound, zero biases; q_init sets the output
     biases, so an untrained network's Q values sit at q_init; the target net is the same."""

@@ -30,7 +30,7 @@ from tests.conftest import cobel_exe
 from tests.faults import killpoints
 from tests.test_mcap import read as read_mcap
 
-RUNS = 1000
+RUNS = 2000  # ~5 s of loop on an idle 2-core VM: a signal 0-2 s after the first parts lands
 ARGS = ["task=tmaze_extinction", f"task.runs={RUNS}", "task.record.flush_seconds=0.25",
         "task.save_agents=false"]  # fmt: skip
 KEY = ["run", "trial"]

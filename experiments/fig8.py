@@ -69,8 +69,7 @@ def draw(data: FigureData):
     t_last = int(df.loc[df["run"] == run0, "trial"].max())
     snap = df[(df["run"] == run0) & (df["trial"] == t_last)]
     maps, explored, unit_ids, heads = maps_array(snap, grid)
-    first = unit_table[(unit_table["job"] == data.runs["dqn"][0].job)
-                       & (unit_table["run"] == number[(data.runs["dqn"][0].job, run0)])
+    first = unit_table[(unit_table["run"] == number[(data.runs["dqn"][0].job, run0)])
                        & (unit_table["trial"] == t_last)]  # fmt: skip
     cells = first[first["is_place_cell"]].sort_values("spatial_information", ascending=False)
     picks = cells["unit"].head(3).tolist()

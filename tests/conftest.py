@@ -18,6 +18,23 @@ def cobel_exe() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "cobelrun.cli"]
 
 
+def stop_on_call(
+    monkeypatch: pytest.MonkeyPatch, cls: type, name: str, n: int, exc: type[BaseException]
+) -> None:
+    """Make ``cls.name`` raise ``exc("stopped")`` on its ``n``-th call (a Ctrl-C or an error
+    in the middle of a run); the calls before it run as usual."""
+    original = getattr(cls, name)
+    calls = {"n": 0}
+
+    def stopping(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise exc("stopped")
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(cls, name, stopping)
+
+
 @pytest.fixture
 def cobel(tmp_path: Path):
     """Run ``cobel ARGS`` in a temporary working directory; return the CompletedProcess."""

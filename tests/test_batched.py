@@ -18,6 +18,7 @@ pytest.importorskip("stable_baselines3")
 from cobelrun.api import compose
 from cobelrun.errors import ConfigError
 from cobelrun.runner import build_task, execute, run_seed
+from tests.conftest import stop_on_call
 
 
 def run_task(tmp_path, name: str, overrides: list[str]) -> pd.DataFrame:
@@ -490,16 +491,7 @@ def test_interrupted_chunk_keeps_its_finished_phases(tmp_path, monkeypatch, exc)
 
     args = [*GRID, "task.runs=3", "task.batch_runs=true"]
     full, _, _ = run_task(tmp_path, "full", args)
-    calls = {"n": 0}
-    run_phase = BatchedDQN.run_phase
-
-    def stop_in_second_phase(self, *a, **k):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise exc("stopped")
-        return run_phase(self, *a, **k)
-
-    monkeypatch.setattr(BatchedDQN, "run_phase", stop_in_second_phase)
+    stop_on_call(monkeypatch, BatchedDQN, "run_phase", 2, exc)  # in the second phase
     with pytest.raises(exc):
         run_task(tmp_path, "stopped", args)
     kept = pd.read_parquet(tmp_path / "stopped" / "trials.parquet")

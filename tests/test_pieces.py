@@ -12,6 +12,7 @@ import pytest
 
 from cobelrun.api import compose
 from cobelrun.runner import PhasePacer, build_task, execute
+from tests.conftest import stop_on_call
 
 
 def run_task(folder, overrides: list[str]) -> dict[str, pd.DataFrame]:
@@ -88,16 +89,7 @@ def test_stop_inside_a_long_phase_keeps_the_finished_trials(tmp_path, monkeypatc
 
     args = [*DQN, "task.record.flush_seconds=1e-9"]
     full = run_task(tmp_path / "full", args)
-    calls = {"n": 0}
-    train = DQNAgent.train
-
-    def stop_on_fourth(self, *a, **k):
-        calls["n"] += 1
-        if calls["n"] == 4:
-            raise exc("stopped")
-        return train(self, *a, **k)
-
-    monkeypatch.setattr(DQNAgent, "train", stop_on_fourth)
+    stop_on_call(monkeypatch, DQNAgent, "train", 4, exc)
     with pytest.raises(exc):
         run_task(tmp_path / "stopped", args)
     kept = pd.read_parquet(tmp_path / "stopped" / "trials.parquet")

@@ -18,8 +18,9 @@ Channels (all in the frame ``maze``, world units; see ``docs/mcap.md``)
     event per trial of the runs kept in full, trials 1-based.
 ``/trials``
     ``cobel.TrialTable`` (protobuf, :data:`TRIAL_TABLE_PROTO`): the trials of every run, one
-    message per run and phase (per piece of a long phase) with a packed column per field (steps, reward, start and end
-    state, terminated, response), logged at the phase's first trial start.
+    message per run and phase (per piece of a long phase) with a packed column per field
+    (steps, reward, start and end state, terminated, response), logged at its first trial's
+    start.
 
 Log times are nanoseconds since the Unix epoch, starting at the run's real wall-clock start
 (``start_ns``), so Foxglove shows the date the run was made. The file is chunked (zstd, chunk

@@ -183,8 +183,11 @@ def stage_breakdown(tmp: Path, modules: list[str]) -> dict[str, list[float]]:
     out = tmp / "stages"
     shutil.rmtree(out, ignore_errors=True)
     args = ["task=tmaze_extinction", f"hydra.run.dir={out}"]
+    # the probe reads the stages after main() returns: keep the teardown (no fast exit)
+    env = {**os.environ, "COBEL_FAST_EXIT": "0"}
     proc = subprocess.run([sys.executable, "-c", STAGES, json.dumps(modules), json.dumps(args),
-                           json.dumps(WRAPPED)], capture_output=True, text=True, check=True)  # fmt: skip
+                           json.dumps(WRAPPED)], capture_output=True, text=True, check=True,
+                          env=env)  # fmt: skip
     line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("STAGES "))
     stats = json.loads(line.removeprefix("STAGES "))
     manifest = json.loads((out / "manifest.json").read_text())

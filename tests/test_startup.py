@@ -4,6 +4,7 @@ learning, rendering or analysis package, and a single run composes its config on
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -35,8 +36,10 @@ print(json.dumps({"code": code, "composed": count[0], "heavy": heavy}))
 
 
 def _probe(args: list[str], heavy: tuple[str, ...] = HEAVY) -> dict:
+    # the probe looks at sys.modules after main(): keep the process (no fast exit)
+    env = {**os.environ, "COBEL_FAST_EXIT": "0"}
     proc = subprocess.run([sys.executable, "-c", PROBE, json.dumps(args), json.dumps(heavy)],
-                          capture_output=True, text=True)  # fmt: skip
+                          capture_output=True, text=True, env=env)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -54,3 +57,70 @@ def test_a_tabular_run_composes_once_and_imports_nothing_heavy(tmp_path) -> None
 def test_help_imports_no_engine() -> None:
     got = _probe(["--help"], (*HEAVY, "numba", "hydra", "pyarrow", "gymnasium"))
     assert got == {"code": 0, "composed": 0, "heavy": []}
+
+
+# ---------------------------------------------------------------------- leaving the process
+def test_exit_status_reads_codes_as_sys_exit_does() -> None:
+    from cobelrun.cli import _exit_status
+
+    assert _exit_status(None) == (0, None)
+    assert _exit_status(0) == (0, None)
+    assert _exit_status(2) == (2, None)
+    assert _exit_status(130) == (130, None)
+    assert _exit_status(-1) == (255, None)
+    assert _exit_status("bad") == (1, "bad")
+
+
+def test_the_teardown_is_kept_when_something_may_need_it(monkeypatch) -> None:
+    import threading
+
+    from cobelrun.cli import _teardown_needed
+
+    monkeypatch.delenv("COBEL_FAST_EXIT", raising=False)
+    pytest_tracer = sys.gettrace() is not None or "coverage" in sys.modules
+    if not pytest_tracer:
+        assert not _teardown_needed()
+    monkeypatch.setenv("COBEL_FAST_EXIT", "0")
+    assert _teardown_needed()
+    monkeypatch.delenv("COBEL_FAST_EXIT")
+    stop = threading.Event()
+    worker = threading.Thread(target=stop.wait)  # a non-daemon thread still running
+    worker.start()
+    try:
+        assert _teardown_needed()
+    finally:
+        stop.set()
+        worker.join()
+
+
+FAST_EXIT = """
+import sys, threading
+sys.argv = ["cobel", *sys.argv[1:]]
+from cobelrun.cli import main
+import atexit
+atexit.register(lambda: print("TEARDOWN", flush=True))  # runs only with the teardown
+main()
+"""
+
+
+def test_a_finished_command_leaves_without_the_teardown_and_loses_no_output(tmp_path) -> None:
+    out = tmp_path / "run"
+    args = ["run", "task=tmaze_extinction", "task.runs=2", f"hydra.run.dir={out}"]
+    env = {k: v for k, v in os.environ.items() if k != "COBEL_FAST_EXIT"}
+    fast = subprocess.run([sys.executable, "-c", FAST_EXIT, *args], capture_output=True,
+                          text=True, env=env)  # fmt: skip
+    assert fast.returncode == 0, fast.stderr
+    assert "TEARDOWN" not in fast.stdout
+    assert fast.stdout.strip() == str(out)  # the folder, for pipes
+    assert "done in" in fast.stderr and fast.stderr.rstrip().endswith("status and tables")
+    assert (out / ".done").is_file()
+    assert "phase extinction" in (out / "cobel.log").read_text()  # the log is complete
+    # a bad config: the one-line error on stderr and exit code 2, still without the teardown
+    bad = subprocess.run([sys.executable, "-c", FAST_EXIT, "run", "task=no_such_task"],
+                         capture_output=True, text=True, env=env)  # fmt: skip
+    assert bad.returncode == 2 and "TEARDOWN" not in bad.stdout
+    assert bad.stderr.startswith("cobel: error:") and "no_such_task" in bad.stderr
+    # COBEL_FAST_EXIT=0: the normal teardown, the same exit code
+    kept = subprocess.run([sys.executable, "-c", FAST_EXIT, "run", "task=no_such_task"],
+                          capture_output=True, text=True, env={**env, "COBEL_FAST_EXIT": "0"})  # fmt: skip
+    assert kept.returncode == 2 and "TEARDOWN" in kept.stdout

@@ -205,6 +205,32 @@ def test_archive_keeps_each_runs_state_and_metadata_as_added(tmp_path):
     np.testing.assert_array_equal(got[2][0]["Q"], np.full(4, -1.0))
 
 
+def test_archive_stores_arrays_that_do_not_compress_and_deflates_the_others(tmp_path):
+    """Network weights (float noise) are stored as they are, a sparse Q table is deflated;
+    both read back exactly."""
+    import zipfile
+
+    from cobelrun.io.agents_archive import AgentArchive, read_agent
+
+    rng = np.random.default_rng(0)
+    states = [{"weights": rng.normal(size=(64, 64)).astype(np.float32),
+               "Q": np.where(rng.random((200, 4)) < 0.05, rng.random((200, 4)), 0.0)}
+              for _ in range(3)]  # fmt: skip
+    arch = AgentArchive(tmp_path / "a.npz", tmp_path / "parts", max_bytes=1)
+    for run, state in enumerate(states):
+        if arch.add(run, state, {"agent": "x"}):
+            arch.write_batch(arch.take())
+    arch.close()
+    with zipfile.ZipFile(tmp_path / "a.npz") as zf:
+        codec = {i.filename: i.compress_type for i in zf.infolist()}
+    assert codec["weights.npy"] == zipfile.ZIP_STORED
+    assert codec["Q.npy"] == zipfile.ZIP_DEFLATED
+    for run, state in enumerate(states):
+        got, _ = read_agent(tmp_path / "a.npz", run)
+        np.testing.assert_array_equal(got["weights"], state["weights"])
+        np.testing.assert_array_equal(got["Q"], state["Q"])
+
+
 def _run_in_process(tmp_path, name, overrides, background=True):
     from cobelrun.api import compose
     from cobelrun.runner import build_task, execute

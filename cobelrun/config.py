@@ -9,7 +9,7 @@ import re
 import secrets
 import types
 import typing
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -284,6 +284,48 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
             _check_null(f"{where}.{key}", hints.get(key, params[key].annotation), params[key])
         else:
             _check_type(f"{where}.{key}", value, hints.get(key, params[key].annotation))
+
+
+def factory(where: str, node: DictConfig | Mapping[str, Any]) -> Callable[[], Any]:
+    """A function that builds a fresh object from a ``_target_`` node on every call, the node
+    validated once (``make_env`` of a batched task builds one environment per run).
+
+    A flat node (its values plain data, no nested ``_target_`` and no Hydra keys) calls its
+    target directly with a copy of the values: 0.5 ms per object where :func:`instantiate`
+    (validation and Hydra's own instantiation each call) takes ~10 ms. Other nodes go through
+    :func:`instantiate` each call, so nested objects are never shared between builds.
+    """
+    import copy
+
+    from hydra.utils import get_object
+
+    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+    if not isinstance(plain, Mapping) or "_target_" not in plain:
+        raise ConfigError(f"{where} must be a config node with a _target_")
+    values = {k: v for k, v in plain.items() if k != "_target_"}
+    if any(str(k).startswith("_") for k in values) or _has_target(values):
+        return lambda: instantiate(where, plain)
+    validate_node(where, plain)
+    target = get_object(str(plain["_target_"]))
+
+    def build() -> Any:
+        try:
+            return target(**copy.deepcopy(values))
+        except (CobelError, MemoryError):
+            raise
+        except Exception as exc:  # as instantiate reports a constructor's error
+            lines = str(exc).strip().splitlines()
+            raise ConfigError(f"cannot build {where}: {lines[-1] if lines else exc}") from exc
+
+    return build
+
+
+def _has_target(value: Any) -> bool:
+    if isinstance(value, Mapping):
+        return "_target_" in value or any(_has_target(v) for v in value.values())
+    if isinstance(value, list | tuple):
+        return any(_has_target(v) for v in value)
+    return False
 
 
 def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any) -> Any:

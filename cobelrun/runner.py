@@ -18,7 +18,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 import cobelrun
-from cobelrun.config import instantiate
+from cobelrun.config import factory, instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.atomic import atomic_write_text, disk_error, is_disk_error
@@ -144,7 +144,7 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
         load_from=None if load_from is None else str(load_from),
         save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
         objective=objective,
-        make_env=functools.partial(instantiate, "env", cfg.env),
+        make_env=factory("env", cfg.env),
     )
     _plan_batches(task, spec.task.batch_runs)
     return task

@@ -136,3 +136,30 @@ def test_keys_passed_on_to_a_base_class_are_checked(key, value, message):
     with pytest.raises(ConfigError, match=message):
         validate_node("agent", node, provided=("env",))
     validate_node("agent", {"_target_": "cobelrun.agents.DynaDSR", "epsilon": 0.2})
+
+
+def test_factory_builds_a_fresh_object_per_call_and_reports_bad_values_as_instantiate_does():
+    from cobelrun.config import factory
+
+    flat = {"_target_": "cobelrun.envs.choice.TwoAFCEnv", "choices": [[0, 1], [2, 3]]}
+    make = factory("env", flat)
+    a, b = make(), make()
+    assert a is not b and type(a).__name__ == "TwoAFCEnv"
+    assert a.choices.tolist() == [[0, 1], [2, 3]] and a.choices is not b.choices
+    # a node with nested objects goes through instantiate each call: nothing shared either
+    nested = OmegaConf.to_container(_compose("task=latent_learning").env, resolve=True)
+    make_nested = factory("env", nested)
+    e1, e2 = make_nested(), make_nested()
+    assert e1 is not e2 and e1.unwrapped.world is not e2.unwrapped.world
+    # validated once, up front: an unknown key fails before any object is built
+    with pytest.raises(ConfigError, match="unknown key"):
+        factory("env", {**flat, "colour": 3})
+    # a constructor's own error is one line naming the node, as with instantiate
+    bad = factory("env", {"_target_": "cobelrun.envs.choice.TwoAFCEnv", "stimuli": "abc"})
+    with pytest.raises(ConfigError, match=r"^cannot build env: could not convert"):
+        bad()
+    with pytest.raises(ConfigError, match=r"^cannot build env: could not convert"):
+        instantiate("env", {"_target_": "cobelrun.envs.choice.TwoAFCEnv", "stimuli": "abc"})
+    # the env's own checks keep their message
+    with pytest.raises(ConfigError, match="choices name stimuli outside"):
+        factory("env", {**flat, "choices": [[0, 9]]})()

@@ -8,6 +8,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 HEAVY = ("torch", "stable_baselines3", "pybullet", "pandas", "matplotlib")
 
 # counts Hydra's compositions (each ~0.1 s; `cobel run` only) and lists the heavy packages
@@ -71,26 +73,31 @@ def test_exit_status_reads_codes_as_sys_exit_does() -> None:
     assert _exit_status("bad") == (1, "bad")
 
 
-def test_the_teardown_is_kept_when_something_may_need_it(monkeypatch) -> None:
-    import threading
-
-    from cobelrun.cli import _teardown_needed
-
-    monkeypatch.delenv("COBEL_FAST_EXIT", raising=False)
-    pytest_tracer = sys.gettrace() is not None or "coverage" in sys.modules
-    if not pytest_tracer:
-        assert not _teardown_needed()
-    monkeypatch.setenv("COBEL_FAST_EXIT", "0")
-    assert _teardown_needed()
-    monkeypatch.delenv("COBEL_FAST_EXIT")
+TEARDOWN = """
+import sys, threading
+from cobelrun.cli import _teardown_needed
+case = sys.argv[1]
+if case == "thread":
     stop = threading.Event()
-    worker = threading.Thread(target=stop.wait)  # a non-daemon thread still running
-    worker.start()
-    try:
-        assert _teardown_needed()
-    finally:
-        stop.set()
-        worker.join()
+    threading.Thread(target=stop.wait).start()  # a non-daemon thread still running
+if case == "pool":
+    import joblib
+print(_teardown_needed())
+if case == "thread":
+    stop.set()
+"""
+
+
+@pytest.mark.parametrize(("case", "env", "needed"), [
+    ("plain", {}, False), ("plain", {"COBEL_FAST_EXIT": "0"}, True), ("thread", {}, True),
+    ("pool", {}, True),
+])  # fmt: skip
+def test_the_teardown_is_kept_when_something_may_need_it(case, env, needed) -> None:
+    base = {k: v for k, v in os.environ.items() if k != "COBEL_FAST_EXIT"}
+    proc = subprocess.run([sys.executable, "-c", TEARDOWN, case], capture_output=True,
+                          text=True, env={**base, **env})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == str(needed)
 
 
 FAST_EXIT = """

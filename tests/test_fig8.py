@@ -93,3 +93,30 @@ def test_fig8_draw_writes_counts_and_spearman(tmp_path):
     assert len(table) == 6
     assert table.groupby("trial")["place_cells"].mean().tolist() == [0.5, 2.5, 4.5]
     assert table["spearman_rho_mean_count"].iloc[0] == pytest.approx(1.0)
+
+
+def test_fig8_original_compares_boxes_by_area(tmp_path):
+    """fig8_original classifies with the original script's box comparison: a band across half
+    the maze's width (36% of its area) fails by extent but passes by area."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cobelrun.analysis.maps import load_activity_maps
+    from cobelrun.figures.registry import FigureData, RunRef, get
+
+    synthetic_run_folder(tmp_path / "r", {0: 0, 800: 2}, seed=0)
+    df, grid = load_activity_maps(tmp_path / "r")
+    df = df.reset_index(drop=True)
+    band = np.zeros((grid.ny, grid.nx))
+    band[9:16, 3:22] = 1.0  # 7 bins high, 19 wide: > half the width, 21% of the area
+    rows = ((df.trial == 800) & (df.unit == N_UNITS - 1)).to_numpy()  # a noise unit
+    df.loc[rows, "value"] = band[df.loc[rows, "iy"], df.loc[rows, "ix"]]
+    df.to_parquet(tmp_path / "r" / f"{MAPS_TABLE}.parquet")
+    ref = RunRef("dqn", 0, (), {}, tmp_path / "r", "hash")
+    _, by_extent = get("fig8").draw(FigureData(runs={"dqn": [ref]}))
+    _, by_area = get("fig8_original").draw(FigureData(runs={"dqn": [ref]}))
+    plt.close("all")
+    assert by_extent["place_cells"].tolist() == [0, 2]
+    assert by_area["place_cells"].tolist() == [0, 3]

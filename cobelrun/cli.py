@@ -463,9 +463,8 @@ def exit_now(code: Any) -> NoReturn:
     are closed by then. The teardown is kept (``sys.exit``) when something may still need it:
     another non-daemon thread or a child process still alive, a process pool used (a sweep's
     joblib or submitit launcher), a tracer or profiler (coverage writes its data at exit), or
-    ``COBEL_FAST_EXIT=0``. Otherwise logging is shut down and
-    the standard streams flushed, as the teardown would, and the process ends with
-    ``os._exit``.
+    ``COBEL_FAST_EXIT=0``. Otherwise logging is shut down and the standard streams flushed, as
+    the teardown would, and the process ends with ``os._exit``.
     """
     status, message = _exit_status(code)
     if not _teardown_needed():
@@ -493,6 +492,10 @@ def _exit_status(code: Any) -> tuple[int, str | None]:
     return 1, str(code)
 
 
+#: process pools (a sweep's launchers) whose exit handlers clean up workers and files
+_POOLS = ("joblib", "submitit")
+
+
 def _teardown_needed() -> bool:
     import threading
 
@@ -507,10 +510,6 @@ def _teardown_needed() -> bool:
         return True  # their workers and shared-memory folders are cleaned up at exit
     mp = sys.modules.get("multiprocessing")
     return bool(mp is not None and mp.active_children())
-
-
-#: process pools (a sweep's launchers) whose exit handlers clean up workers and files
-_POOLS = ("joblib", "submitit")
 
 
 if __name__ == "__main__":

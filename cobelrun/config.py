@@ -299,9 +299,7 @@ def factory(where: str, node: DictConfig | Mapping[str, Any]) -> Callable[[], An
 
     from hydra.utils import get_object
 
-    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
-    if not isinstance(plain, Mapping) or "_target_" not in plain:
-        raise ConfigError(f"{where} must be a config node with a _target_")
+    plain = _target_node(where, node)
     values = {k: v for k, v in plain.items() if k != "_target_"}
     if any(str(k).startswith("_") for k in values) or _has_target(values):
         return lambda: instantiate(where, plain)
@@ -314,8 +312,7 @@ def factory(where: str, node: DictConfig | Mapping[str, Any]) -> Callable[[], An
         except (CobelError, MemoryError):
             raise
         except Exception as exc:  # as instantiate reports a constructor's error
-            lines = str(exc).strip().splitlines()
-            raise ConfigError(f"cannot build {where}: {lines[-1] if lines else exc}") from exc
+            raise _build_error(where, exc, exc) from exc
 
     return build
 
@@ -333,9 +330,7 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate as hydra_instantiate
 
-    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
-    if not isinstance(plain, Mapping) or "_target_" not in plain:
-        raise ConfigError(f"{where} must be a config node with a _target_")
+    plain = _target_node(where, node)
     validate_node(where, plain, provided=list(kwargs))
     try:
         return hydra_instantiate(plain, **kwargs, _convert_="all")
@@ -345,5 +340,18 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
             cause = cause.__cause__
         if isinstance(cause, CobelError | MemoryError):  # MemoryError: a missing estimate
             raise cause from None
-        msg = str(cause or exc).strip().splitlines()
-        raise ConfigError(f"cannot build {where}: {msg[-1] if msg else exc}") from exc
+        raise _build_error(where, cause or exc, exc) from exc
+
+
+def _target_node(where: str, node: DictConfig | Mapping[str, Any]) -> Mapping[str, Any]:
+    """``node`` as plain data (interpolations resolved); it must have a ``_target_``."""
+    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+    if not isinstance(plain, Mapping) or "_target_" not in plain:
+        raise ConfigError(f"{where} must be a config node with a _target_")
+    return plain
+
+
+def _build_error(where: str, cause: BaseException, exc: BaseException) -> ConfigError:
+    """One line for a constructor's error: the last line of ``cause``'s message."""
+    lines = str(cause).strip().splitlines()
+    return ConfigError(f"cannot build {where}: {lines[-1] if lines else exc}")

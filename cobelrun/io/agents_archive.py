@@ -148,7 +148,7 @@ def merge_agent_parts(parts_dir: str | os.PathLike[str], path: str | os.PathLike
                 info = [_header(f, key) for f in files]  # shapes and dtypes, no data read
                 dtype = np.result_type(*(d for _, d in info))
                 shape = (sum(s[0] for s, _ in info), *info[0][0][1:])
-                zf.compression = _codec(np.ascontiguousarray(parts[0][key], dtype=dtype))
+                zf.compression = _codec(_sample(files[0], key))
                 with zf.open(f"{key}.npy", "w", force_zip64=True) as out:
                     header = {"descr": np.lib.format.dtype_to_descr(dtype),
                               "fortran_order": False, "shape": shape}  # fmt: skip
@@ -173,10 +173,9 @@ DEFLATE_BELOW = 0.8
 _SAMPLE_BYTES = 1 << 18
 
 
-def _codec(array: np.ndarray) -> int:
+def _codec(sample: bytes) -> int:
     """``ZIP_DEFLATED`` for an array that compresses (Q tables, counts, buffers with zeros),
-    ``ZIP_STORED`` for one that does not, judged on its first 256 KB at deflate level 1."""
-    sample = array.reshape(-1).view(np.uint8)[:_SAMPLE_BYTES].tobytes()
+    ``ZIP_STORED`` for one that does not, judged on a sample of its data at deflate level 1."""
     if len(sample) < 4096:
         return zipfile.ZIP_DEFLATED  # small: the cost is nothing either way
     return (
@@ -189,11 +188,22 @@ def _codec(array: np.ndarray) -> int:
 def _header(npz: Path, key: str) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of member ``key`` of an npz file, from its ``.npy`` header alone."""
     with zipfile.ZipFile(npz) as zf, zf.open(f"{key}.npy") as fh:
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-        else:
-            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        return _read_header(fh)
+
+
+def _sample(npz: Path, key: str) -> bytes:
+    """The first 256 KB of member ``key``'s data (after its ``.npy`` header)."""
+    with zipfile.ZipFile(npz) as zf, zf.open(f"{key}.npy") as fh:
+        _read_header(fh)
+        return fh.read(_SAMPLE_BYTES)
+
+
+def _read_header(fh: Any) -> tuple[tuple[int, ...], np.dtype]:
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+    else:
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
     return shape, dtype
 
 

@@ -114,6 +114,19 @@ def test_no_render_mode_hands_out_the_offline_views_read_only(tmp_path):
     none.close()
 
 
+def test_online_mode_renders_every_frame():
+    from cobelrun.config import instantiate
+    from cobelrun.render.benchmark import sized_env_config as sized
+
+    env = instantiate("env", sized(compose([]).env, 16, 16, "online", None))
+    module = env.unwrapped.observation_module
+    assert module.reuse_views is False  # Fig. 4's online frames time the renderer every step
+    rng = np.random.default_rng(0)
+    a, b = module.observe(3, 2, rng), module.observe(3, 2, rng)
+    assert np.array_equal(a, b) and not np.shares_memory(a, b)
+    env.close()
+
+
 def test_frame_time_job_shared_cache_and_validation(tmp_path, monkeypatch):
     from cobelrun.runner import build_task, run
 

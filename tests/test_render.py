@@ -68,6 +68,51 @@ def test_same_pose_same_image_and_views_differ():
     env.close()
 
 
+def test_online_views_are_rendered_once_per_pose_and_equal_fresh_renders(monkeypatch):
+    env, fresh = image_env(), image_env(reuse_views=False)
+    module = env.observation_module
+    calls = []
+    render_raw = module.render_raw
+    monkeypatch.setattr(module, "render_raw", lambda n, h: calls.append((n, h)) or render_raw(n, h))
+    poses = [(3, 0), (3, 2), (3, 0), (5, 1), (3, 2)]
+    views = [env.observe_pose(n, h) for n, h in poses]
+    assert calls == [(3, 0), (3, 2), (5, 1)]  # each pose rendered on its first visit only
+    for (n, h), view in zip(poses, views, strict=True):
+        assert np.array_equal(view, fresh.observe_pose(n, h))
+    assert not np.shares_memory(views[0], views[2])  # new data on every call (gymnasium)
+    views[0][...] = 0  # what a caller does with its copy does not reach the kept view
+    assert np.array_equal(env.observe_pose(3, 0), fresh.observe_pose(3, 0))
+    # the renderer runs on every visit without reuse_views (Fig. 4's online frame times)
+    calls_fresh = []
+    raw_fresh = fresh.observation_module.render_raw
+    monkeypatch.setattr(fresh.observation_module, "render_raw",
+                        lambda n, h: calls_fresh.append((n, h)) or raw_fresh(n, h))  # fmt: skip
+    for n, h in poses:
+        fresh.observe_pose(n, h)
+    assert calls_fresh == poses
+    env.close()
+    fresh.close()
+
+
+def test_online_views_stop_being_kept_past_the_byte_budget(monkeypatch):
+    from cobelrun.envs import observations
+
+    env = image_env()
+    module = env.observation_module
+    one = env.observe_pose(0, 0).nbytes
+    monkeypatch.setattr(observations, "ONLINE_VIEWS_BYTES", 2 * one)
+    for node in range(4):
+        env.observe_pose(node, 1)
+    calls = []
+    render_raw = module.render_raw
+    monkeypatch.setattr(module, "render_raw", lambda n, h: calls.append((n, h)) or render_raw(n, h))
+    for node in range(4):
+        env.observe_pose(node, 1)
+    env.observe_pose(0, 0)
+    assert calls == [(1, 1), (2, 1), (3, 1)]  # (0, 0) and (0, 1) filled the budget
+    env.close()
+
+
 @pytest.mark.parametrize("mode", ["image", "noisy_image", "multisensory"])
 def test_check_env_with_image_modules(mode):
     img = ImageObservation(height=12, width=48, fov=240, n_cameras=4)

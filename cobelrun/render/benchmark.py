@@ -10,7 +10,7 @@ rendering; trial ends (learning at trial end, reset) fall between trials and are
 
 Modes:
 
-- ``online``: pybullet renders every step;
+- ``online``: pybullet renders every step (``reuse_views: false``);
 - ``offline``: the images come from the render cache (an array lookup);
 - ``none``: the no-render baseline: the same views, loaded into memory before timing and handed
   out as read-only array views (:class:`NoRenderObservation`), so a frame holds only the agent's
@@ -136,6 +136,8 @@ def sized_env_config(env_cfg: Any, height: int, width: int, mode: str, cache_dir
     if mode == "none":
         obs["_target_"] = f"{__name__}.NoRenderObservation"
     obs.update(height=int(height), width=int(width), render="offline" if mode == "none" else mode)
+    if mode == "online":
+        obs["reuse_views"] = False  # online frames time the renderer on every step
     if cache_dir is not None:
         obs["cache_dir"] = cache_dir
     return env

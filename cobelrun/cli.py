@@ -375,6 +375,16 @@ def figure_cmd(
             "run folder, e.g. a `cobel run -m` of its jobs; repeatable.",
         ),
     ] = None,
+    jobs: Annotated[
+        int,
+        typer.Option(
+            "--jobs",
+            "-j",
+            help="Run up to N of the figure's missing runs at once, one process each (a "
+            "deep agent uses one core: N up to the number of cores). Default 1: one after "
+            "another, with a progress bar.",
+        ),
+    ] = 1,
 ) -> None:
     """Build a paper figure: run what it needs (finished runs are reused), then draw it.
 
@@ -401,7 +411,7 @@ def figure_cmd(
             return
         chosen = list(known.values()) if name == "all" else [get(name)]
         for fig in chosen:
-            files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (),
+            files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (), jobs=jobs,
                           log=lambda m: typer.echo(m, err=True))  # fmt: skip
             for path in files.values():
                 typer.echo(str(path))

@@ -66,8 +66,9 @@ def test_figure_list_and_unknown_name(cobel):
     assert bad.returncode == 2 and "unknown figure 'fig6' (did you mean 'fig6b'?)" in bad.stderr
 
 
-def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
-    (tmp_path / "experiments").mkdir()
+def write_mine(tmp_path):
+    """A user figure in ./experiments: two jobs (seeds 1 and 2) of a short T-maze run."""
+    (tmp_path / "experiments").mkdir(exist_ok=True)
     (tmp_path / "experiments" / "mine.py").write_text(
         "import pandas as pd\n"
         "from cobelrun.figures.registry import Figure\n"
@@ -82,10 +83,33 @@ def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
         " 'seed=1,2', 'task.runs=1', 'task.protocol.phases.0.trials=5',"
         " 'task.protocol.phases.1.trials=5']}, draw=draw)\n"
     )
+
+
+def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
+    write_mine(tmp_path)
     proc = cobel("figure", "mine")
     assert proc.returncode == 0, proc.stderr
     table = pd.read_csv(tmp_path / "results" / "figures" / "mine.csv")
     assert sorted(table["seed"].unique()) == [1, 2] and len(table) == 20
+
+
+def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_path):
+    """`cobel figure --jobs 2`: the two runs in two worker processes give the same CSV as one
+    after another; a bad --jobs is one line."""
+    write_mine(tmp_path)
+    seq = cobel("figure", "mine", "--out", str(tmp_path / "seq"))
+    assert seq.returncode == 0, seq.stderr
+    par = cobel("figure", "mine", "--jobs", "2", "--out", str(tmp_path / "par"),
+                env={"COBEL_RESULTS": str(tmp_path / "par_results")})  # fmt: skip
+    assert par.returncode == 0, par.stderr
+    assert "2 runs, 2 at once" in par.stderr and par.stderr.count(": done in") == 2
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "seq" / "mine.csv"),
+                                  pd.read_csv(tmp_path / "par" / "mine.csv"))  # fmt: skip
+    runs = sorted((tmp_path / "par_results" / "figures" / "runs").iterdir())
+    assert len(runs) == 2 and all((r / ".done").is_file() for r in runs)
+    bad = cobel("figure", "mine", "--jobs", "0")
+    assert bad.returncode != 0 and "--jobs 0: give 1 or more" in bad.stderr
+    assert "Traceback" not in bad.stderr
 
 
 def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):

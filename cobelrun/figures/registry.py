@@ -287,6 +287,114 @@ def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
     return taken
 
 
+def _run_planned(cfg: Any, run_dir: Path) -> float:
+    """A figure run in a worker process of :func:`run_parallel`; returns its wall seconds."""
+    import time
+
+    import cobelrun.sweep as sweep
+    from cobelrun.config import register_resolvers
+    from cobelrun.runner import run
+
+    register_resolvers()  # the config's interpolations resolve in this process
+    t0 = time.perf_counter()
+    sweep.IN_JOB = True  # a signal now is the run's to handle: it closes its files and stops
+    try:
+        run(cfg, run_dir, background_writes=False)  # the runs in parallel already fill the cores
+    finally:
+        sweep.IN_JOB = False
+    return time.perf_counter() - t0
+
+
+def run_parallel(
+    name: str, todo: Sequence[_Planned], jobs: int, *, log: Callable[[str], None] | None = None
+) -> None:
+    """Run ``todo`` in up to ``jobs`` worker processes at once (``cobel figure --jobs``).
+
+    The workers are set up as a sweep's (:func:`cobelrun.sweep.worker_init`): an idle worker
+    ignores Ctrl-C and SIGTERM, a running run takes them itself and closes its files, and no
+    worker outlives this process. A run starts only when a worker is free; each logs to its
+    own ``cobel.log``, and one line is printed as each ends. Every run is waited for and the
+    first failure raised afterwards (the finished runs are kept and reused next time). On
+    Ctrl-C or SIGTERM no further run starts, the running ones stop cleanly (they are sent
+    SIGTERM too, in case the signal reached only this process), and :class:`KeyboardInterrupt`
+    propagates once they have closed their files.
+    """
+    import concurrent.futures as cf
+    import multiprocessing
+    import os
+    import signal
+
+    from cobelrun.sweep import LAUNCHER_ENV, clear_outputs, worker_init
+
+    say = log or (lambda m: None)
+    workers = min(jobs, len(todo))
+    say(f"{name}: {len(todo)} runs, {workers} at once (one process each; progress in each run "
+        f"folder's cobel.log under {todo[0].run_dir.parent})")  # fmt: skip
+    for p in todo:
+        clear_outputs(p.run_dir)
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = os.environ.get(LAUNCHER_ENV)
+    os.environ[LAUNCHER_ENV] = str(os.getpid())  # the workers' launcher (no orphans)
+    previous_term = signal.signal(signal.SIGTERM, interrupt)
+    pool = cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+        initializer=worker_init,
+    )  # fmt: skip
+    waiting = iter(todo)
+    running: dict[cf.Future, _Planned] = {}
+    errors: list[BaseException] = []
+    stopping, ended = False, 0
+
+    def start_next() -> None:
+        p = next(waiting, None)
+        if p is not None and not stopping:
+            running[pool.submit(_run_planned, p.cfg, p.run_dir)] = p
+
+    try:
+        for _ in range(workers):
+            start_next()
+        while running:
+            try:
+                finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            except KeyboardInterrupt:
+                if not stopping:
+                    stopping = True
+                    say(f"{name}: stopping: the running runs close their files, the others "
+                        "do not start")  # fmt: skip
+                    for child in multiprocessing.active_children():
+                        with contextlib.suppress(OSError):
+                            os.kill(child.pid, signal.SIGTERM)  # type: ignore[arg-type]
+                continue
+            for fut in finished:
+                p = running.pop(fut)
+                ended += 1
+                head = f"{name} {ended}/{len(todo)} {p.label} job {p.job}"
+                exc = fut.exception()
+                if exc is None:
+                    say(f"{head}: done in {fut.result():.0f} s")
+                elif isinstance(exc, KeyboardInterrupt):
+                    stopping = True
+                    say(f"{head}: interrupted (its files are closed; it runs again next time)")
+                else:
+                    errors.append(exc)
+                    say(f"{head}: failed: {exc}")
+                start_next()
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+        pool.shutdown(wait=True, cancel_futures=True)
+        if previous is None:
+            os.environ.pop(LAUNCHER_ENV, None)
+        else:
+            os.environ[LAUNCHER_ENV] = previous
+    if stopping:
+        raise KeyboardInterrupt
+    if errors:
+        raise errors[0]
+
+
 def build(
     figure: Figure,
     *,
@@ -295,12 +403,15 @@ def build(
     root: Path | None = None,
     log: Callable[[str], None] | None = None,
     reuse_from: Sequence[Path] = (),
+    jobs: int = 1,
 ) -> dict[str, Path]:
     """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
 
     ``reuse_from``: folders (a sweep folder, a run folder, or folders of either) whose finished
     runs are copied into the figure's run store when their config hash is one the figure needs,
     e.g. a ``cobel run -m`` sweep of the figure's jobs run in parallel or on a cluster.
+    ``jobs``: run up to this many of the missing runs at once, each in a process of its own
+    (:func:`run_parallel`); 1 runs them one after another in this process, with a progress bar.
 
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
@@ -309,6 +420,8 @@ def build(
     from cobelrun.runner import run
     from cobelrun.sweep import clear_outputs, is_complete
 
+    if jobs < 1:
+        raise CobelError(f"--jobs {jobs}: give 1 or more (runs at once, one process each)")
     root = root or results_root()
     out_dir = out_dir or root / FIGURE_DIR
     planned = plan_runs(figure, quick=quick, root=root)
@@ -321,11 +434,14 @@ def build(
     if log:
         log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
             f"{len(todo)} to run")  # fmt: skip
-    for k, p in enumerate(todo, 1):
-        clear_outputs(p.run_dir)
-        label = f"{figure.name} {k}/{len(todo)} {p.label}"
-        with run_progress(label) as progress:
-            run(p.cfg, p.run_dir, progress=progress)
+    if jobs > 1 and len(todo) > 1:
+        run_parallel(figure.name, todo, jobs, log=log)
+    else:
+        for k, p in enumerate(todo, 1):
+            clear_outputs(p.run_dir)
+            label = f"{figure.name} {k}/{len(todo)} {p.label}"
+            with run_progress(label) as progress:
+                run(p.cfg, p.run_dir, progress=progress)
     todo_dirs = {p.run_dir for p in todo}
     data = FigureData(quick=quick, runs={})
     for p in planned:

@@ -376,15 +376,15 @@ def figure_cmd(
         ),
     ] = None,
     jobs: Annotated[
-        int,
+        int | None,
         typer.Option(
             "--jobs",
             "-j",
             help="Run up to N of the figure's missing runs at once, one process each (a "
-            "deep agent uses one core: N up to the number of cores). Default 1: one after "
-            "another, with a progress bar.",
+            "deep agent uses one core: N up to the number of cores); 1: one after another, "
+            "with a progress bar. Default: the figure's own (1; one per core for fig8).",
         ),
-    ] = 1,
+    ] = None,
 ) -> None:
     """Build a paper figure: run what it needs (finished runs are reused), then draw it.
 

@@ -87,7 +87,7 @@ def test_fig8_draw_writes_counts_and_spearman(tmp_path):
     for job, counts in enumerate(({0: 0, 800: 2, 1600: 5}, {0: 1, 800: 3, 1600: 4})):
         synthetic_run_folder(tmp_path / f"r{job}", counts, seed=job)
         refs.append(RunRef("dqn", job, (), {}, tmp_path / f"r{job}", "hash"))
-    fig, table = get("fig8").draw(FigureData(runs={"dqn": refs}))
+    fig, table = get("fig8_stable").draw(FigureData(runs={"dqn": refs}))
     plt.close(fig)
     assert {"trial", "place_cells", "units", "rsa_spatial", "spearman_rho_mean_count"} <= set(table)
     assert len(table) == 6
@@ -95,9 +95,9 @@ def test_fig8_draw_writes_counts_and_spearman(tmp_path):
     assert table["spearman_rho_mean_count"].iloc[0] == pytest.approx(1.0)
 
 
-def test_fig8_original_compares_boxes_by_area(tmp_path):
-    """fig8_original classifies with the original script's box comparison: a band across half
-    the maze's width (36% of its area) fails by extent but passes by area."""
+def test_fig8_compares_boxes_by_area_and_fig8_stable_by_extent(tmp_path):
+    """fig8 classifies with the original script's box comparison: a band across most of the
+    maze's width (21% of its area) passes by area; fig8_stable compares extents: it fails."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,8 +115,8 @@ def test_fig8_original_compares_boxes_by_area(tmp_path):
     df.loc[rows, "value"] = band[df.loc[rows, "iy"], df.loc[rows, "ix"]]
     df.to_parquet(tmp_path / "r" / f"{MAPS_TABLE}.parquet")
     ref = RunRef("dqn", 0, (), {}, tmp_path / "r", "hash")
-    _, by_extent = get("fig8").draw(FigureData(runs={"dqn": [ref]}))
-    _, by_area = get("fig8_original").draw(FigureData(runs={"dqn": [ref]}))
+    _, by_extent = get("fig8_stable").draw(FigureData(runs={"dqn": [ref]}))
+    _, by_area = get("fig8").draw(FigureData(runs={"dqn": [ref]}))
     plt.close("all")
     assert by_extent["place_cells"].tolist() == [0, 2]
     assert by_area["place_cells"].tolist() == [0, 3]

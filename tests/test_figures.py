@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pandas as pd
 
 from cobelrun.figures.registry import Figure, figures
@@ -66,7 +68,7 @@ def test_figure_list_and_unknown_name(cobel):
     assert bad.returncode == 2 and "unknown figure 'fig6' (did you mean 'fig6b'?)" in bad.stderr
 
 
-def write_mine(tmp_path):
+def write_mine(tmp_path, jobs=1):
     """A user figure in ./experiments: two jobs (seeds 1 and 2) of a short T-maze run."""
     (tmp_path / "experiments").mkdir(exist_ok=True)
     (tmp_path / "experiments" / "mine.py").write_text(
@@ -81,7 +83,7 @@ def write_mine(tmp_path):
         "    return fig, m\n"
         "FIGURE = Figure(name='mine', title='mine', runs={'a': ['task=tmaze_extinction',"
         " 'seed=1,2', 'task.runs=1', 'task.protocol.phases.0.trials=5',"
-        " 'task.protocol.phases.1.trials=5']}, draw=draw)\n"
+        f" 'task.protocol.phases.1.trials=5']}}, draw=draw, jobs={jobs})\n"
     )
 
 
@@ -94,11 +96,13 @@ def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
 
 
 def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_path):
-    """`cobel figure --jobs 2`: the two runs in two worker processes give the same CSV as one
-    after another; a bad --jobs is one line."""
+    """`cobel figure --jobs 2` (or a figure's own ``jobs=0``: one process per core): the two
+    runs in two worker processes give the same CSV as one after another; a bad --jobs is one
+    line."""
     write_mine(tmp_path)
     seq = cobel("figure", "mine", "--out", str(tmp_path / "seq"))
     assert seq.returncode == 0, seq.stderr
+    assert "at once" not in seq.stderr
     par = cobel("figure", "mine", "--jobs", "2", "--out", str(tmp_path / "par"),
                 env={"COBEL_RESULTS": str(tmp_path / "par_results")})  # fmt: skip
     assert par.returncode == 0, par.stderr
@@ -107,6 +111,13 @@ def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_
                                   pd.read_csv(tmp_path / "par" / "mine.csv"))  # fmt: skip
     runs = sorted((tmp_path / "par_results" / "figures" / "runs").iterdir())
     assert len(runs) == 2 and all((r / ".done").is_file() for r in runs)
+    write_mine(tmp_path, jobs=0)  # the figure's default: one process per core (2 runs: 2 here)
+    own = cobel("figure", "mine", "--out", str(tmp_path / "own"),
+                env={"COBEL_RESULTS": str(tmp_path / "own_results")})  # fmt: skip
+    assert own.returncode == 0, own.stderr
+    assert f"2 runs, {min(2, os.cpu_count() or 1)} at once" in own.stderr or (
+        os.cpu_count() == 1 and "at once" not in own.stderr
+    )
     bad = cobel("figure", "mine", "--jobs", "0")
     assert bad.returncode != 0 and "--jobs 0: give 1 or more" in bad.stderr
     assert "Traceback" not in bad.stderr

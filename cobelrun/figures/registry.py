@@ -107,6 +107,10 @@ class Figure:
         ``draw(data: FigureData) -> (matplotlib Figure, DataFrame of the plotted numbers)``.
     quick
         Label (or ``"*"`` for all) -> extra overrides for ``--quick`` (a small budget).
+    jobs
+        Runs at once when ``cobel figure`` is not given ``--jobs``: 1 (one after another, in
+        the ``cobel`` process), or 0 for one worker process per core (figures of long runs of
+        deep agents, each using one core).
     """
 
     name: str
@@ -115,6 +119,7 @@ class Figure:
     draw: Callable[[FigureData], tuple[Any, pd.DataFrame]]
     quick: Mapping[str, Sequence[str]] = field(default_factory=dict)
     source: Path | None = None
+    jobs: int = 1
 
     def overrides(self, label: str, quick: bool) -> list[str]:
         extra = [*self.quick.get("*", ()), *self.quick.get(label, ())] if quick else []
@@ -403,7 +408,7 @@ def build(
     root: Path | None = None,
     log: Callable[[str], None] | None = None,
     reuse_from: Sequence[Path] = (),
-    jobs: int = 1,
+    jobs: int | None = None,
 ) -> dict[str, Path]:
     """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
 
@@ -411,7 +416,8 @@ def build(
     runs are copied into the figure's run store when their config hash is one the figure needs,
     e.g. a ``cobel run -m`` sweep of the figure's jobs run in parallel or on a cluster.
     ``jobs``: run up to this many of the missing runs at once, each in a process of its own
-    (:func:`run_parallel`); 1 runs them one after another in this process, with a progress bar.
+    (:func:`run_parallel`); 1 runs them one after another in this process, with a progress bar;
+    None takes the figure's own default (:attr:`Figure.jobs`).
 
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
@@ -420,8 +426,12 @@ def build(
     from cobelrun.runner import run
     from cobelrun.sweep import clear_outputs, is_complete
 
-    if jobs < 1:
+    if jobs is not None and jobs < 1:
         raise CobelError(f"--jobs {jobs}: give 1 or more (runs at once, one process each)")
+    if jobs is None:
+        import os
+
+        jobs = figure.jobs if figure.jobs >= 1 else os.cpu_count() or 1
     root = root or results_root()
     out_dir = out_dir or root / FIGURE_DIR
     planned = plan_runs(figure, quick=quick, root=root)

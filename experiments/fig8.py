@@ -43,7 +43,9 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
         spearman_rho,
     )
 
-    units, snaps, last = [], [], None
+    # panel D shows the run with the most place cells at its last snapshot (the first such
+    # run); only that run's maps are kept in memory
+    units, snaps, last, best = [], [], None, -1
     for ref in data.runs["dqn"]:
         df, grid = load_activity_maps(ref.run_dir)
         u, s = classify_snapshots(df, grid, criterion=PlaceCellCriterion(box_measure=box_measure))
@@ -51,8 +53,10 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
         s.insert(0, "job", ref.job)
         units.append(u)
         snaps.append(s)
-        if last is None:
-            last = (df, grid)
+        for run, rows in s.groupby("run", sort=True):
+            count = int(rows.loc[rows["trial"].idxmax(), "place_cells"])
+            if count > best:
+                best, last = count, (df, grid, ref.job, int(run))
     unit_table = pd.concat(units, ignore_index=True)
     snapshots = pd.concat(snaps, ignore_index=True)
     # runs of several jobs (one per seed) numbered 0, 1, ... in (job, run) order
@@ -75,15 +79,14 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
     plot_rsa(snapshots, ax_rsa)
     ax_rsa.set_title("C  population RDM vs distance", fontsize=8)
 
-    # example maps: the first run's last snapshot, its place cells with the most information
+    # example maps: that run's last snapshot, its place cells with the most information
     assert last is not None
-    df, grid = last
-    run0 = int(df["run"].min())
-    t_last = int(df.loc[df["run"] == run0, "trial"].max())
-    snap = df[(df["run"] == run0) & (df["trial"] == t_last)]
+    df, grid, job, run_in_job = last
+    t_last = int(df.loc[df["run"] == run_in_job, "trial"].max())
+    snap = df[(df["run"] == run_in_job) & (df["trial"] == t_last)]
     maps, explored, unit_ids, heads = maps_array(snap, grid)
-    first = unit_table[(unit_table["run"] == number[(data.runs["dqn"][0].job, run0)])
-                       & (unit_table["trial"] == t_last)]  # fmt: skip
+    run0 = number[(job, run_in_job)]
+    first = unit_table[(unit_table["run"] == run0) & (unit_table["trial"] == t_last)]
     cells = first[first["is_place_cell"]].sort_values("spatial_information", ascending=False)
     picks = cells["unit"].head(3).tolist()
     note = "place cells" if picks else "no place cells: units with the most information"

@@ -95,6 +95,27 @@ def test_fig8_draw_writes_counts_and_spearman(tmp_path):
     assert table["spearman_rho_mean_count"].iloc[0] == pytest.approx(1.0)
 
 
+def test_fig8_maps_panel_shows_the_run_with_the_most_place_cells(tmp_path):
+    """Panel D: the place cells of the run with the most of them at its last snapshot (a run
+    whose layer died shows nothing), here the second."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures.registry import FigureData, RunRef, get
+
+    refs = []
+    for job, counts in enumerate(({0: 0, 800: 0}, {0: 0, 800: 3})):
+        synthetic_run_folder(tmp_path / f"r{job}", counts, seed=job)
+        refs.append(RunRef("dqn", job, (), {}, tmp_path / f"r{job}", "hash"))
+    fig, table = get("fig8").draw(FigureData(runs={"dqn": refs}))
+    titles = [sub.get_suptitle() for sub in fig.subfigs]
+    plt.close(fig)
+    assert table.groupby("run")["place_cells"].max().tolist() == [0, 3]
+    assert "D  activity maps at trial 800 (run 1; place cells)" in titles
+
+
 def test_fig8_compares_boxes_by_area_and_fig8_stable_by_extent(tmp_path):
     """fig8 classifies with the original script's box comparison: a band across most of the
     maze's width (21% of its area) passes by area; fig8_stable compares extents: it fails."""

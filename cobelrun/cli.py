@@ -382,7 +382,7 @@ def figure_cmd(
             "-j",
             help="Run up to N of the figure's missing runs at once, one process each (a "
             "deep agent uses one core: N up to the number of cores); 1: one after another, "
-            "with a progress bar. Default: the figure's own (1; one per core for fig8).",
+            "with a progress bar. Default: the figure's own (1; one per core for fig8 and fig8_stable).",
         ),
     ] = None,
 ) -> None:

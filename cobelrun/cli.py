@@ -385,6 +385,14 @@ def figure_cmd(
             "with a progress bar. Default: the figure's own (1; one per core for fig8 and fig8_stable).",
         ),
     ] = None,
+    finished_only: Annotated[
+        bool,
+        typer.Option(
+            "--finished-only",
+            help="Run nothing: draw from the figure's runs that are already finished (e.g. "
+            "while its other runs go on), to NAME_partial.*; the runs left out are listed.",
+        ),
+    ] = False,
 ) -> None:
     """Build a paper figure: run what it needs (finished runs are reused), then draw it.
 
@@ -412,6 +420,7 @@ def figure_cmd(
         chosen = list(known.values()) if name == "all" else [get(name)]
         for fig in chosen:
             files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (), jobs=jobs,
+                          finished_only=finished_only,
                           log=lambda m: typer.echo(m, err=True))  # fmt: skip
             for path in files.values():
                 typer.echo(str(path))

@@ -123,6 +123,31 @@ def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_
     assert "Traceback" not in bad.stderr
 
 
+def test_figure_finished_only_draws_what_is_done_and_runs_nothing(cobel, tmp_path):
+    """`cobel figure NAME --finished-only`: the figure from the runs already finished (here one
+    job taken from a sweep), to NAME_partial.*, naming the runs left out; nothing finished is
+    one line."""
+    write_mine(tmp_path)
+    none = cobel("figure", "mine", "--finished-only")
+    assert none.returncode != 0 and "Traceback" not in none.stderr
+    assert "mine: no finished run for 'a' to draw" in none.stderr
+    sweep = tmp_path / "sweep"
+    one = ["task=tmaze_extinction", "seed=1", "task.runs=1", "task.protocol.phases.0.trials=5",
+           "task.protocol.phases.1.trials=5"]  # fmt: skip
+    proc = cobel("run", "-m", *one, "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
+    assert proc.returncode == 0, proc.stderr
+    part = cobel("figure", "mine", "--finished-only", "--from", str(sweep))
+    assert part.returncode == 0, part.stderr
+    assert (
+        "drawing the 1 finished of 2 runs, running nothing; not finished: a job 1 (seed=2)"
+        in part.stderr
+    )
+    out = tmp_path / "results" / "figures"
+    table = pd.read_csv(out / "mine_partial.csv")
+    assert table["seed"].unique().tolist() == [1] and not (out / "mine.csv").exists()
+    assert len(list((out / "runs").iterdir())) == 1  # the missing run was not started
+
+
 def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
     proc = cobel("figure", "fig7", "--quick")
     assert proc.returncode == 0, proc.stderr

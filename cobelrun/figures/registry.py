@@ -400,6 +400,36 @@ def run_parallel(
         raise errors[0]
 
 
+def _finished_part(
+    figure: Figure,
+    planned: list[_Planned],
+    todo: list[_Planned],
+    log: Callable[[str], None] | None,
+) -> tuple[list[_Planned], list[_Planned]]:
+    """``cobel figure --finished-only``: the planned runs that are finished (none to run); a
+    one-line CobelError when a label of the figure has none."""
+    missing = {id(p) for p in todo}
+    done = [p for p in planned if id(p) not in missing]
+    empty = [label for label in figure.runs if not any(p.label == label for p in done)]
+    if empty:
+        raise CobelError(
+            f"{figure.name}: no finished run for {', '.join(map(repr, empty))} to draw; run "
+            f"`cobel figure {figure.name}` (or take a sweep's runs with --from) first"
+        )
+    if log:
+        left = "; ".join(
+            f"{p.label} job {p.job}" + (f" ({_params_text(p.params)})" if p.params else "")
+            for p in todo
+        )
+        log(f"{figure.name}: drawing the {len(done)} finished of {len(planned)} runs, running "
+            f"nothing" + (f"; not finished: {left}" if left else ""))  # fmt: skip
+    return done, []
+
+
+def _params_text(params: Mapping[str, Any]) -> str:
+    return ", ".join(f"{k}={v}" for k, v in params.items())
+
+
 def build(
     figure: Figure,
     *,
@@ -409,6 +439,7 @@ def build(
     log: Callable[[str], None] | None = None,
     reuse_from: Sequence[Path] = (),
     jobs: int | None = None,
+    finished_only: bool = False,
 ) -> dict[str, Path]:
     """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
 
@@ -418,6 +449,8 @@ def build(
     ``jobs``: run up to this many of the missing runs at once, each in a process of its own
     (:func:`run_parallel`); 1 runs them one after another in this process, with a progress bar;
     None takes the figure's own default (:attr:`Figure.jobs`).
+    ``finished_only``: run nothing and draw from the runs already finished (each of the
+    figure's labels needs one at least), to ``NAME_partial.*``; the runs left out are logged.
 
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
@@ -441,7 +474,9 @@ def build(
         if log:
             log(f"{figure.name}: {taken} runs taken from {', '.join(map(str, reuse_from))}")
         todo = [p for p in todo if not is_complete(p.run_dir, p.config_hash)]
-    if log:
+    if finished_only:
+        planned, todo = _finished_part(figure, planned, todo, log)
+    elif log:
         log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
             f"{len(todo)} to run")  # fmt: skip
     if jobs > 1 and len(todo) > 1:
@@ -459,6 +494,7 @@ def build(
                      reused=p.run_dir not in todo_dirs)  # fmt: skip
         data.runs.setdefault(p.label, []).append(ref)
     stem = f"{figure.name}_quick" if quick else figure.name
+    stem += "_partial" if finished_only else ""
     import matplotlib
 
     matplotlib.use("Agg")

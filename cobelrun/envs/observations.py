@@ -253,7 +253,6 @@ class ImageObservation(ObservationModule):
         # online: graph views rendered once and kept (the scene is static), up to a byte budget
         self.reuse_views = bool(reuse_views)
         self._online_views: dict[tuple[int, int], np.ndarray] = {}
-        self._online_bytes = 0
 
     # ------------------------------------------------------------------ binding
     def bind(self, topology: Any) -> None:
@@ -416,10 +415,9 @@ class ImageObservation(ObservationModule):
         view = self._online_views.get(key)
         if view is None:
             view = self.process(self.render_raw(node, heading))
-            if self._online_bytes + view.nbytes > ONLINE_VIEWS_BYTES:
+            if (len(self._online_views) + 1) * view.nbytes > ONLINE_VIEWS_BYTES:  # same sizes
                 return view
             self._online_views[key] = view
-            self._online_bytes += view.nbytes
         return view.copy()
 
     def image_modules(self) -> list[ImageObservation]:
@@ -433,7 +431,7 @@ class ImageObservation(ObservationModule):
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_scene"] = None  # a pybullet connection does not travel
-        state["_online_views"], state["_online_bytes"] = {}, 0  # re-rendered where needed
+        state["_online_views"] = {}  # re-rendered where needed
         return state
 
 

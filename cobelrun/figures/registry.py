@@ -405,11 +405,11 @@ def _finished_part(
     planned: list[_Planned],
     todo: list[_Planned],
     log: Callable[[str], None] | None,
-) -> tuple[list[_Planned], list[_Planned]]:
-    """``cobel figure --finished-only``: the planned runs that are finished (none to run); a
-    one-line CobelError when a label of the figure has none."""
-    missing = {id(p) for p in todo}
-    done = [p for p in planned if id(p) not in missing]
+) -> list[_Planned]:
+    """``cobel figure --finished-only``: the planned runs that are finished; a one-line
+    CobelError when a label of the figure has none."""
+    missing = {p.run_dir for p in todo}
+    done = [p for p in planned if p.run_dir not in missing]
     empty = [label for label in figure.runs if not any(p.label == label for p in done)]
     if empty:
         raise CobelError(
@@ -417,17 +417,12 @@ def _finished_part(
             f"`cobel figure {figure.name}` (or take a sweep's runs with --from) first"
         )
     if log:
-        left = "; ".join(
-            f"{p.label} job {p.job}" + (f" ({_params_text(p.params)})" if p.params else "")
-            for p in todo
-        )
+        params = [", ".join(f"{k}={v}" for k, v in p.params.items()) for p in todo]
+        left = "; ".join(f"{p.label} job {p.job}" + (f" ({text})" if text else "")
+                         for p, text in zip(todo, params, strict=True))  # fmt: skip
         log(f"{figure.name}: drawing the {len(done)} finished of {len(planned)} runs, running "
             f"nothing" + (f"; not finished: {left}" if left else ""))  # fmt: skip
-    return done, []
-
-
-def _params_text(params: Mapping[str, Any]) -> str:
-    return ", ".join(f"{k}={v}" for k, v in params.items())
+    return done
 
 
 def build(
@@ -475,7 +470,7 @@ def build(
             log(f"{figure.name}: {taken} runs taken from {', '.join(map(str, reuse_from))}")
         todo = [p for p in todo if not is_complete(p.run_dir, p.config_hash)]
     if finished_only:
-        planned, todo = _finished_part(figure, planned, todo, log)
+        planned, todo = _finished_part(figure, planned, todo, log), []
     elif log:
         log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
             f"{len(todo)} to run")  # fmt: skip

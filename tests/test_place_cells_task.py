@@ -268,3 +268,42 @@ def test_nwb_export_of_a_tabular_run(cobel, tmp_path):
         assert "network" not in f.processing
     missing = cobel("export", "nwb", str(tmp_path / "nope"))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
+
+
+class _Layer:
+    """An agent whose one layer gives ``fn(views)`` (units in the last axis)."""
+
+    def __init__(self, fn) -> None:
+        self.fn = fn
+
+    def layer_names(self) -> list[str]:
+        return ["analysis"]
+
+    def activations(self, views, layers):
+        return {"analysis": self.fn(np.asarray(views, np.float32))}
+
+
+def test_maps_monitor_warns_once_when_a_layer_goes_silent(caplog):
+    from cobelrun.monitors.maps import ActivityMapMonitor
+
+    mon = ActivityMapMonitor(grid=[3, 3], headings=2)
+    mon.setup(hex_env())
+    rows: list[dict] = []
+    mon.bind(lambda table, cols: rows.append(cols))
+    alive = _Layer(lambda v: np.stack([v.mean(axis=(1, 2, 3)), np.zeros(len(v))], axis=1))
+    dead = _Layer(lambda v: np.zeros((len(v), 2), np.float32))
+    with caplog.at_level("WARNING", logger="cobel"):
+        mon.start_run(0, alive)
+        mon.snapshot(dead, 0)  # before training: an untrained layer is not reported
+        mon.snapshot(alive, 800)  # one unit varies over the poses
+        assert not caplog.records
+        mon.snapshot(dead, 1600)
+        mon.snapshot(dead, 2400)  # once per run and layer
+        mon.start_run(1, alive)
+        mon.snapshot(dead, 800)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2, lines
+    assert "layer 'analysis' of run 0 is silent at trial 1600: none of its 2 units" in lines[0]
+    assert "over the 18 probe poses" in lines[0] and "run 1 is silent at trial 800" in lines[1]
+    # the grid table, each start_run's trial-0 snapshot and the 5 snapshots taken here
+    assert len(rows) == 1 + 2 + 5 and all("value" in r for r in rows[1:])

@@ -20,6 +20,7 @@ back by :func:`cobelrun.analysis.maps.load_activity_maps`.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -32,6 +33,9 @@ from cobelrun.errors import ConfigError
 from cobelrun.monitors import Table
 from cobelrun.monitors.activity import ActivityMonitor
 from cobelrun.safety import check_allocation
+
+#: the run's log (``cobel.log``; warnings also on stderr)
+LOG = logging.getLogger("cobel")
 
 
 class ActivityMapMonitor(ActivityMonitor):
@@ -98,6 +102,8 @@ class ActivityMapMonitor(ActivityMonitor):
         #: seconds of each snapshot's forward passes and row building
         self.snapshot_seconds: list[float] = []
         self._grid_written = False
+        #: (run, layer) pairs already reported as silent (one warning each)
+        self._silent_reported: set[tuple[int, str]] = set()
 
     # -- wiring ------------------------------------------------------------------------------
     def setup(self, env: Any) -> None:
@@ -215,6 +221,7 @@ class ActivityMapMonitor(ActivityMonitor):
         for name, chunks in parts.items():
             acts = np.concatenate(chunks).reshape(m, d, -1)  # (positions, headings, units)
             units = acts.shape[2]
+            self._check_silent(name, acts, trial)
             values = acts.transpose(2, 1, 0)  # (units, headings, positions)
             size = values.size
             cols["run"].append(np.full(size, self._run, np.int32))
@@ -233,3 +240,22 @@ class ActivityMapMonitor(ActivityMonitor):
         self.snapshot_seconds.append(time.perf_counter() - t0)
         if cols["run"]:
             self.emit(MAPS_TABLE, {k: np.concatenate(v) for k, v in cols.items()})
+
+    def _check_silent(self, layer: str, acts: np.ndarray, trial: int) -> None:
+        """Warn once per run and layer when no unit varies over the probe poses after training
+        started: a dead layer (every ReLU unit off everywhere) has no maps to classify, and a
+        dead ReLU layer passes no gradient to the layers below it, so it seldom recovers."""
+        key = (self._run, layer)
+        if trial == 0 or key in self._silent_reported or acts.size == 0:
+            return
+        flat = acts.reshape(-1, acts.shape[2])
+        if np.any(flat.max(axis=0) > flat.min(axis=0)):
+            return
+        self._silent_reported.add(key)
+        LOG.warning(
+            "activity maps: layer %r of run %d is silent at trial %d: none of its %d units "
+            "changes over the %d probe poses (a dead layer: no maps to classify, and no "
+            "gradient reaches the layers below it; docs/place_cells.md, 'Why the analysis "
+            "layer collapsed')",
+            layer, self._run, trial, flat.shape[1], flat.shape[0],
+        )

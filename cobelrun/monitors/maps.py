@@ -257,5 +257,9 @@ class ActivityMapMonitor(ActivityMonitor):
             "changes over the %d probe poses (a dead layer: no maps to classify, and no "
             "gradient reaches the layers below it; docs/place_cells.md, 'Why the analysis "
             "layer collapsed')",
-            layer, self._run, trial, flat.shape[1], flat.shape[0],
+            layer,
+            self._run,
+            trial,
+            flat.shape[1],
+            flat.shape[0],
         )

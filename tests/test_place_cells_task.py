@@ -292,18 +292,25 @@ def test_maps_monitor_warns_once_when_a_layer_goes_silent(caplog):
     mon.bind(lambda table, cols: rows.append(cols))
     alive = _Layer(lambda v: np.stack([v.mean(axis=(1, 2, 3)), np.zeros(len(v))], axis=1))
     dead = _Layer(lambda v: np.zeros((len(v), 2), np.float32))
+    flat = _Layer(lambda v: np.full((len(v), 2), 0.5, np.float32))  # on, but the same everywhere
+    nan = _Layer(lambda v: np.full((len(v), 2), np.nan, np.float32))
     with caplog.at_level("WARNING", logger="cobel"):
-        mon.start_run(0, alive)
-        mon.snapshot(dead, 0)  # before training: an untrained layer is not reported
+        mon.start_run(0, dead)  # before training: an untrained layer is not reported
         mon.snapshot(alive, 800)  # one unit varies over the poses
         assert not caplog.records
         mon.snapshot(dead, 1600)
         mon.snapshot(dead, 2400)  # once per run and layer
         mon.start_run(1, alive)
-        mon.snapshot(dead, 800)
+        mon.snapshot(flat, 800)
+        mon.start_run(2, alive)
+        mon.snapshot(nan, 800)
     lines = [r.getMessage() for r in caplog.records]
-    assert len(lines) == 2, lines
-    assert "layer 'analysis' of run 0 is silent at trial 1600: none of its 2 units" in lines[0]
-    assert "over the 18 probe poses" in lines[0] and "run 1 is silent at trial 800" in lines[1]
+    assert len(lines) == 3, lines
+    assert (
+        "layer 'analysis' of run 0 at trial 1600 is silent: all 2 units are 0 at all 18" in lines[0]
+    )
+    assert "dead layer" in lines[0] and "dead layer" not in lines[1]
+    assert "run 1 at trial 800 is constant: none of its 2 units changes over the 18" in lines[1]
+    assert "run 2 at trial 800 has non-finite values" in lines[2]
     # the grid table, each start_run's trial-0 snapshot and the 5 snapshots taken here
-    assert len(rows) == 1 + 2 + 5 and all("value" in r for r in rows[1:])
+    assert len(rows) == 1 + 3 + 5 and all("value" in r for r in rows[1:])

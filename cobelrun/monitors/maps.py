@@ -242,24 +242,32 @@ class ActivityMapMonitor(ActivityMonitor):
             self.emit(MAPS_TABLE, {k: np.concatenate(v) for k, v in cols.items()})
 
     def _check_silent(self, layer: str, acts: np.ndarray, trial: int) -> None:
-        """Warn once per run and layer when no unit varies over the probe poses after training
-        started: a dead layer (every ReLU unit off everywhere) has no maps to classify, and a
-        dead ReLU layer passes no gradient to the layers below it, so it seldom recovers."""
+        """Warn once per run and layer when, after training started, the layer's values are not
+        finite, all 0 (a dead layer: every ReLU unit off at every pose, so it has no maps to
+        classify and passes no gradient to the layers below it; it seldom recovers), or
+        constant over the poses (no spatial information). A layer that recovers and dies again
+        is not reported a second time."""
         key = (self._run, layer)
         if trial == 0 or key in self._silent_reported or acts.size == 0:
             return
         flat = acts.reshape(-1, acts.shape[2])
-        if np.any(flat.max(axis=0) > flat.min(axis=0)):
+        where = f"activity maps: layer {layer!r} of run {self._run} at trial {trial}"
+        units, poses = flat.shape[1], flat.shape[0]
+        if not np.isfinite(flat).all():
+            message = f"{where} has non-finite values (NaN or inf): the network diverged"
+        elif not flat.any():
+            message = (
+                f"{where} is silent: all {units} units are 0 at all {poses} probe poses (a dead "
+                "layer: no maps to classify; for a ReLU layer no gradient reaches the layers "
+                "below it, so it seldom recovers; docs/place_cells.md, 'Why the analysis layer "
+                "collapsed')"
+            )
+        elif not np.any(flat.max(axis=0) > flat.min(axis=0)):
+            message = (
+                f"{where} is constant: none of its {units} units changes over the {poses} "
+                "probe poses (no spatial information to classify)"
+            )
+        else:
             return
         self._silent_reported.add(key)
-        LOG.warning(
-            "activity maps: layer %r of run %d is silent at trial %d: none of its %d units "
-            "changes over the %d probe poses (a dead layer: no maps to classify, and no "
-            "gradient reaches the layers below it; docs/place_cells.md, 'Why the analysis "
-            "layer collapsed')",
-            layer,
-            self._run,
-            trial,
-            flat.shape[1],
-            flat.shape[0],
-        )
+        LOG.warning(message)

@@ -113,7 +113,8 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
         monitor.setup(env)
         monitors[str(name)] = monitor
     record = RecordConfig.from_spec(spec.task.record)
-    if probe_agent or record.training_log:
+    checks = [m for m in monitors.values() if callable(getattr(m, "check_agent", None))]
+    if probe_agent or record.training_log or checks:
         try:  # constructor errors surface here, before any output
             probe = make_agent(seed=run_seed(spec.seed, 0)[0])
         except (CobelError, MemoryError):  # a MemoryError is a missing memory estimate
@@ -122,6 +123,8 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
             raise ConfigError(
                 f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
             ) from exc
+        for monitor in checks:  # e.g. the layers an activity monitor records exist
+            monitor.check_agent(probe)
         if record.training_log and not callable(getattr(probe, "log_training", None)):
             raise ConfigError(
                 f"task.record.training_log needs a deep (SB3) agent such as agent=dqn; "

@@ -448,7 +448,9 @@ def test_dyna_state_table_update_equals_the_per_sample_update(agent):
 
     from cobelrun.agents.batched_dyna import BatchedDyna
 
+    layers = "q/output" if agent == "dyna_dqn" else "sr/output"  # Dyna-DQN has no SR network
     task = build_task(compose(None, [*FIG7, f"agent={agent}", "task.runs=3",
+                                     f"task.monitors.activity.layers=[{layers}]",
                                      "task.batch_runs=false"]))  # fmt: skip
 
     def learner() -> BatchedDyna:

@@ -22,7 +22,7 @@ import pyarrow as pa
 
 from cobelrun.agents.base import TrialCallback
 from cobelrun.envs.base import DiscreteStates, StateObservations
-from cobelrun.errors import ConfigError
+from cobelrun.errors import ConfigError, suggest
 from cobelrun.monitors import Monitor, Table
 
 
@@ -84,6 +84,22 @@ class ActivityMonitor(Monitor, TrialCallback):
             pa.field("layer", pa.string()), pa.field("unit", pa.int32()),
             pa.field("probe", pa.int32()), pa.field("value", pa.float32()),
         ), per="event")]  # fmt: skip
+
+    def check_agent(self, agent: Any) -> None:
+        """Before anything is written: the agent exposes activations and has the named layers
+        (a one-line ConfigError with the closest name and the layers it has otherwise)."""
+        if not isinstance(agent, HasActivations):
+            raise ConfigError(
+                f"activity monitor: agent {type(agent).__name__} exposes no layer activations "
+                "(deep agents do: DQNAgent, DynaDQN, DynaDSR)"
+            )
+        names = list(agent.layer_names())
+        unknown = [name for name in self.layers or [] if name not in names]
+        if unknown:
+            raise ConfigError(
+                f"activity monitor: unknown layer {unknown[0]!r}{suggest(unknown[0], names)}; "
+                f"agent {type(agent).__name__} has: {', '.join(names)}"
+            )
 
     # -- timing ------------------------------------------------------------------------------
     def start_run(self, run: int, agent: Any = None) -> None:

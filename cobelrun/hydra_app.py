@@ -56,15 +56,27 @@ def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> s
     m = _COULD_NOT_OVERRIDE.search(text)
     if m and _STRUCT_KEY.search(text + str(exc.__cause__ or "")):
         full = m.group(1)
-        parent, _, leaf = full.rpartition(".")
+        parts = full.split(".")
+        # the first part of the path that does not exist (a misspelled group such as
+        # task.monitors.map.every names 'map', not 'every'), and the keys next to it
+        node: Any = cfg_for_keys
+        at = len(parts) - 1
+        for i, part in enumerate(parts[:-1]):
+            if not (isinstance(node, DictConfig) and part in node):
+                at = i
+                break
+            node = node[part]
         allowed: list[str] = []
-        if cfg_for_keys is not None:
-            node = OmegaConf.select(cfg_for_keys, parent) if parent else cfg_for_keys
-            if isinstance(node, DictConfig):
-                allowed = [str(k) for k in node.keys() if not str(k).startswith("_")]
+        if isinstance(node, DictConfig):
+            allowed = [str(k) for k in node.keys() if not str(k).startswith("_")]
+        leaf = parts[at]
+        where = ""
+        if at < len(parts) - 1:
+            where = f": {'.'.join(parts[:at]) or 'the config'} has no '{leaf}'"
         hint = f"; allowed: {allowed_list(allowed)}" if allowed else ""
         return (
-            f"unknown key '{full}'{suggest(leaf, allowed)}{hint} (use +{full}=... to add a new key)"
+            f"unknown key '{full}'{where}{suggest(leaf, allowed)}{hint} "
+            f"(use +{full}=... to add a new key)"
         )
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     return first

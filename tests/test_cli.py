@@ -160,6 +160,11 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         (["agent=dynaq"], "unknown agent 'dynaq' (did you mean 'dyna_q'?)"),
         (["env=tmaze_papr"], "unknown env 'tmaze_papr' (did you mean 'tmaze_paper'?)"),
         (["agent.epsilonn=0.2"], "unknown key 'agent.epsilonn' (did you mean 'epsilon'?)"),
+        (
+            ["task.monitors.respons.states=[left]"],
+            "unknown key 'task.monitors.respons.states': task.monitors has no 'respons' "
+            "(did you mean 'response'?); allowed: ",
+        ),
         (["agent.epsilon=abc"], "agent.epsilon must be a number, got 'abc'"),
         (["agent.policy=greedy"], "agent.policy 'greedy' is not known"),
         (["task.runs=0"], "task.runs must be an integer >= 1"),

@@ -227,6 +227,15 @@ def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
         assert "place cells" in f.keywords[:]
         assert f.subject.subject_id == "DQNAgent-run0"
 
+    # cobel plot (the run summary's first hint) draws the run's place-cell panels
+    plotted = cobel("plot", run_dir)
+    assert plotted.returncode == 0, plotted.stderr
+    assert plotted.stdout.strip().splitlines()[-1].endswith("plot.png")
+    from cobelrun.figures.place_cells import plot_run
+
+    with pytest.raises(CobelError, match=r"has no activity_maps\.parquet .*--kind occupancy"):
+        plot_run(tmp_path)
+
 
 @pytest.mark.slow
 def test_place_cells_task_offline_equals_online(cobel, tmp_path):
@@ -314,3 +323,22 @@ def test_maps_monitor_warns_once_when_a_layer_goes_silent(caplog):
     assert "run 2 at trial 800 has non-finite values" in lines[2]
     # the grid table, each start_run's trial-0 snapshot and the 5 snapshots taken here
     assert len(rows) == 1 + 3 + 5 and all("value" in r for r in rows[1:])
+
+
+@pytest.mark.parametrize("grid", [25, "ab", [1, 1], [6]])
+def test_maps_monitor_grid_must_be_two_integers(grid):
+    from cobelrun.monitors.maps import ActivityMapMonitor
+
+    with pytest.raises(ConfigError, match=r"activity maps 'grid' must be \[nx, ny\] integers >= 2"):
+        ActivityMapMonitor(grid=grid)
+
+
+def test_unknown_layer_fails_before_the_run_folder_is_made(cobel, tmp_path):
+    out = tmp_path / "run"
+    proc = cobel("run", *TINY, "task.monitors.maps.layers=[analysys]", f"hydra.run.dir={out}")
+    assert proc.returncode == 2
+    err = proc.stderr.strip().splitlines()[-1]
+    assert (
+        "unknown layer 'analysys' (did you mean 'analysis'?); agent DQNAgent has: analysis" in err
+    )
+    assert not out.exists()

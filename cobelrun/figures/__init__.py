@@ -17,6 +17,8 @@ from cobelrun.io.atomic import atomic_path, disk_error
 PLOTS_BY_TASK: dict[str, str] = {
     "latent_learning": "cobelrun.figures.latent",
     "two_afc": "cobelrun.figures.choice",
+    "place_cells": "cobelrun.figures.place_cells",
+    "place_cells_original": "cobelrun.figures.place_cells",
 }
 DEFAULT_PLOT = "cobelrun.figures.extinction"
 

@@ -70,6 +70,7 @@ class ActivityMapMonitor(ActivityMonitor):
         super().__init__(layers=layers, every=every, probes=None)
         if (
             isinstance(grid, str)
+            or not hasattr(grid, "__len__")
             or len(grid) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in grid)
         ):

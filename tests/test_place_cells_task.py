@@ -226,6 +226,10 @@ def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
         assert np.allclose(table["maps"].data[2 * 50 + 7], maps[7])
         assert "place cells" in f.keywords[:]
         assert f.subject.subject_id == "DQNAgent-run0"
+        # the task's text says "every 800 trials": the overrides it ran with are named too
+        assert f.session_description.startswith("Fig. 8: place cells")
+        assert "Run with: task.runs=1 task.protocol.phases.0.trials=3" in f.session_description
+        assert "task.monitors.maps.every=2" in f.session_description
 
     # cobel plot (the run summary's first hint) draws the run's place-cell panels
     plotted = cobel("plot", run_dir)

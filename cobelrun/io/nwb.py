@@ -2,7 +2,8 @@
 
 What goes where (NWB's own types, so NWB tools and ``nwbinspector`` read the files):
 
-- session: ``session_description`` (the task's description), ``identifier`` (config hash + run),
+- session: ``session_description`` (the task's description and the overrides the run was
+  made with), ``identifier`` (config hash + run),
   ``session_start_time`` (the manifest's start), ``keywords``, ``notes`` (the resolved
   config as YAML), ``source_script`` (the cobel command);
 - ``subject``: the agent (``subject_id`` = agent class + run, ``description`` = its
@@ -95,11 +96,28 @@ def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) ->
             activity=None if activity is None else activity[activity["run"] == run],
             manifest=manifest,
             config_text=config_text,
+            overrides=_overrides(run_dir, manifest),
         )
         with _pynwb().NWBHDF5IO(str(path), "w") as io:
             io.write(nwb)
         files.append(path)
     return files
+
+
+def _overrides(run_dir: Path, manifest: dict[str, Any]) -> list[str]:
+    """The overrides the run was made with: a sweep job's own (``job.json``), else those of
+    the ``cobel run`` command in the manifest (Hydra's ``hydra.*`` settings left out)."""
+    job = run_dir / "job.json"
+    if job.is_file():
+        try:
+            found = json.loads(job.read_text()).get("overrides")
+        except (OSError, ValueError, AttributeError):
+            found = None
+        if isinstance(found, list):
+            return [str(o) for o in found]
+    command = [str(c) for c in manifest.get("command") or []]
+    args = command[command.index("run") + 1 :] if "run" in command else []
+    return [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
 
 
 def _read_maps(run_dir: Path) -> tuple[pd.DataFrame, Any] | None:
@@ -108,6 +126,12 @@ def _read_maps(run_dir: Path) -> tuple[pd.DataFrame, Any] | None:
     from cobelrun.analysis.maps import load_activity_maps
 
     return load_activity_maps(run_dir)
+
+
+def _session_description(task: dict[str, Any], name: str, overrides: list[str]) -> str:
+    text = str(task.get("description") or f"cobel task {name}")
+    changed = [o for o in overrides if not o.startswith("task=")]
+    return f"{text} Run with: {' '.join(changed)}" if changed else text
 
 
 def _start_time(manifest: dict[str, Any]) -> datetime:
@@ -128,8 +152,11 @@ def build_nwbfile(
     activity: pd.DataFrame | None,
     manifest: dict[str, Any],
     config_text: str,
+    overrides: list[str] | None = None,
 ) -> Any:
-    """The in-memory ``pynwb.NWBFile`` of one run (see the module docstring)."""
+    """The in-memory ``pynwb.NWBFile`` of one run (see the module docstring). ``overrides``
+    (the run's command-line settings) are named in the session description, which otherwise
+    repeats the task's own description."""
     pynwb = _pynwb()
     from pynwb.behavior import Position, SpatialSeries
     from pynwb.file import Subject
@@ -144,7 +171,7 @@ def build_nwbfile(
     if maps is not None:
         keywords += ["place cells", "spatial activity maps"]
     nwb = pynwb.NWBFile(
-        session_description=str(task.get("description") or f"cobel task {task_name}"),
+        session_description=_session_description(task, task_name, overrides or []),
         identifier=f"cobel-{task_name}-{chash}-run{run}",
         session_start_time=_start_time(manifest),
         session_id=f"run {run}",

@@ -240,15 +240,19 @@ _register_fit(app)
 @app.command("status")
 def status_cmd(
     sweep_dir: Annotated[
-        Path, typer.Argument(help="A sweep folder (`cobel run -m`) or a run folder.")
+        Path,
+        typer.Argument(
+            help="A sweep folder (`cobel run -m`) or a run folder.", metavar="RUN_OR_SWEEP_DIR"
+        ),
     ],
     problems: Annotated[
         bool, typer.Option("--problems", "-p", help="List only jobs that are not done.")
     ] = False,
 ) -> None:
-    """List a sweep's jobs: done, failed (with the error), running and missing.
+    """A run's status and tables, or a sweep's jobs: done, failed (with the error), running
+    and missing.
 
-    Rebuilds the sweep's job index (SWEEP_DIR/jobs.csv). Exits 1 when a job is not done.
+    For a sweep, rebuilds its job index (SWEEP_DIR/jobs.csv) and exits 1 when a job is not done.
     """
     from rich.console import Console
     from rich.table import Table
@@ -260,6 +264,11 @@ def status_cmd(
     if folder.manifest.is_file():  # a single run folder
         run_status(folder)
         return
+    if sweep_dir.is_dir() and not (sweep_dir / "sweep.json").is_file():
+        fail(
+            f"{sweep_dir} is neither a run folder (no manifest.json; made by `cobel run`) nor a "
+            "sweep folder (no sweep.json; made by `cobel run -m`)"
+        )
     try:
         sweep = read_sweep(sweep_dir)
         rows = job_rows(sweep_dir)

@@ -163,7 +163,13 @@ def test_slurm_launcher_against_stand_in_slurm_commands(cobel, tmp_path):
 
 def test_status_of_a_folder_that_is_no_sweep(cobel, tmp_path):
     proc = cobel("status", str(tmp_path))
-    assert proc.returncode == 2 and "not a cobel sweep folder" in proc.stderr
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (
+        f"cobel: error: {tmp_path} is neither a run folder (no manifest.json; made by `cobel "
+        "run`) nor a sweep folder (no sweep.json; made by `cobel run -m`)"
+    )
+    missing = cobel("status", str(tmp_path / "nowhere"))
+    assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
 @pytest.mark.parametrize("order", [["seed=1,2", "task.runs=2"], ["task.runs=2", "seed=1,2"]])

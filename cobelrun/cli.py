@@ -258,16 +258,16 @@ def status_cmd(
     from rich.table import Table
 
     from cobelrun.io.run_folder import RunFolder
-    from cobelrun.sweep import job_rows, read_sweep, summary
+    from cobelrun.sweep import SWEEP_FILE, job_rows, read_sweep, summary
 
     folder = RunFolder(sweep_dir)
     if folder.manifest.is_file():  # a single run folder
         run_status(folder)
         return
-    if sweep_dir.is_dir() and not (sweep_dir / "sweep.json").is_file():
+    if sweep_dir.is_dir() and not (sweep_dir / SWEEP_FILE).is_file():
         fail(
-            f"{sweep_dir} is neither a run folder (no manifest.json; made by `cobel run`) nor a "
-            "sweep folder (no sweep.json; made by `cobel run -m`)"
+            f"{sweep_dir} is neither a run folder (no {folder.manifest.name}; made by `cobel "
+            f"run`) nor a sweep folder (no {SWEEP_FILE}; made by `cobel run -m`)"
         )
     try:
         sweep = read_sweep(sweep_dir)

@@ -114,15 +114,9 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
         monitors[str(name)] = monitor
     record = RecordConfig.from_spec(spec.task.record)
     checks = [m for m in monitors.values() if callable(getattr(m, "check_agent", None))]
+    probe = None  # run 0's agent, built to check it (and reused by the batch plan)
     if probe_agent or record.training_log or checks:
-        try:  # constructor errors surface here, before any output
-            probe = make_agent(seed=run_seed(spec.seed, 0)[0])
-        except (CobelError, MemoryError):  # a MemoryError is a missing memory estimate
-            raise
-        except Exception as exc:  # a value the agent's own checks did not anticipate
-            raise ConfigError(
-                f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
-            ) from exc
+        probe = _first_agent(make_agent, spec.seed)
         for monitor in checks:  # e.g. the layers an activity monitor records exist
             monitor.check_agent(probe)
         if record.training_log and not callable(getattr(probe, "log_training", None)):
@@ -149,13 +143,14 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
         objective=objective,
         make_env=factory("env", cfg.env),
     )
-    _plan_batches(task, spec.task.batch_runs)
+    _plan_batches(task, spec.task.batch_runs, probe)
     return task
 
 
-def _plan_batches(task: Task, setting: Any) -> None:
+def _plan_batches(task: Task, setting: Any, probe: Any = None) -> None:
     """Decide ``task.batch`` / ``task.batch_note`` from ``task.batch_runs`` (building one agent
-    only for agents that have a batched implementation)."""
+    only for agents that have a batched implementation, unless ``probe``, run 0's agent built
+    to check the config, is given)."""
     from cobelrun.batched import batch_plan
 
     agent_class = getattr(task.make_agent, "func", None)
@@ -174,16 +169,20 @@ def _plan_batches(task: Task, setting: Any) -> None:
         return
 
     def template() -> Any:
-        try:
-            return task.make_agent(seed=run_seed(task.seed, 0)[0])
-        except CobelError:
-            raise
-        except Exception as exc:
-            raise ConfigError(
-                f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}"
-            ) from exc
+        return probe if probe is not None else _first_agent(task.make_agent, task.seed)
 
     task.batch, task.batch_note = batch_plan(setting, task, template)
+
+
+def _first_agent(make_agent: Callable[..., Any], seed: int) -> Any:
+    """Run 0's agent, built to check the config before any output: a constructor error is a
+    one-line ConfigError."""
+    try:
+        return make_agent(seed=run_seed(seed, 0)[0])
+    except (CobelError, MemoryError):  # a MemoryError is a missing memory estimate
+        raise
+    except Exception as exc:  # a value the agent's own checks did not anticipate
+        raise ConfigError(f"cannot build agent: {type(exc).__name__}: {_first_line(exc)}") from exc
 
 
 def _check_resolves(cfg: Any) -> None:

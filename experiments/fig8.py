@@ -35,13 +35,7 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
 
     from cobelrun.analysis.maps import classify_snapshots, load_activity_maps, maps_array
     from cobelrun.analysis.place_cells import PlaceCellCriterion
-    from cobelrun.figures.place_cells import (
-        plot_information,
-        plot_place_cell_counts,
-        plot_rsa,
-        plot_unit_maps,
-        spearman_rho,
-    )
+    from cobelrun.figures.place_cells import plot_summary_panels, plot_unit_maps
 
     # panel D shows the run with the most place cells at its last snapshot (the first such
     # run); only that run's maps are kept in memory
@@ -64,20 +58,9 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
     number = {key: k for k, key in enumerate(pairs)}
     for t in (snapshots, unit_table):
         t["run"] = [number[key] for key in zip(t["job"], t["run"], strict=True)]
-    rho = spearman_rho(snapshots)
-    n_runs = snapshots["run"].nunique()
-
     fig = plt.figure(figsize=(7.2, 6.4), layout="constrained")
     sub_top, sub_maps = fig.subfigures(2, 1, height_ratios=[1.0, 1.2])
-    ax_count, ax_info, ax_rsa = sub_top.subplots(1, 3)
-    plot_place_cell_counts(snapshots, ax_count)
-    rho_text = f"{rho:.2f}" if np.isfinite(rho) else "undefined (a constant count)"
-    runs_text = f"{n_runs} run" + ("s" if n_runs != 1 else "")
-    ax_count.set_title(f"A  place cells ({runs_text}), Spearman ρ = {rho_text}", fontsize=8)
-    plot_information(unit_table, ax_info)
-    ax_info.set_title("B  spatial information", fontsize=8)
-    plot_rsa(snapshots, ax_rsa)
-    ax_rsa.set_title("C  population RDM vs distance", fontsize=8)
+    rho = plot_summary_panels(snapshots, unit_table, sub_top.subplots(1, 3))
 
     # example maps: that run's last snapshot, its place cells with the most information
     assert last is not None
@@ -103,10 +86,6 @@ def draw(data: FigureData, *, box_measure: str = "extent", title: str = TITLE):
                 ax.axis("off")
     sub_maps.suptitle(f"D  activity maps at trial {t_last} (run {run0}; {note})", fontsize=8)
     sub_top.suptitle(title, fontsize=9)
-    for ax in (ax_count, ax_info, ax_rsa):
-        ax.tick_params(labelsize=6)
-        ax.xaxis.label.set_size(7)
-        ax.yaxis.label.set_size(7)
 
     table = snapshots[["job", "run", "trial", "place_cells", "units", "place_cell_fraction",
                        "spatial_information_median", "rsa_spatial"]].copy()  # fmt: skip

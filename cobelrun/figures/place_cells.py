@@ -99,16 +99,37 @@ def plot_unit_maps(
         axes[0].set_ylabel(label, fontsize=6)
 
 
+def plot_summary_panels(snapshots: pd.DataFrame, units: pd.DataFrame, axes: Sequence[Any]) -> float:
+    """Panels A-C on three ``axes``: place cells per snapshot with the Spearman rho of the mean
+    count (A), spatial information (B), population RDM against distance (C), titled and with
+    small tick labels. Returns the rho (NaN for fewer than 3 snapshots or a constant count)."""
+    ax_count, ax_info, ax_rsa = axes
+    rho = spearman_rho(snapshots)
+    plot_place_cell_counts(snapshots, ax_count)
+    rho_text = f"{rho:.2f}" if np.isfinite(rho) else "undefined (a constant count)"
+    n = snapshots["run"].nunique()
+    ax_count.set_title(f"A  place cells ({n} run{'s' * (n != 1)}), Spearman ρ = {rho_text}",
+                       fontsize=8)  # fmt: skip
+    plot_information(units, ax_info)
+    ax_info.set_title("B  spatial information", fontsize=8)
+    plot_rsa(snapshots, ax_rsa)
+    ax_rsa.set_title("C  population RDM vs distance", fontsize=8)
+    for ax in axes:
+        ax.tick_params(labelsize=6)
+        ax.xaxis.label.set_size(7)
+        ax.yaxis.label.set_size(7)
+    return rho
+
+
 #: how ``cobel plot`` compares bounding boxes per task (``fig8``'s reading for the original's
 #: training, cobel's default otherwise)
 BOX_MEASURE_BY_TASK = {"place_cells_original": "area"}
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
-    """``cobel plot RUN_DIR`` for a place-cell task: place cells per snapshot (A), spatial
-    information (B) and the population RDM against distance (C) of the run folder's runs, into
-    ``out`` (default ``RUN_DIR/plot.png``). The paper figure over several seeds, with example
-    maps, is ``cobel figure fig8``."""
+    """``cobel plot RUN_DIR`` for a place-cell task: panels A-C (:func:`plot_summary_panels`)
+    of the run folder's runs, into ``out`` (default ``RUN_DIR/plot.png``). The paper figure
+    over several seeds, with example maps, is ``cobel figure fig8``."""
     import matplotlib.pyplot as plt
 
     from cobelrun.analysis.maps import MAPS_TABLE, classify_snapshots, load_activity_maps
@@ -129,21 +150,8 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     units, snapshots = classify_snapshots(
         df, grid, criterion=PlaceCellCriterion(box_measure=measure)
     )
-    rho = spearman_rho(snapshots)
-    fig, (ax_count, ax_info, ax_rsa) = plt.subplots(1, 3, figsize=(9.0, 3.0), layout="constrained")
-    plot_place_cell_counts(snapshots, ax_count)
-    rho_text = f"{rho:.2f}" if np.isfinite(rho) else "undefined"
-    n = snapshots["run"].nunique()
-    ax_count.set_title(f"A  place cells ({n} run{'s' * (n != 1)}), Spearman ρ = {rho_text}",
-                       fontsize=8)  # fmt: skip
-    plot_information(units, ax_info)
-    ax_info.set_title("B  spatial information", fontsize=8)
-    plot_rsa(snapshots, ax_rsa)
-    ax_rsa.set_title("C  population RDM vs distance", fontsize=8)
-    for ax in (ax_count, ax_info, ax_rsa):
-        ax.tick_params(labelsize=6)
-        ax.xaxis.label.set_size(7)
-        ax.yaxis.label.set_size(7)
+    fig, axes = plt.subplots(1, 3, figsize=(9.0, 3.0), layout="constrained")
+    plot_summary_panels(snapshots, units, axes)
     fig.suptitle(f"{task}: place cells (boxes by {measure}; cobel figure fig8 for the paper "
                  "figure)", fontsize=9)  # fmt: skip
     return save_figure(fig, Path(out) if out is not None else run_dir / "plot.png")

@@ -107,14 +107,12 @@ def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) ->
 def _overrides(run_dir: Path, manifest: dict[str, Any]) -> list[str]:
     """The overrides the run was made with: a sweep job's own (``job.json``), else those of
     the ``cobel run`` command in the manifest (Hydra's ``hydra.*`` settings left out)."""
-    job = run_dir / "job.json"
-    if job.is_file():
-        try:
-            found = json.loads(job.read_text()).get("overrides")
-        except (OSError, ValueError, AttributeError):
-            found = None
-        if isinstance(found, list):
-            return [str(o) for o in found]
+    from cobelrun.io.run_folder import RunFolder
+    from cobelrun.sweep import read_json
+
+    found = (read_json(RunFolder(run_dir).job) or {}).get("overrides")
+    if isinstance(found, list):
+        return [str(o) for o in found]
     command = [str(c) for c in manifest.get("command") or []]
     args = command[command.index("run") + 1 :] if "run" in command else []
     return [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]

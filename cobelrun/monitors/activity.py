@@ -103,12 +103,8 @@ class ActivityMonitor(Monitor, TrialCallback):
 
     # -- timing ------------------------------------------------------------------------------
     def start_run(self, run: int, agent: Any = None) -> None:
-        """A new agent (run): check it exposes activations and take the trial-0 snapshot."""
-        if not isinstance(agent, HasActivations):
-            raise ConfigError(
-                f"activity monitor: agent {type(agent).__name__} exposes no layer activations "
-                "(deep agents do: DQNAgent, DynaDQN, DynaDSR)"
-            )
+        """A new agent (run): check it (:meth:`check_agent`) and take the trial-0 snapshot."""
+        self.check_agent(agent)
         self._run, self._last = run, -1
         if self.layers is None:
             self.layers = list(agent.layer_names())

@@ -169,7 +169,7 @@ def compose(task: str | None = None, overrides: Sequence[str] = ()) -> Any:
         The config without the ``hydra`` node (what a run's ``config.yaml`` holds).
     """
     from cobelrun.config import register_resolvers
-    from cobelrun.hydra_app import composer
+    from cobelrun.compose import composer
 
     register_resolvers()
     with composer() as compose_:
@@ -272,7 +272,7 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     from omegaconf import OmegaConf
 
     from cobelrun.config import GROUPS, apply_overrides
-    from cobelrun.hydra_app import _parse
+    from cobelrun.compose import _parse
 
     folder = RunFolder(run_dir)
     if not folder.config.is_file():

@@ -60,7 +60,7 @@ def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, st
     from cobelrun.errors import CobelError
     from cobelrun.figures import save_figure
     from cobelrun.figures.runs import ascii_geometry, draw_geometry
-    from cobelrun.hydra_app import composer
+    from cobelrun.compose import composer
 
     register_resolvers()
     with composer() as compose:

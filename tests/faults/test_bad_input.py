@@ -1,7 +1,7 @@
 """Bad input and hostile places: one line, non-zero exit, nothing written (issue 15, items 1-3).
 
 Most checks run in-process against ``cobel run``'s up-front validation
-(:func:`cobelrun.hydra_app.validate`, the same code the CLI runs before Hydra creates a folder);
+(:func:`cobelrun.compose.validate`, the same code the CLI runs before Hydra creates a folder);
 a few go through the real CLI to see the one line and the exit code.
 """
 
@@ -17,7 +17,7 @@ import pyarrow as pa
 import pytest
 
 from cobelrun.errors import CobelError, ConfigError
-from cobelrun.hydra_app import composer, validate
+from cobelrun.compose import composer, validate
 from cobelrun.safety import check_inside, check_memory, estimate_memory, results_root
 from cobelrun.schema import validate_run
 

@@ -168,8 +168,8 @@ def compose(task: str | None = None, overrides: Sequence[str] = ()) -> Any:
     omegaconf.DictConfig
         The config without the ``hydra`` node (what a run's ``config.yaml`` holds).
     """
-    from cobelrun.config import register_resolvers
     from cobelrun.compose import composer
+    from cobelrun.config import register_resolvers
 
     register_resolvers()
     with composer() as compose_:
@@ -271,8 +271,8 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     """
     from omegaconf import OmegaConf
 
-    from cobelrun.config import GROUPS, apply_overrides
     from cobelrun.compose import _parse
+    from cobelrun.config import GROUPS, apply_overrides
 
     folder = RunFolder(run_dir)
     if not folder.config.is_file():

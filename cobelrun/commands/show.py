@@ -55,12 +55,12 @@ def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, st
     """
     import matplotlib.pyplot as plt
 
+    from cobelrun.compose import composer
     from cobelrun.config import instantiate, register_resolvers
     from cobelrun.envs.base import HasGeometry
     from cobelrun.errors import CobelError
     from cobelrun.figures import save_figure
     from cobelrun.figures.runs import ascii_geometry, draw_geometry
-    from cobelrun.compose import composer
 
     register_resolvers()
     with composer() as compose:

@@ -16,8 +16,8 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
-from cobelrun.errors import CobelError, ConfigError
 from cobelrun.compose import composer, validate
+from cobelrun.errors import CobelError, ConfigError
 from cobelrun.safety import check_inside, check_memory, estimate_memory, results_root
 from cobelrun.schema import validate_run
 

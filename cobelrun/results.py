@@ -14,6 +14,7 @@ import pandas as pd
 
 from cobelrun.errors import CobelError
 from cobelrun.io.run_folder import RunFolder
+from cobelrun.io.validate import check_table, read_manifest
 
 
 def _run_dir(path: str | Path) -> RunFolder:
@@ -33,10 +34,12 @@ def load_table(path: str | Path, table: str = "trials") -> pd.DataFrame:
     if not p.is_file():
         have = ", ".join(folder.tables()) or "none"
         raise CobelError(f"{folder.path} has no '{table}' table; it has: {have}")
+    check_table(p)  # footer, row counts and the memory it takes, before it is read
     try:
         return pd.read_parquet(p)
-    except Exception as exc:
-        raise CobelError(f"cannot read {p}: {exc}") from None
+    except Exception as exc:  # a damaged page the footer does not show
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CobelError(f"cannot read {p}: {first}") from None
 
 
 def load_trials(path: str | Path) -> pd.DataFrame:
@@ -55,11 +58,11 @@ def load_activity(path: str | Path) -> pd.DataFrame:
 
 
 def load_manifest(path: str | Path) -> dict[str, Any]:
-    """The run's manifest."""
+    """The run's manifest, validated (:func:`cobelrun.io.validate.read_manifest`)."""
     p = _run_dir(path).manifest
     if not p.is_file():
         raise CobelError(f"{p.parent} has no {p.name}")
-    return json.loads(p.read_text())
+    return read_manifest(p)
 
 
 def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:

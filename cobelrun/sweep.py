@@ -28,6 +28,7 @@ import hashlib
 import json
 import os
 import socket
+import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -74,11 +75,26 @@ def job_config_hash(cfg: Any) -> str:
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
-    """A JSON file's content, or None when missing or unreadable (e.g. being replaced)."""
+    """A JSON object file's content, or None when it is missing, unreadable or not an object
+    (:func:`cobelrun.io.validate.read_json_object`: size bounded, nesting bounded). Callers
+    that must tell a damaged file from a missing one use :mod:`cobelrun.io.validate`."""
+    from cobelrun.io.validate import read_json_object
+
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        return read_json_object(path) if path.is_file() else None
+    except CobelError:
         return None
+
+
+def _read_checked(path: Path, reader: Callable[[Path], dict[str, Any]]) -> tuple[dict, str | None]:
+    """(content, None) of a file checked by ``reader``; ({}, None) when missing; ({}, the
+    one-line problem) when it is damaged."""
+    if not path.is_file() and not path.is_symlink():
+        return {}, None
+    try:
+        return reader(path), None
+    except CobelError as exc:
+        return {}, str(exc)
 
 
 def is_complete(
@@ -90,11 +106,13 @@ def is_complete(
 
     ``manifest``: the folder's manifest when the caller has already read it.
     """
+    from cobelrun.io.validate import read_manifest
+
     run_dir = Path(run_dir)
     if not (run_dir / DONE_MARKER).is_file():
         return False
     if manifest is None:
-        manifest = read_json(RunFolder(run_dir).manifest)
+        manifest = _read_checked(RunFolder(run_dir).manifest, read_manifest)[0]
     if manifest is None or manifest.get("status") != "completed":
         return False
     return config_hash is None or manifest.get("config_hash") == config_hash
@@ -241,15 +259,16 @@ def write_sweep(sweep_dir: Path, *, command: str, swept: list[str], jobs: list[d
 
 def read_sweep(sweep_dir: str | os.PathLike[str]) -> dict[str, Any]:
     """The sweep definition (``sweep.json``) of a sweep folder."""
+    from cobelrun.io.validate import read_sweep_file
+
     p = Path(sweep_dir)
     if not p.is_dir():
         raise CobelError(f"sweep folder {p} does not exist")
-    data = read_json(p / SWEEP_FILE)
-    if data is None:
+    if not (p / SWEEP_FILE).is_file() and not (p / SWEEP_FILE).is_symlink():
         raise CobelError(
             f"{p} is not a cobel sweep folder (no {SWEEP_FILE}; made by `cobel run -m`)"
         )
-    return data
+    return read_sweep_file(p / SWEEP_FILE)
 
 
 # -- the index --------------------------------------------------------------------------------
@@ -285,9 +304,20 @@ def job_state(run_dir: Path) -> dict[str, Any]:
     launcher has died (SIGKILL, a crash) is marked ``interrupted`` with :data:`NOT_STARTED`:
     nothing will start it until the sweep is run again."""
     from cobelrun.io.repair import repair_run
+    from cobelrun.io.validate import read_job_file, read_manifest
 
-    repaired = repair_run(run_dir)
-    job = read_json(run_dir / JOB_FILE) or {}
+    if run_dir.is_symlink() or (run_dir.exists() and not run_dir.is_dir()):
+        return _damaged(f"job folder {run_dir} is not a folder of the sweep (a link or a file); "
+                        "cobel does not follow links out of a sweep folder")  # fmt: skip
+    try:
+        repaired = repair_run(run_dir)
+    except CobelError as exc:
+        return _damaged(str(exc))
+    job, job_problem = _read_checked(run_dir / JOB_FILE, read_job_file)
+    manifest, problem = _read_checked(RunFolder(run_dir).manifest, read_manifest)
+    problem = problem or job_problem
+    if problem:
+        return _damaged(problem, job, manifest)
     if job.get("status") == "running" and (
         repaired.get("status") == "interrupted" or not _job_process_alive(job)
     ):  # killed: after its last file (then it is complete), or before (its manifest repaired)
@@ -296,7 +326,7 @@ def job_state(run_dir: Path) -> dict[str, Any]:
         # the launcher that queued it is gone (SIGKILL, a crash): it will never start
         job = write_job_status(run_dir, "interrupted", error=NOT_STARTED.format(
             pid=job.get("launcher_pid")))  # fmt: skip
-    manifest = read_json(RunFolder(run_dir).manifest) or {}
+    manifest = _read_checked(RunFolder(run_dir).manifest, read_manifest)[0]
     if job.get("status") == "queued":
         status = "queued"
     elif is_complete(run_dir, manifest=manifest):
@@ -322,6 +352,16 @@ def job_state(run_dir: Path) -> dict[str, Any]:
         "host": job.get("host", manifest.get("hostname")),
         "ended_at": job.get("ended_at", manifest.get("ended_at")),
     }
+
+
+def _damaged(problem: str, job: Mapping[str, Any] | None = None,
+             manifest: Mapping[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+    """The state of a job whose files cannot be trusted: ``failed``, the problem as its error
+    (a job with a damaged file is never ``done``; running the sweep again redoes it)."""
+    job, manifest = job or {}, manifest or {}
+    return {"status": "failed", "error": problem, "config_hash": None,
+            "duration_s": None, "host": job.get("host", manifest.get("hostname")),
+            "ended_at": job.get("ended_at", manifest.get("ended_at"))}  # fmt: skip
 
 
 def job_dir(sweep_dir: Path, job: int) -> Path:
@@ -354,12 +394,21 @@ def job_rows(sweep_dir: str | os.PathLike[str], *, write: bool = True) -> list[d
         row["overrides"] = " ".join(j["overrides"])
         rows.append(row)
     if write:
-        tmp = sweep_dir / f".{INDEX_FILE}.{os.getpid()}.tmp"
-        with tmp.open("w", newline="", encoding="utf-8") as f:
-            writer = csv.DictWriter(f, fieldnames=["job", *sweep["swept"], *INDEX_COLUMNS])
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, sweep_dir / INDEX_FILE)
+        from cobelrun.io.atomic import atomic_path, disk_error, is_disk_error
+
+        try:
+            with atomic_path(sweep_dir / INDEX_FILE) as tmp:
+                with tmp.open("w", newline="", encoding="utf-8") as f:
+                    fields = ["job", *sweep["swept"], *INDEX_COLUMNS]
+                    writer = csv.DictWriter(f, fieldnames=fields)
+                    writer.writeheader()
+                    writer.writerows(rows)
+        except OSError as exc:  # a full or read-only disk: the index is a cache, say so and go on
+            if not is_disk_error(exc):
+                raise
+            print(f"cobel: warning: {disk_error(exc, sweep_dir / INDEX_FILE)}; the job index "
+                  "was not rewritten (the status below is read from the job folders)",
+                  file=sys.stderr)  # fmt: skip
     return rows
 
 
@@ -395,7 +444,7 @@ def _param_type(values: list[Any]):
         return pa.string(), [None if v is None else json.dumps(v) for v in values]
     try:
         arr = pa.array(values)
-    except (pa.ArrowInvalid, pa.ArrowTypeError):
+    except (pa.ArrowInvalid, pa.ArrowTypeError, OverflowError):
         return pa.string(), [None if v is None else str(v) for v in values]
     if pa.types.is_null(arr.type):
         return pa.string(), values
@@ -419,16 +468,36 @@ def collect(
 
     Returns the written files by table name (tables no done job has are skipped).
     """
+    from cobelrun.io.atomic import disk_error
+
+    sweep_dir = Path(sweep_dir)
+    out = Path(out_dir) if out_dir is not None else sweep_dir / COLLECTED_DIR
+    if out_dir is None and (out.is_symlink() or (out.exists() and not out.is_dir())):
+        raise CobelError(f"{out} is not a folder of the sweep (a link or a file); remove it or "
+                         "give --out")  # fmt: skip
+    try:
+        return _collect(sweep_dir, tables, out, batch_rows, progress)
+    except OSError as exc:  # a full or read-only disk, a folder that cannot be made
+        raise CobelError(disk_error(exc, out)) from None
+
+
+def _collect(
+    sweep_dir: Path,
+    tables: Sequence[str],
+    out: Path,
+    batch_rows: int,
+    progress: Callable[[int, int], None] | None,
+) -> dict[str, Path]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    sweep_dir = Path(sweep_dir)
+    from cobelrun.io.validate import check_table
+
     rows = job_rows(sweep_dir)
     sweep = read_sweep(sweep_dir)
     jobs = [int(r["job"]) for r in rows if r["status"] == "done"]
     if not jobs:
         raise CobelError(f"no job of {sweep_dir} is done yet; see `cobel status {sweep_dir}`")
-    out = Path(out_dir) if out_dir is not None else sweep_dir / COLLECTED_DIR
     out.mkdir(parents=True, exist_ok=True)
     params = {j["job"]: j["params"] for j in sweep["jobs"]}
     ptypes: dict[str, Any] = {}
@@ -447,6 +516,8 @@ def collect(
         files = [(j, f) for j, f in files if f.is_file()]
         if not files:
             continue
+        for _, f in files:  # footers and row counts before anything is combined
+            check_table(f, columns=[])
         try:
             data_schema = pa.unify_schemas(
                 [pq.read_schema(f) for _, f in files], promote_options="permissive"
@@ -467,8 +538,7 @@ def collect(
         try:
             with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
                 for j, f in files:
-                    pf = pq.ParquetFile(f)
-                    for batch in pf.iter_batches(batch_size=batch_rows):
+                    for batch in _batches(f, batch_rows):
                         rows = batch.num_rows
                         cols = [pa.array([j] * rows, pa.int32())]
                         cols += [pa.array([pvalues[k][j]] * rows, t) for k, t in ptypes.items()]
@@ -488,6 +558,19 @@ def collect(
                 tmp.unlink()
         written[table] = target
     return written
+
+
+def _batches(path: Path, batch_rows: int) -> Any:
+    """Record batches of a job's table; a damaged page is one line naming the file."""
+    import pyarrow.parquet as pq
+
+    try:
+        yield from pq.ParquetFile(path).iter_batches(batch_size=batch_rows)
+    except Exception as exc:  # ArrowInvalid, Arrow's IOError: a corrupt page, a bad encoding
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise  # the disk itself
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CobelError(f"{path} is damaged ({first}); run its job again") from None
 
 
 # -- stopping a sweep and keeping it to one launcher ----------------------------------------------

@@ -133,3 +133,47 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     hue = f" --hue {swept}" if swept else ""
     console.print(f"  cobel plot {sweep_dir}{hue}    [dim]# one curve per {swept or 'sweep'}[/]")
     console.print(f"  cobel collect {sweep_dir}    [dim]# one Parquet file per table[/]")
+
+
+def run_status(folder: RunFolder) -> None:
+    """``cobel status RUN_DIR``: repair a killed run's files, then print its status and its
+    tables; exit 1 unless it completed and every table it lists can be read.
+
+    Every file is checked before it is trusted (:mod:`cobelrun.io.validate`): a damaged
+    manifest is one error line naming it; a table cut short or damaged is listed as
+    unreadable and the run is not called completed.
+    """
+    import typer
+
+    from cobelrun.commands.common import fail
+    from cobelrun.errors import CobelError
+    from cobelrun.io.repair import repair_run
+    from cobelrun.io.validate import check_table, read_manifest
+
+    try:
+        repaired = repair_run(folder.path)
+        manifest = read_manifest(folder.manifest)
+    except CobelError as exc:
+        fail(str(exc))
+    status = manifest["status"]
+    unreadable = {}
+    tables = folder.tables()
+    for table in tables:
+        try:
+            check_table(folder.table(table), columns=[])
+        except CobelError as exc:
+            unreadable[table] = str(exc)
+    shown = status if status != "completed" or not unreadable else "completed, but damaged"
+    typer.echo(
+        f"{folder.path}: {shown}" + (f" ({manifest['error']})" if manifest.get("error") else "")
+    )
+    for table, rows in repaired.get("tables", {}).items():
+        typer.echo(f"  repaired {folder.table(table).name}: {rows} rows kept")
+    if repaired.get("mcap"):
+        typer.echo(f"  repaired {folder.mcap.name}: summary rewritten, complete messages kept")
+    readable = [t for t in tables if t not in unreadable]
+    typer.echo(f"  tables: {', '.join(readable) or 'none'}")
+    for problem in unreadable.values():
+        typer.echo(f"  unreadable: {problem}")
+    if status != "completed" or unreadable:
+        raise typer.Exit(1)

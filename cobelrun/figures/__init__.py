@@ -9,6 +9,7 @@ from typing import Any
 
 from cobelrun.errors import CobelError
 from cobelrun.io.atomic import atomic_path, disk_error
+from cobelrun.io.run_folder import RunFolder
 
 #: plot modules by task name (``cobel plot`` picks one from the run's manifest); each has
 #: ``plot_run(run_dir, out=None) -> Path`` (``plot_run(run_dir, out=None, *others)``
@@ -32,12 +33,10 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
     from cobelrun.results import load_manifest
 
     run_dir = Path(run_dir)
-    try:
-        task = str(load_manifest(run_dir).get("task", ""))
-    except CobelError:
-        if not run_dir.is_dir():
-            raise
+    if run_dir.is_dir() and not RunFolder(run_dir).manifest.is_file():
         task = ""  # a run folder without manifest: draw the default plot
+    else:  # a damaged manifest is one line naming it
+        task = str(load_manifest(run_dir).get("task") or "")
     draw = importlib.import_module(PLOTS_BY_TASK.get(task, DEFAULT_PLOT)).plot_run
     takes_more = any(
         p.kind is inspect.Parameter.VAR_POSITIONAL

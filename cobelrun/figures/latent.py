@@ -246,7 +246,9 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
     activity = world = None
     latent_dir = folder.get("latent")
     if latent_dir is not None and RunFolder(latent_dir).table("activity").is_file():
-        activity = pd.read_parquet(RunFolder(latent_dir).table("activity"))
+        from cobelrun.results import load_table
+
+        activity = load_table(latent_dir, "activity")
         world = world_of(latent_dir)
     fig, _ = draw_fig7(groups, activity, world)
     fig.suptitle("Latent learning in the Blodgett maze (Fig. 7)", fontsize=10)

@@ -9,7 +9,6 @@ run's saved ``world.json`` (never re-composing configs), and the maze/arena/grap
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -177,12 +176,12 @@ def compare_file(
 # -- geometry ----------------------------------------------------------------------------------
 def load_geometry(run_dir: str | Path) -> Any:
     """A run's saved geometry (``world.json``) as :class:`cobelrun.envs.base.Geometry`."""
-    from cobelrun.envs.base import Geometry
+    from cobelrun.io.validate import read_world
 
     path = RunFolder(run_dir).world
     if not path.is_file():
         raise CobelError(f"{Path(run_dir)} has no {RunFolder.WORLD} (the env has no geometry)")
-    return Geometry.from_dict(json.loads(path.read_text()))
+    return read_world(path)
 
 
 def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:

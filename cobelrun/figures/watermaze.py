@@ -7,7 +7,6 @@ come from the run's :class:`~cobelrun.envs.base.Geometry`.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ import pandas as pd
 from cobelrun.analysis.watermaze import QUADRANTS, add_days
 from cobelrun.envs.base import Geometry
 from cobelrun.errors import CobelError
+from cobelrun.io.validate import read_world
 
 #: phases drawn as learning curves, in order
 CURVE_PHASES = ("acquisition", "reversal")
@@ -28,7 +28,7 @@ def load_geometry(run_dir: str | Path) -> Geometry:
     run_dir = Path(run_dir)
     for name in ("world.json", "geometry.json"):
         if (run_dir / name).is_file():
-            return Geometry.from_dict(json.loads((run_dir / name).read_text()))
+            return read_world(run_dir / name)
     from omegaconf import OmegaConf
 
     from cobelrun.config import instantiate

@@ -52,19 +52,26 @@ def repair_run(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
     Keys: ``tables`` (name -> rows merged), ``mcap`` (True if rewritten), ``status`` (the
     manifest's new status).
     """
-    from cobelrun.io.manifest import Manifest, _write_json_atomic
+    from cobelrun.errors import CobelError
+    from cobelrun.io.manifest import _write_json_atomic
     from cobelrun.io.parquet import merge_parts
+    from cobelrun.io.validate import read_manifest
 
     folder = RunFolder(run_dir)
     done: dict[str, Any] = {}
     manifest: dict[str, Any] = {}
     if folder.manifest.is_file():
         try:
-            manifest = Manifest(folder.path).read()
-        except (OSError, ValueError):
-            manifest = {}
+            manifest = read_manifest(folder.manifest)
+        except CobelError:  # damaged: the readers say so; nothing here rewrites it
+            return done
     if manifest.get("status") == "running" and is_alive(manifest):
         return done
+    links = [p for p in (folder.path / folder.PARTS, folder.agent_parts, folder.mcap)
+             if p.is_symlink()]  # fmt: skip
+    if links:
+        raise CobelError(f"{links[0]} is a symbolic link; cobel does not repair through links "
+                         "(a run writes no links)")  # fmt: skip
     tables = {t: merge_parts(folder.parts(t), folder.table(t)) for t in folder.unfinished_tables()}
     if tables:
         done["tables"] = tables

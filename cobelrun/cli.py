@@ -303,25 +303,10 @@ def status_cmd(
 
 
 def run_status(folder: Any) -> None:
-    """``cobel status RUN_DIR``: repair a killed run's files, then print its status."""
-    import json
+    """``cobel status RUN_DIR`` (:func:`cobelrun.commands.summary.run_status`: validated)."""
+    from cobelrun.commands.summary import run_status as status
 
-    from cobelrun.io.repair import repair_run
-
-    repaired = repair_run(folder.path)
-    manifest = json.loads(folder.manifest.read_text())
-    status = manifest.get("status", "unknown")
-    typer.echo(
-        f"{folder.path}: {status}" + (f" ({manifest['error']})" if manifest.get("error") else "")
-    )
-    for table, rows in repaired.get("tables", {}).items():
-        typer.echo(f"  repaired {folder.table(table).name}: {rows} rows kept")
-    if repaired.get("mcap"):
-        typer.echo(f"  repaired {folder.mcap.name}: summary rewritten, complete messages kept")
-    tables = folder.tables()
-    typer.echo(f"  tables: {', '.join(tables) or 'none'}")
-    if status != "completed":
-        raise typer.Exit(1)
+    status(folder)
 
 
 @app.command("collect")

@@ -23,6 +23,7 @@ from __future__ import annotations
 import abc
 import json
 import os
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -199,15 +200,23 @@ class ArraySpec:
     high: float | None = None
     finite: bool = True
 
+    def header_problem(self, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
+        """What is wrong with an array of ``shape`` and ``dtype`` (as an ``.npy`` header gives
+        them, before anything is read), or None if they fit."""
+        want = "(" + ", ".join("*" if d is None else str(d) for d in self.shape) + ")"
+        if len(shape) != len(self.shape) or any(
+            d is not None and d != n for d, n in zip(self.shape, shape, strict=True)
+        ):
+            return f"expected shape {want}, got {tuple(shape)}"
+        if np.dtype(dtype).kind != self.kind:
+            return f"expected dtype kind '{self.kind}', got {dtype}"
+        return None
+
     def problem(self, arr: np.ndarray) -> str | None:
         """What is wrong with ``arr`` (one phrase), or None if it fits."""
-        want = "(" + ", ".join("*" if d is None else str(d) for d in self.shape) + ")"
-        if arr.ndim != len(self.shape) or any(
-            d is not None and d != n for d, n in zip(self.shape, arr.shape, strict=True)
-        ):
-            return f"expected shape {want}, got {tuple(arr.shape)}"
-        if arr.dtype.kind != self.kind:
-            return f"expected dtype kind '{self.kind}', got {arr.dtype}"
+        found = self.header_problem(tuple(arr.shape), arr.dtype)
+        if found:
+            return found
         if arr.size == 0:
             return None
         if self.finite and self.kind == "f" and not np.isfinite(arr).all():
@@ -464,18 +473,14 @@ class Agent(abc.ABC):
             return ConfigError(f"cannot load agent from {name}: {what}")
 
         try:
-            with np.load(path, allow_pickle=False) as data:
-                if not isinstance(data, np.lib.npyio.NpzFile):
-                    raise fail("not an .npz archive")  # pragma: no cover - np.load closes
-                files = list(data.files)
-                raw = {k: data[k] for k in files}
+            raw = self._read_npz(path, name)
         except ConfigError:
             raise
         except FileNotFoundError:
             raise fail("no such file") from None
-        except (AttributeError, TypeError):  # an .npy array has no context manager/files
-            raise fail("not an .npz archive of arrays") from None
-        except Exception as exc:  # zipfile.BadZipFile, pickle refused, truncated, ...
+        except zipfile.BadZipFile:
+            raise fail("not an .npz archive (a zip of .npy arrays)") from None
+        except Exception as exc:  # pickle refused, truncated, a bad header, ...
             raise fail(f"not a readable .npz archive without pickle ({exc})") from None
         if META_KEY not in raw:
             raise fail(f"no {META_KEY!r} entry (not a cobel agent file)")
@@ -487,6 +492,45 @@ class Agent(abc.ABC):
             raise fail(f"{META_KEY!r} is not a JSON object") from None
         self._check_loaded(raw, meta, fail)
         return raw, meta
+
+    def _read_npz(self, path: Path | BinaryIO, name: Any) -> dict[str, np.ndarray]:
+        """The arrays of a single agent file, each checked from its ``.npy`` header (the
+        declared schema's shape and dtype kind, and the memory available) before it is read:
+        a small file that would decompress to gigabytes is refused with nothing allocated."""
+        from cobelrun.io.validate import nbytes_of, read_npy_header
+        from cobelrun.safety import check_allocation
+
+        schema = self.state_schema()
+        raw: dict[str, np.ndarray] = {}
+        with zipfile.ZipFile(path) as zf:
+            names = zf.namelist()
+            bad = [n for n in names if not n.endswith(".npy")]
+            if bad:
+                raise ConfigError(f"cannot load agent from {name}: member {bad[0]!r} is not "
+                                  "an .npy array")  # fmt: skip
+            headers = {}
+            for member in names:
+                key = member[: -len(".npy")]
+                with zf.open(member) as fh:
+                    shape, dtype = read_npy_header(fh)
+                spec = schema.get(key)
+                problem = spec.header_problem(shape, dtype) if spec is not None else None
+                if key == META_KEY and (dtype.kind != "U" or shape != ()):
+                    problem = f"expected a JSON string, got {dtype} with shape {shape}"
+                if problem:
+                    raise ConfigError(f"cannot load agent from {name}: key {key!r}: {problem}")
+                headers[member] = (shape, dtype)
+            need = sum(nbytes_of(*h) for h in headers.values())
+            check_allocation(str(name), need, "the saved agent's arrays",
+                             "the file was not written for this agent or is damaged")  # fmt: skip
+            for member, (shape, dtype) in headers.items():
+                with zf.open(member) as fh:
+                    read_npy_header(fh)
+                    data = fh.read(nbytes_of(shape, dtype))
+                if len(data) != nbytes_of(shape, dtype):
+                    raise ValueError(f"member {member!r} is cut short")
+                raw[member[: -len(".npy")]] = np.frombuffer(bytearray(data), dtype).reshape(shape)
+        return raw
 
     def load_state(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any],
                    source: str) -> None:  # fmt: skip
@@ -524,3 +568,51 @@ class Agent(abc.ABC):
             self.set_state_meta(meta.get("state") or {})
         except ValueError as exc:
             raise fail(str(exc)) from None
+
+
+def check_load_from(agent: Agent, load_from: str, runs: int) -> None:
+    """Check every saved agent ``agent.load_from`` names for runs ``0 .. runs-1`` before any
+    output folder exists: the file is there, is an npz without pickle, holds this agent and
+    schema version, and every array fits the declared schema (shapes and dtypes from the
+    ``.npy`` headers first, so nothing oversized is read) and its value checks. ``load_from``
+    is a file (``{run}`` replaced by the run index) or a run folder (its ``agents.npz`` or an
+    older layout's agent files). One ConfigError line naming the file and what is wrong."""
+    from cobelrun.io.agents_archive import read_agent
+    from cobelrun.io.run_folder import RunFolder
+
+    def header_check(key: str, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
+        spec = schema.get(key)
+        return None if spec is None else spec.header_problem(shape, dtype)
+
+    schema = agent.state_schema()
+    for run in range(int(runs)):
+        path = Path(load_from.replace("{run}", str(run)))
+        if path.is_dir():
+            folder = RunFolder(path)
+            if folder.agents_archive.is_file():
+                source = f"{folder.agents_archive} (run {run})"
+                try:
+                    found = read_agent(folder.agents_archive, run, header_check)
+                except ConfigError as exc:
+                    raise ConfigError(f"cannot load agent from {source}: {exc}") from None
+                except Exception as exc:  # a damaged archive: zip, npy header, layout
+                    raise ConfigError(f"cannot load agent from {folder.agents_archive}: "
+                                      f"{exc}") from None  # fmt: skip
+                if found is not None:
+                    arrays, meta = found
+
+                    def fail(what: str, source: str = source) -> ConfigError:
+                        return ConfigError(f"cannot load agent from {source}: {what}")
+
+                    agent._check_loaded(dict(arrays), dict(meta), fail)
+                    continue
+            legacy = folder.legacy_agent(run)
+            if legacy is None:
+                raise ConfigError(
+                    f"agent.load_from: {path} has no saved agent for run {run} "
+                    "(task.save_agents decides which runs are saved)"
+                )
+            path = legacy
+        elif not path.is_file():
+            raise ConfigError(f"agent.load_from: {path} does not exist")
+        agent._read_checked(path)

@@ -20,12 +20,13 @@ against the agent's declared schema like any saved agent.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import time
 import zipfile
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from copy import deepcopy
 from pathlib import Path
 from typing import Any
@@ -209,36 +210,118 @@ def _read_header(fh: Any) -> tuple[tuple[int, ...], np.dtype]:
 
 def runs_in(path: str | os.PathLike[str]) -> list[int]:
     """Runs whose agents an archive holds."""
-    with np.load(path, allow_pickle=False) as data:
-        return sorted(int(r) for r in data[RUNS])
+    with zipfile.ZipFile(path) as zf:
+        return sorted(int(r) for r in _small(zf, RUNS, "iu", 1))
+
+
+#: largest bookkeeping member (runs, metadata, shapes) of an archive cobel reads
+SMALL_BYTES = 64 << 20
+#: bytes read at a time while skipping to a run's values inside a member
+_CHUNK = 1 << 20
+
+#: ``check(key, shape, dtype)``: what is wrong with a state array of this shape and dtype
+#: (one phrase), or None; called before the array is read
+HeaderCheck = Callable[[str, tuple[int, ...], np.dtype], "str | None"]
+
+
+def _small(zf: zipfile.ZipFile, key: str, kinds: str, ndim: int) -> np.ndarray:
+    """A bookkeeping member, its header checked (dtype kind, dimensions, size) before it is
+    read."""
+    from cobelrun.io.validate import nbytes_of, read_npy_header
+
+    if f"{key}.npy" not in zf.namelist():
+        raise ValueError(f"no {key!r} member (not a cobel agents archive)")
+    with zf.open(f"{key}.npy") as fh:
+        shape, dtype = read_npy_header(fh)
+        if dtype.kind not in kinds or len(shape) != ndim:
+            raise ValueError(f"member {key!r} is {dtype} with shape {shape}")
+        if nbytes_of(shape, dtype) > SMALL_BYTES:
+            raise ValueError(f"member {key!r} claims {nbytes_of(shape, dtype):,} bytes")
+        data = fh.read(nbytes_of(shape, dtype))
+    if len(data) != nbytes_of(shape, dtype):
+        raise ValueError(f"member {key!r} is cut short")
+    return np.frombuffer(data, dtype).reshape(shape)
+
+
+def _slice(zf: zipfile.ZipFile, key: str, start: int, count: int, dtype: np.dtype) -> np.ndarray:
+    """Values ``start`` to ``start + count`` of a flat member, streamed: what comes before is
+    read and dropped in 1 MB pieces, so memory holds one run's array."""
+    from cobelrun.io.validate import read_npy_header
+
+    with zf.open(f"{key}.npy") as fh:
+        read_npy_header(fh)
+        skip = start * dtype.itemsize
+        while skip:
+            got = len(fh.read(min(skip, _CHUNK)))
+            if not got:
+                raise ValueError(f"member {key!r} is cut short")
+            skip -= got
+        want = count * dtype.itemsize
+        buf = bytearray(want)
+        view, pos = memoryview(buf), 0
+        while pos < want:
+            got = fh.readinto(view[pos:]) if hasattr(fh, "readinto") else 0
+            if not got:
+                raise ValueError(f"member {key!r} is cut short")
+            pos += got
+    return np.frombuffer(buf, dtype)
 
 
 def read_agent(
-    path: str | os.PathLike[str], run: int
+    path: str | os.PathLike[str], run: int, check: HeaderCheck | None = None
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
     """Run ``run``'s state arrays and metadata from an archive (None if it lacks the run).
 
-    Raises ValueError if the archive's layout is broken (the caller names the file)."""
-    with np.load(path, allow_pickle=False) as data:
-        runs = data[RUNS]
+    Nothing is read before it is checked: every member's shape and dtype come from its
+    ``.npy`` header (:func:`cobelrun.io.validate.read_npy_header`), the run's shapes from
+    ``<key>.shape``, and each array is checked by ``check`` (the agent's declared schema) and
+    against the memory available (:func:`cobelrun.safety.check_allocation`) before its values
+    are streamed out of the archive (one run's array in memory, not the whole member).
+    Raises ValueError if the archive's layout is broken (the caller names the file), a
+    ConfigError when an array does not fit the schema or the memory.
+    """
+    from cobelrun.io.validate import read_npy_header
+    from cobelrun.safety import check_allocation
+
+    with zipfile.ZipFile(path) as zf:
+        runs = _small(zf, RUNS, "iu", 1)
         where = np.flatnonzero(runs == int(run))
         if where.size == 0:
             return None
         i = int(where[-1])
-        meta = json.loads(str(data[META][i]))
-        arrays: dict[str, np.ndarray] = {}
-        for key in data.files:
+        metas = _small(zf, META, "U", 1)
+        if metas.shape[0] != runs.shape[0]:
+            raise ValueError(f"{META} has {metas.shape[0]} rows for {runs.size} runs")
+        meta = json.loads(str(metas[i]))
+        if not isinstance(meta, dict):
+            raise ValueError(f"{META} of run {run} is not a JSON object")
+        keys = [n[: -len(".npy")] for n in zf.namelist() if n.endswith(".npy")]
+        plan: dict[str, tuple[int, int, tuple[int, ...], np.dtype]] = {}
+        for key in keys:
             if key in (RUNS, META) or key.endswith(SHAPE):
                 continue
-            shapes = data[key + SHAPE]
+            shapes = _small(zf, key + SHAPE, "iu", 2)
             if shapes.shape[0] != runs.shape[0]:
                 raise ValueError(f"{key}{SHAPE} has {shapes.shape[0]} rows for {runs.size} runs")
-            sizes = np.prod(shapes, axis=1) if shapes.shape[1] else np.ones(len(shapes), np.int64)
-            start = int(sizes[:i].sum())
-            flat = data[key]
-            if int(sizes.sum()) != flat.size:
-                raise ValueError(
-                    f"{key} holds {flat.size} values, its shapes say {int(sizes.sum())}"
-                )
-            arrays[key] = flat[start : start + int(sizes[i])].reshape(tuple(shapes[i]))
+            rows = [tuple(int(n) for n in r) for r in shapes.tolist()]
+            if any(n < 0 for r in rows for n in r):
+                raise ValueError(f"{key}{SHAPE} holds a negative size")
+            sizes = [math.prod(r) for r in rows]
+            with zf.open(f"{key}.npy") as fh:
+                flat_shape, dtype = read_npy_header(fh)
+            if len(flat_shape) != 1 or flat_shape[0] != sum(sizes):
+                raise ValueError(f"{key} holds {flat_shape} values, its shapes say {sum(sizes)}")
+            if dtype.kind not in "biuf":
+                raise ValueError(f"{key} holds {dtype}, not numbers")
+            problem = check(key, rows[i], dtype) if check is not None else None
+            if problem:
+                from cobelrun.errors import ConfigError
+
+                raise ConfigError(f"key {key!r}: {problem}")
+            plan[key] = (sum(sizes[:i]), sizes[i], rows[i], dtype)
+        need = sum(n * d.itemsize for _, n, _, d in plan.values())
+        check_allocation(f"{path} (run {run})", need, "the saved agent's arrays",
+                         "this archive was not written for this machine or is damaged")  # fmt: skip
+        arrays = {key: _slice(zf, key, start, n, dtype).reshape(shape)
+                  for key, (start, n, shape, dtype) in plan.items()}  # fmt: skip
         return arrays, meta

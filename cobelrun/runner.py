@@ -99,6 +99,8 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
     load_from = agent_node.pop("load_from", None)  # handled here, not by the agent
     if load_from is not None and not Path(str(load_from).replace("{run}", "0")).exists():
         raise ConfigError(f"agent.load_from {load_from!r} does not exist")
+    from cobelrun.agents.base import check_load_from
+
     deferred = instantiate("agent", agent_node, env=env, _partial_=True)
     # a plain partial: Hydra's deferred target re-checks its target policy on every call,
     # which costs ~0.5 ms per run; the target was validated and imported above
@@ -124,6 +126,9 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
                 f"task.record.training_log needs a deep (SB3) agent such as agent=dqn; "
                 f"{type(probe).__name__} has no training curves"
             )
+    if load_from is not None:  # every saved agent checked before any folder exists
+        probe = probe if probe is not None else _first_agent(make_agent, spec.seed)
+        check_load_from(probe, str(load_from), spec.task.runs)
     if record.images and record.mcap and getattr(env.unwrapped, "render_mode", None) != "rgb_array":
         raise ConfigError(
             "task.record.images needs an env that renders camera images (render_mode "

@@ -175,6 +175,7 @@ def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str]
 
     parser = OverridesParser.create()
     parsed = parser.parse_overrides([*extra, *overrides])
+    check_job_count(parsed)
     swept = []
     for o in parsed:
         if o.is_sweep_override() and not is_hydra_key(o.key_or_group):
@@ -189,6 +190,60 @@ def plan(overrides: Sequence[str], extra: Sequence[str] = ()) -> tuple[list[str]
                 params[key] = _plain_value(o.value())
         jobs.append({"job": i, "overrides": list(combo), "params": params})
     return swept, jobs
+
+
+#: the environment variable that raises (or lowers) the largest sweep cobel expands
+MAX_JOBS_ENV = "COBEL_MAX_JOBS"
+#: default largest number of jobs of one sweep (each job is a folder and a row of sweep.json)
+MAX_JOBS = 100_000
+
+
+def max_jobs() -> int:
+    """The largest sweep cobel expands: ``$COBEL_MAX_JOBS`` or :data:`MAX_JOBS`."""
+    raw = os.environ.get(MAX_JOBS_ENV, "").strip()
+    if not raw:
+        return MAX_JOBS
+    if not raw.isdigit() or int(raw) < 1:
+        raise CobelError(f"{MAX_JOBS_ENV} must be a positive whole number, got {raw!r}")
+    return int(raw)
+
+
+def _n_values(o: Any) -> int:
+    """How many values a parsed sweep override takes, counted without listing them."""
+    import math as _math
+
+    value = o.value()
+    if type(value).__name__ == "RangeSweep":  # hydra.core.override_parser.types.RangeSweep
+        start, stop, step = value.start, value.stop, value.step or 1
+        return max(0, _math.ceil((stop - start) / step))
+    items = getattr(value, "list", None)
+    if isinstance(items, list):
+        return len(items)
+    return 1  # a glob over a config group: a handful of files
+
+
+def check_job_count(parsed: Sequence[Any]) -> int:
+    """The number of jobs of a sweep, counted from its parsed overrides before anything is
+    expanded; above :func:`max_jobs` a one-line CobelError names the largest swept key and
+    how to raise the limit (``COBEL_MAX_JOBS``)."""
+    counts: dict[str, int] = {}
+    for o in parsed:
+        if o.is_sweep_override() and o.is_discrete_sweep():
+            counts[o.get_key_element()] = _n_values(o)
+        else:
+            counts.pop(o.get_key_element(), None)
+    total = 1
+    for n in counts.values():
+        total *= n
+    limit = max_jobs()
+    if total > limit:
+        key = max(counts, key=lambda k: counts[k])
+        raise CobelError(
+            f"this sweep has {total:,} jobs ({' x '.join(f'{k}: {n:,}' for k, n in counts.items())}"
+            f"), more than the {limit:,} cobel expands; sweep fewer values of {key} or raise the "
+            f"limit with {MAX_JOBS_ENV}={total}"
+        )
+    return total
 
 
 def cartesian(parsed: Sequence[Any]) -> list[list[str]]:

@@ -235,6 +235,15 @@ class ImageObservation(ObservationModule):
                 raise ConfigError(
                     f"observation render_size {[rh, rw]} must be at least the image size {[self.height, self.width]}"
                 )
+        from cobelrun.safety import check_allocation
+
+        # before anything is built: one view's render buffers (pybullet's RGBA, depth and
+        # segmentation, 12 B per pixel, and the RGB copy), its observation, and the observation
+        # space's low and high bounds (gymnasium's Box holds both at full size)
+        obs = self.height * self.width * (1 if grayscale else 3) * (4 if dtype == "float32" else 1)
+        check_allocation("env.observation.height/width", rh * rw * 15 + 3 * obs,
+                         f"one {rh}x{rw} rendered view and its observation space",
+                         "lower env.observation.height and width")  # fmt: skip
         self.camera = CameraSpec(height=rh, width=rw, fov=float(fov), n_cameras=int(n_cameras),
                                  eye_height=float(eye_height), pitch=float(pitch),
                                  vfov=vfov)  # fmt: skip
@@ -256,8 +265,20 @@ class ImageObservation(ObservationModule):
 
     # ------------------------------------------------------------------ binding
     def bind(self, topology: Any) -> None:
+        from cobelrun.render.cache import building
         from cobelrun.render.scene import SceneSpec
 
+        if self.render == "offline" or building():  # every view at once: cache (+ table)
+            from cobelrun.safety import check_allocation
+
+            views = len(topology.positions) * len(topology.directions)
+            per_view = self.camera.height * self.camera.width * 3 + (
+                0 if building() else self._obs_bytes()
+            )
+            check_allocation("env.observation.height/width", views * per_view,
+                             f"{views} pre-rendered {self.camera.height}x{self.camera.width} "
+                             "views and their observations",
+                             "lower env.observation.height and width")  # fmt: skip
         super().bind(topology)
         self.scene_spec = SceneSpec.from_topology(topology, self.style)
         if self.render == "offline":
@@ -265,6 +286,11 @@ class ImageObservation(ObservationModule):
 
             if not cache.building():
                 self._load_offline()
+
+    def _obs_bytes(self) -> int:
+        """Bytes of one observation (the processed image)."""
+        c = 1 if self.grayscale else 3
+        return self.height * self.width * c * (4 if self.dtype == "float32" else 1)
 
     def _load_offline(self) -> None:
         """Load this module's pre-rendered views (every frame block checked against its checksum

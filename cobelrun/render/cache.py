@@ -137,9 +137,13 @@ def check_blocks(path: Path, images: np.ndarray) -> None:
     """Compare every frame block of a loaded cache with the checksums written with it; a
     one-line CobelError naming the first corrupted node and the rebuild command."""
     rebuild = f"rebuild it with: {build_hint()} --force"
+    from cobelrun.io.validate import read_json_object
+
     try:
-        sums = json.loads(_sums_file(path).read_text())["crc32"]
-    except (OSError, ValueError, KeyError, TypeError):
+        sums = read_json_object(_sums_file(path))["crc32"]
+        if not isinstance(sums, list) or not all(type(v) is int for v in sums):
+            raise TypeError
+    except (CobelError, KeyError, TypeError):
         raise CobelError(
             f"render cache {path} has no readable checksums ({_sums_file(path).name}), so it "
             f"cannot be trusted; {rebuild}"
@@ -192,17 +196,60 @@ def locate(request: CacheRequest) -> Path:
     )
 
 
+#: bytes pybullet's ``getCameraImage`` hands back per pixel (RGBA 4, depth 4, segmentation 4)
+#: plus the RGB copy kept
+RENDER_BYTES_PER_PIXEL = 15
+
+
+def check_cache_memory(request: CacheRequest, jobs: int | None = None) -> None:
+    """Refuse a render cache whose images would not fit in memory, before anything is rendered:
+    ``N nodes x D headings x H x W x 3`` bytes held together, plus one frame's render buffers
+    per worker (:func:`cobelrun.safety.check_allocation`)."""
+    from cobelrun.safety import check_allocation
+
+    cam = request.camera
+    pixels = int(cam.height) * int(cam.width)
+    workers = max(1, min(int(jobs or os.cpu_count() or 1), request.n_nodes * request.n_directions))
+    need = (
+        request.n_nodes * request.n_directions * pixels * 3
+        + workers * pixels * RENDER_BYTES_PER_PIXEL
+    )
+    check_allocation(
+        "env.observation.height/width",
+        need,
+        f"the render cache ({request.n_nodes} nodes x {request.n_directions} headings x "
+        f"{cam.height}x{cam.width} pixels x 3 bytes)",
+        "lower env.observation.height and width (or render_size)",
+    )
+
+
 def load(request: CacheRequest) -> np.ndarray:
-    """The cached images ``(N, D, H, W, 3)`` uint8 of ``request`` (never imports pybullet)."""
+    """The cached images ``(N, D, H, W, 3)`` uint8 of ``request`` (never imports pybullet).
+
+    The file's ``.npy`` header is checked against the request before its data is read."""
+    from cobelrun.io.validate import read_npy_header
+
     path = locate(request)
+    cam = request.camera
+    want = (request.n_nodes, request.n_directions, cam.height, cam.width, 3)
+    try:
+        with open(path, "rb") as fh:
+            shape, dtype = read_npy_header(fh)
+    except (OSError, ValueError) as exc:
+        raise CobelError(
+            f"render cache {path} cannot be read ({exc}); rebuild it with: {build_hint()}"
+        ) from None
+    if shape != want or dtype != np.uint8:
+        raise CobelError(
+            f"render cache {path} holds {shape} {dtype}, expected {want} uint8; "
+            f"rebuild it with: {build_hint()}"
+        )
     try:
         images = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise CobelError(
             f"render cache {path} cannot be read ({exc}); rebuild it with: {build_hint()}"
         ) from None
-    cam = request.camera
-    want = (request.n_nodes, request.n_directions, cam.height, cam.width, 3)
     if images.shape != want or images.dtype != np.uint8:
         raise CobelError(
             f"render cache {path} holds {images.shape} {images.dtype}, expected {want} uint8; "
@@ -308,6 +355,7 @@ def build(
     path = _file(folder, version)
     if path.is_file() and not force:
         return path, False
+    check_cache_memory(request, jobs)
     t0 = time.perf_counter()
     images, used = render_all(request, jobs=jobs, progress=progress)
     if used != request.renderer:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import shlex
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -548,6 +549,7 @@ def _kept(folder: RunFolder) -> str:
         what.append(f"tables {', '.join(tables)}")
     if parts:
         what.append(
-            f"parts of {', '.join(parts)} (free space, then `cobel status {folder.path}` merges them)"
+            f"parts of {', '.join(parts)} (once the disk takes writes again, `cobel status "
+            f"{shlex.quote(str(folder.path))}` merges them)"
         )
     return "kept: " + ("; ".join(what) if what else "nothing was written yet")

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 from pathlib import Path
 from typing import Any
+
+from rich.markup import escape
 
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.run_summary import LAST_TRIALS, read_phase_rows
@@ -81,13 +84,14 @@ def print_run_summary(run_dir: str | Path) -> None:
     console.print(line)
     console.print(f"folder: {folder.path}")
     console.print("next:")
+    where = shlex.quote(str(folder.path))  # a results root with spaces: commands to paste
     for cmd, what in (
-        (f"cobel plot {folder.path}", "the task's figure"),
-        (f"cobel plot {folder.path} --kind occupancy", "where the agents went"),
-        (f"cobel rerun {folder.path} seed=1", "the same config, another seed"),
-        (f"cobel status {folder.path}", "status and tables"),
+        (f"cobel plot {where}", "the task's figure"),
+        (f"cobel plot {where} --kind occupancy", "where the agents went"),
+        (f"cobel rerun {where} seed=1", "the same config, another seed"),
+        (f"cobel status {where}", "status and tables"),
     ):
-        console.print(f"  {cmd}    [dim]# {what}[/]")
+        console.print(f"  {escape(cmd)}    [dim]# {what}[/]")
 
 
 def print_sweep_summary(sweep_dir: str | Path) -> None:
@@ -130,9 +134,12 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     console.print(f"folder: {sweep_dir}")
     console.print("next:")
     swept = sweep["swept"][0] if sweep["swept"] else None
-    hue = f" --hue {swept}" if swept else ""
-    console.print(f"  cobel plot {sweep_dir}{hue}    [dim]# one curve per {swept or 'sweep'}[/]")
-    console.print(f"  cobel collect {sweep_dir}    [dim]# one Parquet file per table[/]")
+    hue = f" --hue {shlex.quote(swept)}" if swept else ""
+    where = shlex.quote(str(sweep_dir))
+    console.print(
+        f"  {escape(f'cobel plot {where}{hue}')}    [dim]# one curve per {escape(swept or 'sweep')}[/]"
+    )
+    console.print(f"  {escape(f'cobel collect {where}')}    [dim]# one Parquet file per table[/]")
 
 
 def run_status(folder: RunFolder) -> None:

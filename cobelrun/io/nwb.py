@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.io.atomic import atomic_path, disk_error, is_disk_error
 
 #: simulated seconds per environment step (as run.mcap's clock)
 STEP_SECONDS = 0.1
@@ -54,13 +55,17 @@ def _pynwb() -> Any:
 
 
 def _read(run_dir: Path, name: str) -> pd.DataFrame | None:
+    from cobelrun.io.validate import check_table
+
     p = run_dir / f"{name}.parquet"
     if not p.is_file():
         return None
+    check_table(p)
     try:
         return pd.read_parquet(p)
     except Exception as exc:
-        raise CobelError(f"cannot read {p}: {exc}") from None
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CobelError(f"cannot read {p}: {first}") from None
 
 
 def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) -> list[Path]:
@@ -84,7 +89,13 @@ def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) ->
     maps = _read_maps(run_dir)
     activity = _read(run_dir, "activity")
     out = Path(out_dir) if out_dir is not None else run_dir / "nwb"
-    out.mkdir(parents=True, exist_ok=True)
+    if out_dir is None and (out.is_symlink() or (out.exists() and not out.is_dir())):
+        raise CobelError(f"{out} is not a folder of the run (a link or a file); remove it or "
+                         "give --out")  # fmt: skip
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CobelError(disk_error(exc, out)) from None
     files = []
     for run in sorted(trials["run"].unique()):
         path = out / f"run_{int(run):04d}.nwb"
@@ -98,10 +109,23 @@ def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) ->
             config_text=config_text,
             overrides=_overrides(run_dir, manifest),
         )
-        with _pynwb().NWBHDF5IO(str(path), "w") as io:
-            io.write(nwb)
+        _write_nwb(nwb, path)
         files.append(path)
     return files
+
+
+def _write_nwb(nwb: Any, path: Path) -> None:
+    """Write one NWB file under a temporary name, then rename it: a full disk or a folder that
+    refuses writes is one line, and leaves neither a temporary nor a 0-byte ``.nwb`` file."""
+    try:
+        with atomic_path(path) as tmp, _pynwb().NWBHDF5IO(str(tmp), "w") as io:
+            io.write(nwb)
+    except CobelError:
+        raise
+    except Exception as exc:  # h5py wraps ENOSPC/EACCES in its own errors
+        if is_disk_error(exc) or isinstance(exc, OSError):
+            raise CobelError(disk_error(exc, path)) from None
+        raise
 
 
 def _overrides(run_dir: Path, manifest: dict[str, Any]) -> list[str]:

@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
-from cobelrun.io.atomic import atomic_path, disk_error, is_disk_error
+from cobelrun.io.atomic import atomic_write_bytes, disk_error
 
 #: simulated seconds per environment step (as run.mcap's clock)
 STEP_SECONDS = 0.1
@@ -117,15 +117,19 @@ def export_run_folder(run_dir: str | Path, out_dir: str | Path | None = None) ->
 def _write_nwb(nwb: Any, path: Path) -> None:
     """Write one NWB file under a temporary name, then rename it: a full disk or a folder that
     refuses writes is one line, and leaves neither a temporary nor a 0-byte ``.nwb`` file."""
+    import io
+
+    import h5py
+
+    # built in memory, then written in one piece: HDF5 that fails to write its file (a full
+    # disk) prints a traceback per open object as it is freed, which no caller can silence
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f, _pynwb().NWBHDF5IO(file=f, mode="w") as nwb_io:
+        nwb_io.write(nwb)
     try:
-        with atomic_path(path) as tmp, _pynwb().NWBHDF5IO(str(tmp), "w") as io:
-            io.write(nwb)
-    except CobelError:
-        raise
-    except Exception as exc:  # h5py wraps ENOSPC/EACCES in its own errors
-        if is_disk_error(exc) or isinstance(exc, OSError):
-            raise CobelError(disk_error(exc, path)) from None
-        raise
+        atomic_write_bytes(path, buf.getvalue())
+    except OSError as exc:
+        raise CobelError(disk_error(exc, path)) from None
 
 
 def _overrides(run_dir: Path, manifest: dict[str, Any]) -> list[str]:

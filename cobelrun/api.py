@@ -15,7 +15,6 @@ Examples
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -84,7 +83,9 @@ class Run:
         """The run's manifest: status, seed, config hash, versions, wall time."""
         if not self.folder.manifest.is_file():
             raise CobelError(f"{self.path} has no {RunFolder.MANIFEST}")
-        return json.loads(self.folder.manifest.read_text())
+        from cobelrun.io.validate import read_manifest  # a run folder is data: checked
+
+        return read_manifest(self.folder.manifest)
 
     @property
     def config(self) -> Any:

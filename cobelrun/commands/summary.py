@@ -7,7 +7,6 @@ ends with its job table (status, time, objective when the task declares one).
 
 from __future__ import annotations
 
-import json
 import math
 import shlex
 from pathlib import Path
@@ -35,6 +34,18 @@ def _num(value: Any, digits: int = 3) -> str:
     return f"{float(value):.{digits}g}" if abs(float(value)) < 1000 else f"{float(value):.0f}"
 
 
+def _manifest(folder: RunFolder) -> dict[str, Any]:
+    """A run's manifest, validated; {} when it is missing or damaged (a summary leaves the
+    problem to ``cobel status``)."""
+    from cobelrun.errors import CobelError
+    from cobelrun.io.validate import read_manifest
+
+    try:
+        return read_manifest(folder.manifest) if folder.manifest.is_file() else {}
+    except CobelError:
+        return {}
+
+
 def run_summary_table(run_dir: str | Path) -> Any:
     """The rich table of a run folder's phases (``None`` when it has no trials table)."""
     from rich.table import Table
@@ -43,7 +54,7 @@ def run_summary_table(run_dir: str | Path) -> Any:
     if not folder.table("trials").is_file():
         return None
     rows = read_phase_rows(folder.table("trials"))
-    manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
+    manifest = _manifest(folder)
     times = manifest.get("phase_wall_time_s") or {}
     table = Table(
         title=f"{manifest.get('task', 'run')}: last {LAST_TRIALS} trials of each phase",
@@ -75,7 +86,7 @@ def print_run_summary(run_dir: str | Path) -> None:
     table = run_summary_table(folder.path)
     if table is not None:
         console.print(table)
-    manifest = json.loads(folder.manifest.read_text()) if folder.manifest.is_file() else {}
+    manifest = _manifest(folder)
     wall = manifest.get("wall_time_s")
     objective = manifest.get("objective")
     line = f"[bold]done[/] in {wall:.1f} s" if isinstance(wall, int | float) else "[bold]done[/]"
@@ -108,7 +119,7 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     for r in rows:
         m = RunFolder(r["run_dir"]).manifest if r.get("run_dir") else None
         if m is not None and m.is_file():
-            objectives[r["job"]] = json.loads(m.read_text()).get("objective")
+            objectives[r["job"]] = _manifest(RunFolder(r["run_dir"])).get("objective")
     has_objective = any(v is not None for v in objectives.values())
     table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
     table.add_column("job", justify="right")

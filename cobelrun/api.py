@@ -272,13 +272,14 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     """
     from omegaconf import OmegaConf
 
-    from cobelrun.compose import _parse
+    from cobelrun.compose import _parse, load_config
     from cobelrun.config import GROUPS, apply_overrides
+    from cobelrun.targets import check_config
 
     folder = RunFolder(run_dir)
     if not folder.config.is_file():
         raise CobelError(f"{folder.path} is not a run folder (no {RunFolder.CONFIG})")
-    cfg = OmegaConf.load(folder.config)
+    cfg = load_config(folder.config)
     parsed = _parse(_task_overrides(None, overrides))
     for o in parsed:
         if o.key_or_group in GROUPS or o.key_or_group.startswith("hydra"):
@@ -294,6 +295,10 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     except ConfigError as exc:
         raise ConfigError(f"{exc} (use +key=value to add a key)") from None
     OmegaConf.set_struct(cfg, False)
+    try:  # a run folder is data: its targets pass the same gate as any config
+        check_config(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{folder.config}: {exc}") from None
     return cfg
 
 

@@ -15,9 +15,11 @@ from typing import Annotated, Any, NoReturn
 import typer
 
 from cobelrun.commands.common import (
+    ALLOW_TARGET_HELP,
     EXIT_INTERRUPTED,
     EXIT_USER_ERROR,
     STATUS_STYLE,
+    allow_targets,
     debug_enabled,
     fail,
 )
@@ -43,14 +45,23 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+#: ``--allow-target``: the user's own classes a config may build (see docs/reliability.md)
+AllowTarget = Annotated[
+    list[str] | None,
+    typer.Option("--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False),
+]
+
+
 @app.callback()
 def _root(
     version: Annotated[
         bool,
         typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
     ] = False,
+    allow_target: AllowTarget = None,
 ) -> None:
     """Config-driven experiments for neuroscience-oriented reinforcement learning."""
+    allow_targets(allow_target)
 
 
 RUN_HELP = """Run a task: `cobel run task=NAME [KEY=VALUE ...]` (Hydra overrides, passed unchanged).
@@ -68,6 +79,8 @@ Sweeps (-m) run on all cores (joblib; hydra/launcher=slurm for SLURM) into
 results/<task>/sweeps/<id>/, <id> a hash of the jobs: the same command resumes the
 sweep, skipping finished jobs. Then: cobel status DIR, cobel collect DIR.
 Add --debug for a full traceback on errors. `cobel list` shows tasks, envs and agents.
+Configs build only cobel's own classes and installed plugins'; --allow-target mypkg.envs.*
+(repeatable) or COBEL_ALLOW_TARGETS allows your own.
 """
 
 
@@ -82,7 +95,9 @@ def run_cmd(
     quiet: Annotated[
         bool, typer.Option("--quiet", help="No end-of-run summary (the folder is still printed).")
     ] = False,
+    allow_target: AllowTarget = None,
 ) -> None:
+    allow_targets(allow_target)
     if debug:
         os.environ["COBEL_DEBUG"] = "1"
         os.environ["HYDRA_FULL_ERROR"] = "1"

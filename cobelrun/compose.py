@@ -18,8 +18,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from cobelrun.config import GROUPS, builtin_conf_dir
+from cobelrun.config import GROUPS, builtin_conf_dir, user_conf_dir
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+from cobelrun.targets import check_config, check_target
 
 __all__ = [
     "composer",
@@ -176,8 +177,8 @@ def composer(
     def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
         _check_choices(_parse(overrides), config_dir)
         try:
-            return compose(config_name, overrides=overrides,
-                           return_hydra_config=return_hydra_config)  # fmt: skip
+            cfg = compose(config_name, overrides=overrides,
+                          return_hydra_config=return_hydra_config)  # fmt: skip
         except MissingConfigException as exc:
             raise ConfigError(str(exc).strip().splitlines()[0]) from None
         except HydraException as exc:
@@ -197,10 +198,16 @@ def composer(
                 lines = str(exc).strip().splitlines()
                 msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
             raise ConfigError(msg) from None
+        check_config(cfg)  # the instantiation gate: every _target_, before anything is built
+        return cfg
 
     from cobelrun.config import builtin_after_main, register_resolvers
 
     register_resolvers()  # ${cobel.id:} in hydra.run.dir
+    user = config_dir if config_dir is not None else user_conf_dir()
+    if user is not None and user.resolve() != builtin_conf_dir().resolve():
+        check_yaml_folder(user)  # bounded before Hydra reads any of its files
+        announce_shadows(user)
     GlobalHydra.instance().clear()
     try:
         with builtin_after_main(config_dir is not None):
@@ -227,6 +234,11 @@ def validate(
     from cobelrun.sweep import plan
 
     first, jobs = overrides, []
+    if multirun:  # a swept _target_: every value through the gate, not only the first job's
+        for o in _parse(overrides):
+            if o.is_sweep_override() and o.key_or_group.split(".")[-1] == "_target_":
+                for value in o.sweep_string_iterator():
+                    check_target(o.key_or_group, value)
     if multirun and foreign_sweeper(overrides):
         # another sweeper (Optuna, ...) expands its own search space: check one job's config
         # with the swept keys left at their defaults
@@ -267,3 +279,132 @@ def foreign_sweeper(overrides: list[str]) -> str | None:
         if key.lstrip("+~") == "hydra/sweeper" and value not in ("", "cobel"):
             return value
     return None
+
+
+def load_config(path: Path) -> DictConfig:
+    """A config file from a run or config folder (``RUN/config.yaml``), as data: YAML aliases
+    bounded (:func:`check_yaml_size`) and a syntax error as one line naming the file."""
+    check_yaml_size(path)
+    try:
+        cfg = OmegaConf.load(path)
+    except Exception as exc:
+        msg = yaml_error(exc)
+        lines = str(exc).strip().splitlines()
+        raise ConfigError(
+            msg or f"cannot read {path}: {lines[0] if lines else type(exc).__name__}"
+        ) from None
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"{path} must hold a mapping of config keys, got a {type(cfg).__name__}")
+    return cfg
+
+
+#: the most nodes a config file may hold once its YAML aliases are expanded (a config of the
+#: paper's tasks has a few hundred; "billion laughs" files expand to 10^9 and more)
+YAML_NODE_LIMIT = 1_000_000
+#: the most YAML files of a user's config folder that are checked (a -cd at a huge folder)
+YAML_FILE_LIMIT = 5_000
+_YAML_CHECKED: dict[tuple[str, int, int], None] = {}
+
+
+def check_yaml_size(path: Path, limit: int | None = None) -> None:
+    """Refuse a YAML file whose aliases expand beyond :data:`YAML_NODE_LIMIT` nodes.
+
+    OmegaConf (and so Hydra) copies every alias out into a tree, so a file of nested aliases
+    ("billion laughs", a few hundred bytes) would take hours and all memory. The file is
+    composed into PyYAML's node graph, where an alias is a shared node, and the expanded size
+    is counted with each shared node counted once per use (memoised, so this takes
+    milliseconds). A file that does not parse is left to the loader's own one-line error.
+    """
+    import yaml
+
+    limit = YAML_NODE_LIMIT if limit is None else limit
+    try:
+        stat = path.stat()
+    except OSError:
+        return
+    key = (str(path), stat.st_mtime_ns, stat.st_size)
+    if key in _YAML_CHECKED:
+        return
+    try:
+        with open(path, encoding="utf-8") as f:
+            docs = list(yaml.compose_all(f, Loader=yaml.SafeLoader))
+    except (yaml.YAMLError, OSError, UnicodeDecodeError, RecursionError):
+        return  # reported by the loader that reads it
+    sizes: dict[int, int] = {}
+
+    def size(node: Any) -> int:
+        known = sizes.get(id(node))
+        if known is not None:
+            return known
+        sizes[id(node)] = 1  # a recursive alias counts once
+        total = 1
+        if isinstance(node, yaml.MappingNode):
+            total += sum(size(k) + size(v) for k, v in node.value)
+        elif isinstance(node, yaml.SequenceNode):
+            total += sum(size(v) for v in node.value)
+        sizes[id(node)] = total
+        return total
+
+    try:
+        total = sum(size(doc) for doc in docs if doc is not None)
+    except RecursionError:
+        total = limit + 1
+    if total > limit:
+        raise ConfigError(
+            f"{path}: its YAML aliases (&anchor / *alias) expand to more than {limit:,} "
+            f"nodes; refusing to load it (a config needs far fewer; is it a 'billion laughs' file?)"
+        )
+    _YAML_CHECKED[key] = None
+
+
+def check_yaml_folder(folder: Path) -> None:
+    """:func:`check_yaml_size` on the YAML files of a user's config folder (``./conf``, a
+    ``-cd`` folder) before Hydra reads any; at most :data:`YAML_FILE_LIMIT` entries of the
+    folder are looked at (a ``-cd`` at a home folder is not walked whole)."""
+    import os
+
+    seen = 0
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        for name in sorted(files):
+            seen += 1
+            if seen > YAML_FILE_LIMIT:
+                return
+            if name.endswith((".yaml", ".yml")):
+                check_yaml_size(Path(root) / name)
+        seen += len(dirs)
+
+
+#: shadowing files already announced in this process (the composer runs several times)
+_ANNOUNCED: set[str] = set()
+
+
+def shadows(user: Path) -> list[tuple[Path, Path]]:
+    """(user file, built-in file) of every option of a user's config folder that has the
+    name of a built-in one (``./conf/env/tmaze_paper.yaml`` replaces the built-in
+    ``env=tmaze_paper``; the folder's own ``config.yaml`` is its primary config, no shadow)."""
+    builtin = builtin_conf_dir()
+    found = []
+    for path in sorted(builtin.rglob("*.yaml")):
+        rel = path.relative_to(builtin)
+        if len(rel.parts) < 2:
+            continue  # config.yaml: the primary config, not a group option
+        mine = user / rel
+        if mine.is_file() and mine.resolve() != path.resolve():
+            found.append((mine, path))
+    return found
+
+
+def announce_shadows(user: Path) -> None:
+    """One line on stderr per user config file that replaces a built-in option (once per
+    process), so a checked-out ``./conf`` cannot change a plain ``cobel run`` silently."""
+    import sys
+
+    for mine, theirs in shadows(user):
+        if str(mine) in _ANNOUNCED:
+            continue
+        _ANNOUNCED.add(str(mine))
+        rel = theirs.relative_to(builtin_conf_dir()).with_suffix("")
+        group, name = rel.parent.as_posix(), rel.name
+        print(f"cobel: note: {mine} replaces the built-in {group}={name} ({theirs})",
+              file=sys.stderr)  # fmt: skip

@@ -16,6 +16,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
+from cobelrun.targets import check_config, check_object, check_target
 
 #: config groups users pick an option of by name (``task=NAME``); listed by ``cobel list``
 GROUPS = ("task", "env", "agent", "protocol")
@@ -172,11 +173,13 @@ def _target(where: str, node: Mapping[str, Any]) -> Any:
             f"{where}._target_ must name a class or function as a dotted path "
             f"(package.module.Name), got {path!r}"
         )
+    check_target(f"{where}._target_", path)  # the gate, on the string: nothing imported yet
     module, _, attr = path.rpartition(".")
     try:
         obj = getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError, ValueError, TypeError) as exc:
         raise ConfigError(f"{where}._target_ {path!r} cannot be imported: {exc}") from None
+    check_object(f"{where}._target_", path, obj)
     return obj
 
 
@@ -300,6 +303,7 @@ def factory(where: str, node: DictConfig | Mapping[str, Any]) -> Callable[[], An
     from hydra.utils import get_object
 
     plain = _target_node(where, node)
+    check_config(plain, where)
     values = {k: v for k, v in plain.items() if k != "_target_"}
     if any(str(k).startswith("_") for k in values) or _has_target(values):
         return lambda: instantiate(where, plain)
@@ -331,6 +335,7 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
     from hydra.utils import instantiate as hydra_instantiate
 
     plain = _target_node(where, node)
+    check_config(plain, where)  # every nested _target_ too, before anything is imported
     validate_node(where, plain, provided=list(kwargs))
     try:
         return hydra_instantiate(plain, **kwargs, _convert_="all")

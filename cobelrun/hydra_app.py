@@ -428,7 +428,10 @@ class HydraCallbacks:
     def __init__(self, cfg: DictConfig) -> None:
         from hydra.utils import instantiate
 
+        from cobelrun.targets import check_config
+
         nodes = OmegaConf.select(cfg, "hydra.callbacks") or {}
+        check_config(nodes, "hydra.callbacks")  # checked when composed; again before building
         self.callbacks = [instantiate(node) for node in nodes.values()]
 
     def _notify(self, name: str, reverse: bool = False, **kwargs: Any) -> None:

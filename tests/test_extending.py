@@ -22,7 +22,8 @@ def test_linear_track_and_path_length_monitor(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(work)}
     env.pop("HYDRA_FULL_ERROR", None)
     proc = subprocess.run(
-        [*cobel_exe(), "run", "task=gridworld", "env=linear_track", "task.runs=2",
+        [*cobel_exe(), "run", "--allow-target", "linear_track.*", "--allow-target",
+         "path_length.PathLengthMonitor", "task=gridworld", "env=linear_track", "task.runs=2",
          "task.protocol.phases.0.trials=30", "+task.monitors.path._target_=path_length.PathLengthMonitor",
          f"hydra.run.dir={out}"],
         cwd=work, env=env, capture_output=True, text=True, timeout=300,
@@ -80,7 +81,7 @@ def test_linear_track_bad_input_is_a_config_error(tmp_path):
 
     work = tmp_path / "work"
     shutil.copytree(EXAMPLES, work)
-    env_vars = {**os.environ, "PYTHONPATH": str(work)}
+    env_vars = {**os.environ, "PYTHONPATH": str(work), "COBEL_ALLOW_TARGETS": "linear_track.*"}
     env_vars.pop("HYDRA_FULL_ERROR", None)
     for bad, message in [
         ("+task.protocol.phases.0.terminals={left_end:false}", "terminals are its two ends"),
@@ -93,8 +94,11 @@ def test_linear_track_bad_input_is_a_config_error(tmp_path):
             cwd=work, env=env_vars, capture_output=True, text=True, timeout=300,
         )  # fmt: skip
         assert proc.returncode == 2, proc.stderr
-        assert message in proc.stderr
-        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        # the example's conf/env/linear_track.yaml replaces the built-in env of that name,
+        # which cobel announces in one line; then the error, in one line
+        note, error = proc.stderr.strip().splitlines()
+        assert note.startswith("cobel: note: ") and "replaces the built-in env=linear_track" in note
+        assert error.startswith("cobel: error: ") and message in error
         assert not out.exists()
 
 

@@ -153,6 +153,7 @@ def test_a_single_run_calls_hydras_callbacks(cobel, tmp_path):
     log = tmp_path / "cb.jsonl"
     out = tmp_path / "run"
     proc = cobel("run", "task=tmaze_extinction", "task.runs=1", f"hydra.run.dir={out}", "--quiet",
+                 "--allow-target", "cbmod.Record",  # the user's own class: allowed by name
                  "+hydra.callbacks.a._target_=cbmod.Record", "+hydra.callbacks.a.name=a",
                  "+hydra.callbacks.b._target_=cbmod.Record", "+hydra.callbacks.b.name=b",
                  env={"PYTHONPATH": str(tmp_path), "CB_LOG": str(log)})  # fmt: skip

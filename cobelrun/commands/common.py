@@ -22,6 +22,12 @@ STATUS_STYLE = {
     "missing": "dim",
 }
 
+#: help of ``--allow-target`` (the user's own classes a config may build)
+ALLOW_TARGET_HELP = (
+    "Allow configs to build this class or function (a dotted path, or a package with .*, "
+    "e.g. mypkg.envs.*); repeatable. Also: COBEL_ALLOW_TARGETS."
+)
+
 #: exit code of a user error (bad config, name or folder)
 EXIT_USER_ERROR = 2
 #: exit code of a run stopped by Ctrl-C or SIGTERM
@@ -39,3 +45,15 @@ def fail(message: str, code: int = EXIT_USER_ERROR) -> NoReturn:
         raise
     typer.echo(f"cobel: error: {message}", err=True)
     raise typer.Exit(code)
+
+
+def allow_targets(patterns: list[str] | None) -> None:
+    """Add ``--allow-target`` patterns to the instantiation gate (this process and the
+    processes it starts, through ``COBEL_ALLOW_TARGETS``); a malformed one is one line."""
+    from cobelrun.errors import CobelError
+    from cobelrun.targets import allow
+
+    try:
+        allow(patterns or [])
+    except CobelError as exc:
+        fail(str(exc))

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+
 HELP = """Run a run folder's saved config again into a new folder (same config + seed = same tables).
 
 \b
@@ -37,7 +39,14 @@ def register(app: typer.Typer) -> None:
             typer.Option("--out", "-o", help="The new run folder (default: a new dated folder)."),
         ] = None,
         quiet: Annotated[bool, typer.Option("--quiet", help="No end-of-run summary.")] = False,
+        allow_target: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
+            ),
+        ] = None,
     ) -> None:
+        allow_targets(allow_target)
         from cobelrun.api import rerun
         from cobelrun.commands.common import EXIT_INTERRUPTED, fail
         from cobelrun.errors import CobelError

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+
 HELP = """Draw an env's maze, arena or graph (PNG) and print it in the terminal; nothing runs.
 
 \b
@@ -34,7 +36,14 @@ def register(app: typer.Typer) -> None:
         no_png: Annotated[
             bool, typer.Option("--no-png", help="Only the terminal drawing.")
         ] = False,
+        allow_target: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
+            ),
+        ] = None,
     ) -> None:
+        allow_targets(allow_target)
         from cobelrun.commands.common import fail
         from cobelrun.errors import CobelError
 

@@ -166,7 +166,7 @@ def run_status(folder: RunFolder) -> None:
     from cobelrun.commands.common import fail
     from cobelrun.errors import CobelError
     from cobelrun.io.repair import repair_run
-    from cobelrun.io.validate import check_table, read_manifest
+    from cobelrun.io.validate import check_mcap, check_table, read_manifest
 
     try:
         repaired = repair_run(folder.path)
@@ -181,6 +181,11 @@ def run_status(folder: RunFolder) -> None:
             check_table(folder.table(table), columns=[])
         except CobelError as exc:
             unreadable[table] = str(exc)
+    if folder.mcap.is_file() and status == "completed":
+        try:
+            check_mcap(folder.mcap)
+        except CobelError as exc:
+            unreadable[folder.MCAP] = str(exc)
     shown = status if status != "completed" or not unreadable else "completed, but damaged"
     typer.echo(
         f"{folder.path}: {shown}" + (f" ({manifest['error']})" if manifest.get("error") else "")

@@ -79,11 +79,15 @@ def repair_run(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
         from cobelrun.io.agents_archive import merge_agent_parts
 
         done["agents"] = merge_agent_parts(folder.agent_parts, folder.agents_archive)
-    if folder.mcap.is_file():
+    if folder.mcap.is_file() and manifest.get("status") != "completed":
         from cobelrun.io.mcap import repair_mcap
 
-        if repair_mcap(folder.mcap):
-            done["mcap"] = True
+        try:  # a completed run closed its MCAP: a damaged one is reported, not rewritten
+            if repair_mcap(folder.mcap):
+                done["mcap"] = True
+        except Exception as exc:  # not an MCAP file, or one broken beyond its last record
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise CobelError(f"{folder.mcap} cannot be repaired ({first})") from None
     if manifest.get("status") == "running":
         manifest.update(status="interrupted", killed=True,
                         error="the process was killed before it could close its files")  # fmt: skip

@@ -41,6 +41,7 @@ __all__ = [
     "MAX_JOBS_IN_FILE",
     "MAX_JSON_BYTES",
     "FolderFileError",
+    "check_mcap",
     "check_table",
     "npz_member_header",
     "read_job_file",
@@ -455,6 +456,32 @@ def check_table(path: str | os.PathLike[str], *, columns: list[str] | None = Non
         raise FolderFileError(f"{p}: its Parquet footer is damaged ({_short(str(exc))})") from None
     check_allocation(str(p), nbytes, "its columns", "read fewer columns or a smaller table")
     return int(meta.num_rows)
+
+
+# -- MCAP ---------------------------------------------------------------------------------------
+def check_mcap(path: str | os.PathLike[str]) -> None:
+    """Check that a run's ``run.mcap`` is a complete MCAP file: the magic at both ends and a
+    summary section the indexed reader parses (what Foxglove needs to open it)."""
+    from mcap.reader import make_reader
+
+    p = Path(path)
+    magic = b"\x89MCAP0\r\n"
+    try:
+        with open(p, "rb") as f:
+            head = f.read(len(magic))
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - len(magic)))
+            tail = f.read(len(magic))
+            if head != magic or tail != magic or size < 2 * len(magic):
+                raise FolderFileError(f"{p} is not a complete MCAP file (cut short or damaged)")
+            f.seek(0)
+            make_reader(f).get_summary()
+    except FolderFileError:
+        raise
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise FolderFileError(f"{p} is not a readable MCAP file ({_short(first)})") from None
 
 
 # -- npz ----------------------------------------------------------------------------------------

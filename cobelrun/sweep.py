@@ -298,8 +298,13 @@ def sweep_id(jobs: Iterable[Mapping[str, Any]]) -> str:
 
 def write_sweep(sweep_dir: Path, *, command: str, swept: list[str], jobs: list[dict]) -> None:
     """Write ``sweep.json`` (the launcher does this before any job starts)."""
+    from cobelrun.io.validate import read_sweep_file
+
     sweep_dir.mkdir(parents=True, exist_ok=True)
-    old = read_json(sweep_dir / SWEEP_FILE) or {}
+    try:  # an earlier launch's record, if it can be trusted
+        old = read_sweep_file(sweep_dir / SWEEP_FILE) if (sweep_dir / SWEEP_FILE).is_file() else {}
+    except CobelError:
+        old = {}
     data = {
         "command": command,
         "swept": swept,
@@ -421,6 +426,16 @@ def _damaged(problem: str, job: Mapping[str, Any] | None = None,
 
 def job_dir(sweep_dir: Path, job: int) -> Path:
     return sweep_dir / str(job)
+
+
+def check_job_dir(path: Path) -> Path:
+    """``path`` if it is a job folder a launcher may write into (missing, or a real folder);
+    a CobelError for a link or a file there: a job's outputs are removed before it runs
+    again, and a link would have them removed elsewhere."""
+    if path.is_symlink() or (path.exists() and not path.is_dir()):
+        raise CobelError(f"job folder {path} is a link or a file, not a folder of the sweep; "
+                         "remove it, then run the sweep again")  # fmt: skip
+    return path
 
 
 INDEX_COLUMNS = ("status", "error", "config_hash", "duration_s", "host", "ended_at", "run_dir",
@@ -653,6 +668,10 @@ class SweepLock:
     def acquire(self) -> SweepLock:
         import fcntl
 
+        if self.path.parent.is_dir():  # job folders a launcher clears: never through a link
+            for entry in self.path.parent.iterdir():
+                if entry.name.isdigit():
+                    check_job_dir(entry)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:

@@ -90,6 +90,7 @@ class CobelSweeper(Sweeper):
         from cobelrun.config import register_resolvers
         from cobelrun.sweep import (
             DONE_MARKER,
+            check_job_dir,
             clear_outputs,
             is_complete,
             job_config_hash,
@@ -107,6 +108,8 @@ class CobelSweeper(Sweeper):
         register_resolvers()
         swept, jobs = plan(arguments, extra=[f"{k}={v}" for k, v in self.params.items()])
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        for j in jobs:  # a tampered folder: never clear or write through a link
+            check_job_dir(job_dir(sweep_dir, j["job"]))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
         command = os.environ.get("COBEL_COMMAND") or " ".join(sys.argv)

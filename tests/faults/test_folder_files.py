@@ -176,3 +176,23 @@ def test_load_manifest_and_plot_refuse_a_manifest_of_wrong_types(real_run, tmp_p
     edit_json("manifest.json", lambda d: {**d, "started_at": "yesterday"})(run)
     with pytest.raises(CobelError, match=r"manifest.json: started_at: .*ISO 8601"):
         load_manifest(run)
+
+
+def test_resuming_a_sweep_never_clears_a_job_folder_that_links_elsewhere(real_sweep, tmp_path):
+    """`cobel run -m` again on a sweep whose job folder was replaced by a link: refused in one
+    line, and the folder the link points to keeps every file (a rerun clears a job's outputs)."""
+    import shutil
+
+    from tests.faults.folders import TINY, _cobel
+
+    sweep = copy_folder(real_sweep, tmp_path / "sweep")
+    outside = copy_folder(sweep / "1", tmp_path / "elsewhere")
+    (outside / ".done").unlink()  # not done: a resume would clear it and run it again
+    shutil.rmtree(sweep / "1")
+    (sweep / "1").symlink_to(outside)
+    before = sorted(p.name for p in outside.iterdir())
+    proc = _cobel(tmp_path, "run", "-m", "--quiet", *TINY, "seed=0,1",
+                  f"hydra.sweep.dir={sweep}", "hydra/launcher=basic")  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert "is a link or a file, not a folder of the sweep" in proc.stderr
+    assert sorted(p.name for p in outside.iterdir()) == before

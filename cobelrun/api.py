@@ -211,20 +211,20 @@ def make_env(task: str | None = None, overrides: Sequence[str] = (), *, time_lim
 
 def _execute(cfg: Any, out: str | os.PathLike[str] | None, progress: bool) -> Run:
     """Validate ``cfg`` (build every part once), then run it into ``out``."""
+    from cobelrun.io.lock import refuse_existing
     from cobelrun.runner import build_task
     from cobelrun.runner import run as run_task
 
-    build_task(cfg, probe_agent=True)  # bad input fails here, before any folder exists
+    task = build_task(cfg, probe_agent=True)  # bad input fails here, before any folder exists
     run_dir = Path(out) if out is not None else default_run_dir(str(cfg.task.name))
-    if RunFolder(run_dir).manifest.exists():
-        raise CobelError(f"{run_dir} already holds a run; choose another out folder")
+    refuse_existing(run_dir, "the out folder")
     if progress:
         from cobelrun.progress import run_progress
 
         with run_progress(str(cfg.task.name)) as bar:
-            run_task(cfg, run_dir, progress=bar)
+            run_task(cfg, run_dir, progress=bar, task=task)
     else:
-        run_task(cfg, run_dir)
+        run_task(cfg, run_dir, task=task)  # the task built once (locks the folder, checks again)
     return Run(run_dir)
 
 

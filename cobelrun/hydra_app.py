@@ -33,7 +33,8 @@ from cobelrun.compose import (  # noqa: F401
 )
 from cobelrun.config import builtin_conf_dir, register_resolvers
 from cobelrun.errors import CobelError, ConfigError
-from cobelrun.safety import check_inside, results_root
+from cobelrun.io.lock import RunLock, refuse_existing
+from cobelrun.safety import check_folder, check_inside, results_root
 
 
 def job(cfg: DictConfig) -> str:
@@ -143,9 +144,11 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
             status(run_dir, "interrupted", error="the sweep was stopped before this job started",
                    **fields)  # fmt: skip
             return float("nan") if wants_number else "interrupted"
-        clear_outputs(run_dir)
-        status(run_dir, "running", config_hash=chash, **fields)
-        run(cfg, run_dir, background_writes=False)  # jobs in parallel already fill the cores
+        with RunLock(run_dir, "the sweep job's folder"):  # one writer, also across sweeps
+            clear_outputs(run_dir)
+            status(run_dir, "running", config_hash=chash, **fields)
+            # jobs in parallel already fill the cores; a job reruns its own folder
+            run(cfg, run_dir, background_writes=False, replace=True)
     except KeyboardInterrupt:
         # the files are closed and the manifest says interrupted; later jobs must not start
         # (in-process launchers run them in this process), and the launcher reports it
@@ -209,26 +212,59 @@ def sweep_folder(overrides: list[str], cfg: DictConfig, jobs: list[dict]) -> tup
         given = str(OmegaConf.select(cfg, "hydra.sweep.dir") or "")
         if not given.strip():
             raise ConfigError("hydra.sweep.dir must name a folder, got an empty string")
-        return [], Path(given).expanduser().absolute()
+        return [], check_folder(Path(given), "the sweep folder")
     root = results_root()
     sweep_dir = check_inside(root / str(cfg.task.name) / "sweeps" / sweep_id(jobs), root,
                              "the sweep folder")  # fmt: skip
     return [f"hydra.sweep.dir={_quote(str(sweep_dir))}"], sweep_dir
 
 
-def run_folder(overrides: list[str], cfg: DictConfig) -> tuple[list[str], Path]:
+def run_folder(
+    overrides: list[str], cfg: DictConfig, cobel_default: bool = False
+) -> tuple[list[str], Path]:
     """A single run's folder, absolute and resolved, and the override that pins it.
 
     Unless ``hydra.run.dir`` is given, the folder must stay inside the results root
-    (``$COBEL_RESULTS`` or ``./results``), also through symlinks.
+    (``$COBEL_RESULTS`` or ``./results``), also through symlinks; a given one may be anywhere
+    but the file system's root. ``cobel_default``: the config (a ``-cd`` folder's, such as a
+    saved run's ``.hydra``) does not name a folder itself, so the run gets cobel's usual
+    ``$COBEL_RESULTS/<task>/<date>/<time>_<id>`` rather than Hydra's ``outputs/...``.
     """
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     out = Path(str(OmegaConf.select(cfg, "hydra.run.dir"))).expanduser()
     if "hydra.run.dir" in keys:
-        path = out.absolute()
+        path = check_folder(out)
     else:
-        path = check_inside(out, results_root())
+        if cobel_default:
+            from cobelrun.api import default_run_dir
+
+            out = default_run_dir(str(cfg.task.name))
+        path = check_folder(check_inside(out, results_root()))
     return [f"hydra.run.dir={_quote(str(path))}"], path
+
+
+def check_new_run(run_dir: Path) -> None:
+    """A CobelError if ``run_dir`` is being written or already holds a run: ``cobel run``
+    never replaces one (leave hydra.run.dir out for a new dated folder)."""
+    refuse_existing(run_dir, "hydra.run.dir")
+
+
+def has_defaults(config_dir: Path, config_name: str) -> bool:
+    """Whether a user's primary config file has a defaults list (a saved run's has none)."""
+    from cobelrun.compose import load_config
+
+    path = config_dir / f"{config_name.removesuffix('.yaml')}.yaml"
+    return not path.is_file() or "defaults" in load_config(path)
+
+
+def names_run_dir(config_dir: Path, config_name: str) -> bool:
+    """Whether a user's primary config file (``-cd DIR -cn NAME``) sets ``hydra.run.dir``."""
+    from cobelrun.compose import load_config
+
+    path = config_dir / f"{config_name.removesuffix('.yaml')}.yaml"
+    if not path.is_file():
+        return True  # Hydra composes it from elsewhere: leave its folder as it says
+    return OmegaConf.select(load_config(path), "hydra.run.dir") is not None
 
 
 def report_sweep(sweep_dir: Path) -> int:
@@ -306,6 +342,13 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
     if multirun:
         overrides = [*default_launcher(overrides), *overrides]
         parsed.overrides = overrides
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    if user_dir is not None and "hydra/job_logging" not in keys:
+        if not has_defaults(user_dir, config_name):
+            # a saved run's .hydra/config.yaml has no defaults list: log as cobel run does
+            # (RUN_DIR/cobel.log, warnings on the terminal), not with Hydra's default logging
+            overrides = [*overrides, "hydra/job_logging=cobel"]
+            parsed.overrides = overrides
     if not informational:
         results_root()  # COBEL_RESULTS="" is refused before anything is composed
         cfg, jobs = validate(overrides, multirun, user_dir, config_name)
@@ -333,8 +376,21 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             parsed.overrides = [*overrides, *extra]
             os.environ["COBEL_COMMAND"] = shlex.join(["cobel", "run", *args])
         else:
-            extra, _ = run_folder(overrides, cfg)
-            return run_composed(cfg, extra, user_dir, config_name)
+            default = user_dir is not None and not names_run_dir(user_dir, config_name)
+            extra, run_dir = run_folder(overrides, cfg, cobel_default=default)
+            # one writer per folder, from before Hydra writes anything into it (.hydra/,
+            # cobel.log) until the run ends; a folder that holds a run is never replaced
+            check_new_run(run_dir)
+            try:
+                lock = RunLock(run_dir)
+                lock.__enter__()
+            except OSError as exc:
+                raise CobelError(f"cannot write the run folder {run_dir}: {exc.strerror}") from None
+            try:
+                check_new_run(run_dir)
+                return run_composed(cfg, extra, user_dir, config_name)
+            finally:
+                lock.__exit__(None, None, None)
     if sweep_dir is None:
         run_hydra(parsed, config_dir, config_name)
         return 0

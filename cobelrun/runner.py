@@ -23,6 +23,7 @@ from cobelrun.config import factory, instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.io.atomic import atomic_write_text, disk_error, is_disk_error
+from cobelrun.io.lock import RunLock, refuse_existing
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
@@ -455,7 +456,13 @@ TRIM_SECONDS = 1.0
 
 
 def run(
-    cfg: DictConfig, run_dir: Path, *, progress: Any = None, background_writes: bool = True
+    cfg: DictConfig,
+    run_dir: Path,
+    *,
+    progress: Any = None,
+    background_writes: bool = True,
+    task: Task | None = None,
+    replace: bool = False,
 ) -> Path:
     """Build and execute a task into ``run_dir``; write config, manifest and done marker.
 
@@ -463,12 +470,41 @@ def run(
     the manifest says ``interrupted`` and :class:`KeyboardInterrupt` propagates.
     ``background_writes`` writes files on a second thread, overlapping simulation and I/O on a
     free core; sweeps switch it off, since their parallel jobs already use every core.
+    ``task`` is the task :func:`build_task` already built from ``cfg`` (built here if None).
+
+    The folder is locked while written (:class:`cobelrun.io.lock.RunLock`: a second writer is
+    refused naming this process), and a folder that already holds a run is refused unless
+    ``replace`` (a sweep job rerunning its own folder after clearing it).
     """
     run_dir = Path(run_dir)
-    folder = RunFolder(run_dir)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(resolved, Mapping)
-    task = build_task(cfg)  # everything is checked before the folder is touched
+    if task is None:
+        task = build_task(cfg)  # everything is checked before the folder is touched
+    if not replace:
+        _check_new(run_dir)
+    try:
+        lock = RunLock(run_dir)
+        lock.__enter__()
+    except OSError as exc:
+        raise CobelError(disk_error(exc, run_dir)) from None
+    try:
+        if not replace:
+            _check_new(run_dir)  # again, now that no one else can write it
+        return _run(cfg, run_dir, resolved, task, progress, background_writes)
+    finally:
+        lock.__exit__(None, None, None)
+
+
+def _check_new(run_dir: Path) -> None:
+    """A CobelError if ``run_dir`` is being written or already holds a run."""
+    # Hydra's .hydra/ is written before the job function starts: not counted here
+    refuse_existing(run_dir, "the run folder", hydra=False)
+
+
+def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task,
+         progress: Any, background_writes: bool) -> Path:  # fmt: skip
+    folder = RunFolder(run_dir)
     manifest = Manifest(run_dir)
     extra = (
         {"job": str(cfg.task.job._target_)}

@@ -6,9 +6,11 @@ line:
 
 * :func:`check_name`: task names become folder names, so they are limited to a safe character
   set (``task.name=../../x`` is refused);
-* :func:`results_root` / :func:`check_inside`: the output root is non-empty (``COBEL_RESULTS=""``
-  is refused rather than writing to ``/``), absolute after resolution, and a run folder must stay
-  inside it, also through symlinks;
+* :func:`results_root` / :func:`check_inside` / :func:`check_folder`: the output root is
+  non-empty (``COBEL_RESULTS=""`` is refused rather than writing to ``/``), absolute after
+  resolution and never the file system's root (a symlink to ``/`` is refused), and a run folder
+  must stay inside it, also through symlinks (one named with ``hydra.run.dir`` may be anywhere
+  but ``/``);
 * :func:`estimate_memory` / :func:`check_memory`: what a task's largest batch of trial records
   would allocate, refused with the estimate and the limit when it exceeds the memory available;
 * :func:`check_allocation`: the same for a component's own large arrays (a world's transition
@@ -36,6 +38,7 @@ __all__ = [
     "SAFE_NAME",
     "available_memory",
     "check_allocation",
+    "check_folder",
     "check_inside",
     "check_memory",
     "check_name",
@@ -80,7 +83,26 @@ def results_root(environ: Mapping[str, str] | None = None) -> Path:
         raise CobelError(
             f"{RESULTS_ENV} is set but empty; unset it (results go to ./results) or name a folder"
         )
-    return Path(raw if raw is not None else "results").expanduser().absolute().resolve()
+    root = Path(raw if raw is not None else "results").expanduser().absolute().resolve()
+    if root == Path(root.anchor):
+        shown = f"{RESULTS_ENV}={raw}" if raw is not None else "./results"
+        raise CobelError(
+            f"the results root ({shown}) resolves to {root}, the file system's root; "
+            f"refusing to write there (name a folder of its own, e.g. {RESULTS_ENV}=~/results)"
+        )
+    return root
+
+
+def check_folder(path: Path, what: str = "the run folder") -> Path:
+    """``path`` made absolute and resolved (symlinks followed); a CobelError if that is the
+    file system's root (``hydra.run.dir=/``, or a symlink to ``/``)."""
+    resolved = Path(path).expanduser().absolute().resolve()
+    if resolved == Path(resolved.anchor):
+        raise CobelError(
+            f"{what} {path} resolves to {resolved}, the file system's root; refusing to write "
+            "there (name a folder of its own)"
+        )
+    return resolved
 
 
 def check_inside(path: Path, root: Path, what: str = "the run folder") -> Path:

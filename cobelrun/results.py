@@ -36,7 +36,7 @@ def load_table(path: str | Path, table: str = "trials") -> pd.DataFrame:
         raise CobelError(f"{folder.path} has no '{table}' table; it has: {have}")
     check_table(p)  # footer, row counts and the memory it takes, before it is read
     try:
-        return pd.read_parquet(p)
+        return pd.read_parquet(p, page_checksum_verification=True)
     except Exception as exc:  # a damaged page the footer does not show
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CobelError(f"cannot read {p}: {first}") from None
@@ -134,7 +134,7 @@ def load_collected(
         raise CobelError(f"{p} does not exist; run `cobel collect SWEEP_DIR` first")
     check_collected(p)
     try:
-        return pd.read_parquet(p, columns=columns, filters=filters)
+        return pd.read_parquet(p, columns=columns, filters=filters, page_checksum_verification=True)
     except Exception as exc:  # a column or filter the file lacks, or a damaged file
         raise CobelError(f"cannot read {p}: {str(exc).strip().splitlines()[0]}") from None
 

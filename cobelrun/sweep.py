@@ -364,7 +364,7 @@ def job_state(run_dir: Path) -> dict[str, Any]:
     launcher has died (SIGKILL, a crash) is marked ``interrupted`` with :data:`NOT_STARTED`:
     nothing will start it until the sweep is run again."""
     from cobelrun.io.repair import repair_run
-    from cobelrun.io.validate import read_job_file, read_manifest
+    from cobelrun.io.validate import check_table, read_job_file, read_manifest
 
     if run_dir.is_symlink() or (run_dir.exists() and not run_dir.is_dir()):
         return _damaged(f"job folder {run_dir} is not a folder of the sweep (a link or a file); "
@@ -391,6 +391,12 @@ def job_state(run_dir: Path) -> dict[str, Any]:
         status = "queued"
     elif is_complete(run_dir, manifest=manifest):
         status = "done"
+        folder = RunFolder(run_dir)
+        for table in folder.tables():  # footers and row counts: a table cut short is no result
+            try:
+                check_table(folder.table(table), columns=[])
+            except CobelError as exc:
+                return _damaged(str(exc), job, manifest)
     elif job.get("status") == "failed" or manifest.get("status") == "failed":
         status = "failed"
     elif job.get("status") == "interrupted" or manifest.get("status") == "interrupted":
@@ -606,7 +612,9 @@ def _collect(
         target = out / f"{table}.parquet"
         tmp = out / f".{table}.parquet.{os.getpid()}.tmp"
         try:
-            with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
+            with pq.ParquetWriter(
+                tmp, schema, compression="zstd", write_page_checksum=True
+            ) as writer:
                 for j, f in files:
                     for batch in _batches(f, batch_rows):
                         rows = batch.num_rows
@@ -635,7 +643,8 @@ def _batches(path: Path, batch_rows: int) -> Any:
     import pyarrow.parquet as pq
 
     try:
-        yield from pq.ParquetFile(path).iter_batches(batch_size=batch_rows)
+        pf = pq.ParquetFile(path, page_checksum_verification=True)
+        yield from pf.iter_batches(batch_size=batch_rows)
     except Exception as exc:  # ArrowInvalid, Arrow's IOError: a corrupt page, a bad encoding
         if isinstance(exc, OSError) and exc.errno is not None:
             raise  # the disk itself

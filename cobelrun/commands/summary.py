@@ -178,7 +178,7 @@ def run_status(folder: RunFolder) -> None:
     tables = folder.tables()
     for table in tables:
         try:
-            check_table(folder.table(table), columns=[])
+            check_table(folder.table(table), columns=[], verify=True)
         except CobelError as exc:
             unreadable[table] = str(exc)
     if folder.mcap.is_file() and status == "completed":

@@ -62,7 +62,7 @@ def _read(run_dir: Path, name: str) -> pd.DataFrame | None:
         return None
     check_table(p)
     try:
-        return pd.read_parquet(p)
+        return pd.read_parquet(p, page_checksum_verification=True)
     except Exception as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CobelError(f"cannot read {p}: {first}") from None

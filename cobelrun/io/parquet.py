@@ -181,7 +181,7 @@ class ParquetStreamWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # Created eagerly so that even a run that writes no rows leaves a valid (empty) table.
         self._writer: pq.ParquetWriter | None = pq.ParquetWriter(
-            str(self.path), schema, compression=compression
+            str(self.path), schema, compression=compression, write_page_checksum=True
         )
 
     # ------------------------------------------------------------------ properties
@@ -431,7 +431,9 @@ class PartedTableWriter:
     def _write_row_groups(self) -> None:
         if self._pq is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._pq = pq.ParquetWriter(str(self._tmp), self.schema, compression=self.compression)
+            self._pq = pq.ParquetWriter(
+                str(self._tmp), self.schema, compression=self.compression, write_page_checksum=True
+            )
         if self._pending:
             table = pa.concat_tables(self._pending)
             self._pq.write_table(table, row_group_size=self.row_group_rows)
@@ -484,7 +486,9 @@ def merge_parts(
     path.parent.mkdir(parents=True, exist_ok=True)
     rows = 0
     try:
-        with pq.ParquetWriter(str(tmp), schema, compression=compression) as writer:
+        with pq.ParquetWriter(
+            str(tmp), schema, compression=compression, write_page_checksum=True
+        ) as writer:
             pending: list[pa.RecordBatch] = []
             n_pending = 0
             for part in parts:

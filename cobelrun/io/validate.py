@@ -409,13 +409,21 @@ def _region(path: Path, key: str, region: Any) -> dict[str, Any]:
 
 
 # -- Parquet ------------------------------------------------------------------------------------
-def check_table(path: str | os.PathLike[str], *, columns: list[str] | None = None) -> int:
+#: tables up to this size (uncompressed) are read whole by ``check_table(verify=True)``
+VERIFY_BYTES = 256 << 20
+
+
+def check_table(
+    path: str | os.PathLike[str], *, columns: list[str] | None = None, verify: bool = False
+) -> int:
     """Check a Parquet table's footer before it is read; returns its row count.
 
     The footer must parse, its row groups must add up to the file's row count, every column
     chunk must lie inside the file, and what reading ``columns`` (all by default) would take in
     memory must fit (:func:`cobelrun.safety.check_allocation`). A table cut short (a killed
-    copy, a full disk) has no footer and is refused here.
+    copy, a full disk) has no footer and is refused here. With ``verify``, a table of up to
+    :data:`VERIFY_BYTES` is also read one row group at a time with its page checksums checked
+    (cobel writes a CRC-32 per page), so a flipped byte in its data is found too.
     """
     import pyarrow.parquet as pq
 
@@ -455,6 +463,15 @@ def check_table(path: str | os.PathLike[str], *, columns: list[str] | None = Non
     except Exception as exc:
         raise FolderFileError(f"{p}: its Parquet footer is damaged ({_short(str(exc))})") from None
     check_allocation(str(p), nbytes, "its columns", "read fewer columns or a smaller table")
+    total = sum(g.total_byte_size for g in groups)
+    if verify and total <= VERIFY_BYTES:
+        try:
+            pf = pq.ParquetFile(p, page_checksum_verification=True)
+            for i in range(meta.num_row_groups):
+                pf.read_row_group(i)
+        except Exception as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise FolderFileError(f"{p}: its data is damaged ({_short(first)})") from None
     return int(meta.num_rows)
 
 

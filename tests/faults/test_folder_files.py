@@ -196,3 +196,29 @@ def test_resuming_a_sweep_never_clears_a_job_folder_that_links_elsewhere(real_sw
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
     assert "is a link or a file, not a folder of the sweep" in proc.stderr
     assert sorted(p.name for p in outside.iterdir()) == before
+
+
+def test_status_finds_a_flipped_byte_in_a_table(real_run, tmp_path):
+    """cobel writes a CRC-32 per Parquet page: a byte changed inside the data (the footer
+    intact) is found by `cobel status`, and the readers refuse the table in one line."""
+    import pyarrow.parquet as pq
+
+    run = copy_folder(real_run, tmp_path / "run")
+    path = run / "trials.parquet"
+    col = pq.read_metadata(path).row_group(0).column(0)
+    raw = bytearray(path.read_bytes())
+    raw[col.data_page_offset + col.total_compressed_size - 3] ^= 0xFF  # inside the first page
+    path.write_bytes(bytes(raw))
+    code, out, exc = invoke("status", str(run))
+    assert exc is None and code == 1, out
+    assert "completed, but damaged" in out and "trials.parquet: its data is damaged" in out
+    line = one_error_line(*invoke("plot", str(run), "--kind", "latency"), "trials.parquet")
+    assert "cannot read" in line
+
+
+def test_sweep_job_with_a_truncated_table_is_not_done(real_sweep, tmp_path):
+    sweep = copy_folder(real_sweep, tmp_path / "sweep")
+    truncate("trials.parquet")(sweep / "0")
+    code, out, exc = invoke("status", str(sweep))
+    assert exc is None and code == 1, out
+    assert "1 done, 1 failed" in out and "trials.parquet" in out

@@ -89,17 +89,29 @@ def test_export_nwb_on_a_full_disk(disk, real_run):
     assert not list((run / "nwb").glob("*.nwb")) if (run / "nwb").exists() else True
 
 
-def test_a_permission_error_is_not_called_free_space():
-    """A run stopped by EACCES names the permission problem; the hint does not say 'free
-    space' (root ignores permissions, so the message is checked from the error itself)."""
-    import inspect
+def test_a_permission_error_mid_run_is_called_a_permission_error(tmp_path, monkeypatch):
+    """A run whose tables cannot be finished (EACCES: root ignores permissions, so the error is
+    raised where the parts are merged) fails with one line that says "permission denied",
+    names the parts it kept and the (quoted) command that merges them, and tells nobody to
+    free space."""
+    import shlex
 
-    from cobelrun import runner
-    from cobelrun.io.atomic import disk_error
+    import cobelrun
+    from cobelrun.errors import CobelError
+    from cobelrun.io.parquet import PartedTableWriter
 
-    exc = PermissionError(errno.EACCES, "Permission denied", "/data/run/steps.parquet")
-    assert disk_error(exc, "/data/run") == "cannot write to /data/run: permission denied"
-    assert "free space" not in inspect.getsource(runner._kept)
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(self.path))
+
+    # the parts are written; finishing the tables from them is refused
+    monkeypatch.setattr(PartedTableWriter, "_write_row_groups", refuse)
+    out = tmp_path / "my results" / "run"
+    with pytest.raises(CobelError) as err:
+        cobelrun.run(None, list(TINY), out)
+    msg = str(err.value)
+    assert "permission denied" in msg and "free space" not in msg and "disk is full" not in msg
+    assert "kept: parts of steps, trials" in msg
+    assert f"cobel status {shlex.quote(str(out))}" in msg  # pastes into a shell
 
 
 def test_next_commands_are_shell_quoted(tmp_path, real_run, capsys):

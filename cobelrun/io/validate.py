@@ -115,7 +115,10 @@ def read_json_file(path: str | os.PathLike[str], what: str = "") -> Any:
                 f"{label} is {size:,} bytes, more than the {MAX_JSON_BYTES:,} a cobel folder's "
                 "JSON file may have; it was not written by cobel"
             )
-        raw = p.read_bytes()
+        with open(p, "rb") as f:  # bounded also where the size lies (/proc, a growing file)
+            raw = f.read(MAX_JSON_BYTES + 1)
+        if len(raw) > MAX_JSON_BYTES:
+            raise FolderFileError(f"{label} holds more than {MAX_JSON_BYTES:,} bytes")
     except OSError as exc:
         raise FolderFileError(f"cannot read {label}: {exc.strerror or exc}") from None
     try:

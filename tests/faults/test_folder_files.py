@@ -222,3 +222,22 @@ def test_sweep_job_with_a_truncated_table_is_not_done(real_sweep, tmp_path):
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
     assert "1 done, 1 failed" in out and "trials.parquet" in out
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("[" * 100_000 + "]" * 100_000, "nests deeper than 200 levels"),  # RecursionError before
+        ('{"status": NaN}', "NaN is not valid JSON"),
+        ("", "not valid JSON"),
+        ("\xff\xfe", "not UTF-8"),
+    ],
+)
+def test_json_files_are_bounded_before_parsing(tmp_path, text, words):
+    from cobelrun.errors import CobelError
+    from cobelrun.io.validate import read_manifest
+
+    path = tmp_path / "manifest.json"
+    path.write_bytes(text.encode("latin-1") if text.startswith("\xff") else text.encode())
+    with pytest.raises(CobelError, match=words):
+        read_manifest(path)

@@ -286,8 +286,10 @@ def fuzz_one(data: Any, real_run: Path, real_sweep: Path, base: Path) -> None:
     canary = box / "CANARY"
     rel = data.draw(st.sampled_from(_files(folder)), label="file")
     what = mutate(data, folder / rel, box, canary)
-    command = data.draw(st.sampled_from(RUN_COMMANDS if kind == "run" else SWEEP_COMMANDS),
-                        label="command")  # fmt: skip
+    commands = RUN_COMMANDS if kind == "run" else SWEEP_COMMANDS
+    if what.endswith("-target") and kind == "run":  # what would build it: a rerun, mostly
+        commands = ("rerun-config", "rerun-config", "plot", "load")
+    command = data.draw(st.sampled_from(commands), label="command")
     before = snapshot(box, folder)
     old_results = os.environ.get("COBEL_RESULTS")
     os.environ["COBEL_RESULTS"] = str(folder / "results")
@@ -305,6 +307,7 @@ def fuzz_one(data: Any, real_run: Path, real_sweep: Path, base: Path) -> None:
             os.environ["COBEL_RESULTS"] = old_results
     FIGURES["clean_errors" if outcome == "error" else "successes"] += 1
     FIGURES[f"mutation:{what}"] += 1
+    FIGURES[f"command:{command}"] += 1
     if canary.exists() or Path("/tmp/pwned").exists():
         FIGURES["canaries"] += 1
         _log()
@@ -339,3 +342,15 @@ def test_fuzzed_folder_files_fail_cleanly(data, real_run, real_sweep, fuzz_base)
 @given(data=st.data())
 def test_fuzzed_folder_files_fail_cleanly_1000(data, real_run, real_sweep, fuzz_base):
     fuzz_one(data, real_run, real_sweep, fuzz_base)
+
+
+@pytest.mark.parametrize("which", range(3))
+def test_canary_targets_do_write_when_built(tmp_path, which):
+    """The injected targets are live: built without cobel's gate (Hydra's own instantiate),
+    each writes its canary, so a canary-free fuzz run means the gate held."""
+    from hydra.utils import instantiate
+
+    canary = tmp_path / "CANARY"
+    node = _targets(canary)[which]
+    instantiate(node)
+    assert canary.exists()

@@ -433,6 +433,8 @@ def check_table(
     from cobelrun.safety import check_allocation
 
     p = Path(path)
+    if not p.is_file():  # a pipe or a device would block or never end
+        raise FolderFileError(f"{p} is missing or not a regular file")
     try:
         size = p.stat().st_size
         meta = pq.read_metadata(p)
@@ -486,6 +488,8 @@ def check_mcap(path: str | os.PathLike[str]) -> None:
 
     p = Path(path)
     magic = b"\x89MCAP0\r\n"
+    if not p.is_file():
+        raise FolderFileError(f"{p} is missing or not a regular file")
     try:
         with open(p, "rb") as f:
             head = f.read(len(magic))

@@ -104,7 +104,7 @@ def _get(node: Any, path: tuple) -> Any:
 def mutate(data: Any, path: Path, box: Path, canary: Path) -> str:
     """Change the file (or folder) ``path`` in one drawn way; returns what was done."""
     kinds = ["truncate", "flip", "empty", "garbage", "delete", "link-outside", "link-root",
-             "link-dev-zero", "link-dangling"]  # fmt: skip
+             "link-dev-zero", "link-dangling", "fifo"]  # fmt: skip
     text_kind = path.suffix in (".json", ".yaml", ".csv") or path.name == ".done"
     if path.suffix == ".json":
         kinds += ["json-value"] * 4 + ["json-target"] * 2
@@ -113,7 +113,7 @@ def mutate(data: Any, path: Path, box: Path, canary: Path) -> str:
     if path.suffix == ".npz":
         kinds += ["npz-shape"] * 4
     if path.is_dir():
-        kinds = ["delete", "link-outside", "link-root", "link-dangling"]
+        kinds = ["delete", "link-outside", "link-root", "link-dangling", "fifo"]
     kind = data.draw(st.sampled_from(kinds), label="mutation")
     if kind in ("truncate", "flip", "empty", "garbage") and path.is_dir():
         kind = "delete"
@@ -133,6 +133,9 @@ def mutate(data: Any, path: Path, box: Path, canary: Path) -> str:
         path.write_bytes(data.draw(st.binary(min_size=1, max_size=64), label="garbage"))
     elif kind == "delete":
         shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+    elif kind == "fifo":  # a named pipe: a reader that opens it waits forever
+        shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+        os.mkfifo(path)
     elif kind.startswith("link-"):
         if kind == "link-outside":  # a copy of the real file, outside the folder
             target = box / "outside" / path.name
@@ -294,6 +297,13 @@ def fuzz_one(data: Any, real_run: Path, real_sweep: Path, base: Path) -> None:
     old_results = os.environ.get("COBEL_RESULTS")
     os.environ["COBEL_RESULTS"] = str(folder / "results")
     FIGURES["examples"] += 1
+    import signal
+
+    def hung(signum: int, frame: Any) -> None:
+        raise TimeoutError(f"{command} hung on {what} of {rel}")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(120)  # a reader that blocks (a pipe opened) fails the example, not the suite
     try:
         outcome = run_reader(command, folder, box)
     except BaseException:
@@ -301,6 +311,8 @@ def fuzz_one(data: Any, real_run: Path, real_sweep: Path, base: Path) -> None:
         _log()
         raise
     finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
         if old_results is None:
             os.environ.pop("COBEL_RESULTS", None)
         else:

@@ -101,6 +101,37 @@ loop = time.perf_counter() - t0
 print(json.dumps({"steps": steps, "loop_s": loop, "last20": float(np.mean(last))}))
 """
 
+#: cobel in-process, kernels loaded: the same runs (agents from the same configs and overrides)
+#: timed after one warm-up trial per agent; what the simulation itself costs
+COBEL_WARM_SCRIPT = r"""
+import json, sys, time
+import numpy as np
+import yaml
+from omegaconf import OmegaConf
+from cobelrun.config import instantiate
+from cobelrun.envs import GridWorldEnv, open_field
+
+conf, overrides = sys.argv[1], json.loads(sys.argv[2])
+seeds, episodes, max_steps = int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+node = OmegaConf.load(conf)
+for item in overrides:  # agent.KEY=VALUE, the value parsed as YAML (as Hydra does)
+    key, value = item.split("=", 1)
+    OmegaConf.update(node, key.removeprefix("agent."), yaml.safe_load(value))
+node = OmegaConf.to_container(node)
+agents = []
+for seed in range(seeds):
+    env = GridWorldEnv(open_field(9, 9, starts=[0], goal=80))
+    env.unwrapped.np_random = np.random.default_rng(seed)
+    agents.append(instantiate("agent", node, env=env, seed=seed))
+warm = instantiate("agent", node, env=GridWorldEnv(open_field(9, 9, starts=[0], goal=80)), seed=99)
+warm.train(1, max_steps)
+steps = 0
+t0 = time.perf_counter()
+for agent in agents:
+    steps += int(agent.train(episodes, max_steps).steps.sum())
+print(json.dumps({"steps": steps, "loop_s": time.perf_counter() - t0}))
+"""
+
 #: cobel agent configs and their overrides for the setting
 COBEL = {
     "q_learning": ["agent=q_learning", "agent.learning_rate=0.3"],
@@ -159,6 +190,21 @@ def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -
             "process_s": wall, "last20": last20}  # fmt: skip
 
 
+def run_cobel_warm(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
+    script = tmp / "cobel_warm.py"
+    script.write_text(COBEL_WARM_SCRIPT)
+    agent = COBEL[name][0].split("=", 1)[1]
+    overrides = [*COBEL[name][1:], "agent.policy=softmax", "agent.beta=50", "agent.gamma=0.95"]
+    proc = subprocess.run(
+        [sys.executable, str(script), str(HERE.parent / "conf" / "agent" / f"{agent}.yaml"),
+         json.dumps(overrides), str(seeds), str(episodes), str(max_steps)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if proc.returncode != 0:
+        raise SystemExit(f"cobel warm run failed for {name}: {proc.stderr.strip()[-400:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def run_neuronav(python: str, script: Path, name: str, seeds: int, episodes: int,
                  max_steps: int) -> dict:  # fmt: skip
     t0 = time.perf_counter()
@@ -180,12 +226,26 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=100)
     ap.add_argument("--agents", default=",".join(COBEL))
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
+    ap.add_argument("--add-warm", type=Path, metavar="JSON",
+                    help="only measure cobel warm and add it to an earlier --json file")  # fmt: skip
     args = ap.parse_args()
+    if args.add_warm:
+        raw = json.loads(args.add_warm.read_text())
+        with tempfile.TemporaryDirectory() as tmpdir:
+            for _ in range(args.repeats):
+                for a in raw:
+                    raw[a].setdefault("cobel_warm", []).append(run_cobel_warm(
+                        a, args.seeds, args.episodes, args.max_steps, Path(tmpdir)))  # fmt: skip
+        args.add_warm.write_text(json.dumps(raw, indent=1))
+        print(table(raw))
+        return
     agents = args.agents.split(",")
     unknown = [a for a in agents if a not in COBEL]
     if unknown:
         raise SystemExit(f"unknown agent {unknown[0]!r}; allowed: {', '.join(COBEL)}")
-    raw: dict[str, dict[str, list[dict]]] = {a: {"neuronav": [], "cobel": []} for a in agents}
+    raw: dict[str, dict[str, list[dict]]] = {
+        a: {"neuronav": [], "cobel": [], "cobel_warm": []} for a in agents
+    }
     with tempfile.TemporaryDirectory() as tmpdir:
         tmp = Path(tmpdir)
         script = tmp / "neuronav_run.py"
@@ -197,6 +257,8 @@ def main() -> None:
                                                        args.max_steps))  # fmt: skip
                 raw[a]["cobel"].append(run_cobel(a, args.seeds, args.episodes, args.max_steps,
                                                  tmp))  # fmt: skip
+                raw[a]["cobel_warm"].append(run_cobel_warm(a, args.seeds, args.episodes,
+                                                           args.max_steps, tmp))  # fmt: skip
                 print(f"rep {rep + 1}/{args.repeats} {a}: neuro-nav "
                       f"{raw[a]['neuronav'][-1]['loop_s']:.2f} s, cobel "
                       f"{raw[a]['cobel'][-1]['loop_s']:.2f} s", file=sys.stderr, flush=True)  # fmt: skip
@@ -213,18 +275,21 @@ def table(raw: dict[str, dict[str, list[dict]]]) -> str:
     """The Markdown table of medians: steps per second of the run loop and of the whole
     process (steps over the process's wall time), and cobel / neuro-nav ratios."""
     lines = [
-        "| agent | neuro-nav loop | cobel loop | ratio | neuro-nav process | cobel process "
-        "| ratio | last 20 episodes (nn / cobel) |",
-        "|---|---:|---:|---:|---:|---:|---:|---|",
+        "| agent | neuro-nav loop | cobel loop | ratio | cobel warm | ratio "
+        "| neuro-nav process | cobel process | ratio | last 20 episodes (nn / cobel) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for a, r in raw.items():
         nn, cb = r["neuronav"], r["cobel"]
         nn_loop = statistics.median(x["steps"] / x["loop_s"] for x in nn)
         cb_loop = statistics.median(x["steps"] / x["loop_s"] for x in cb)
+        warm = r.get("cobel_warm") or [{"steps": float("nan"), "loop_s": 1.0}]
+        cb_warm = statistics.median(x["steps"] / x["loop_s"] for x in warm)
         nn_proc = statistics.median(x["steps"] / x["process_s"] for x in nn)
         cb_proc = statistics.median(x["steps"] / x["process_s"] for x in cb)
         lines.append(
             f"| {NAMES[a]} | {nn_loop:,.0f} | {cb_loop:,.0f} | {cb_loop / nn_loop:.1f}x "
+            f"| {cb_warm:,.0f} | {cb_warm / nn_loop:.0f}x "
             f"| {nn_proc:,.0f} | {cb_proc:,.0f} | {cb_proc / nn_proc:.1f}x "
             f"| {_med(nn, 'last20'):.1f} / {_med(cb, 'last20'):.1f} |"
         )

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -104,9 +105,13 @@ def main() -> None:
     args = ap.parse_args()
     here = env_for(ROOT)
     order = "DynaQ,SRTD,Sarsa,SRMB"
+    scripts = Path(tempfile.mkdtemp(prefix="cobel_kernel_load_"))  # numba caches a file's code
+    floor, families = scripts / "numba_floor.py", scripts / "families.py"
+    floor.write_text(NUMBA_FLOOR)
+    families.write_text(FAMILIES)
     # compile everything once (cache=True), so that only cache loads are timed
-    timed_cpu([sys.executable, "-c", FAMILIES, order], here)
-    timed_cpu([sys.executable, "-c", NUMBA_FLOOR], here)
+    timed_cpu([sys.executable, str(families), order], here)
+    timed_cpu([sys.executable, str(floor)], here)
     rows: dict[str, list[float]] = {}
 
     def add(key: str, value: float) -> None:
@@ -121,10 +126,10 @@ def main() -> None:
             w, c, _ = timed_cpu([sys.executable, "-c", "import numba"], here)
             add("import numba: wall", w)
             add("import numba: CPU", c)
-            w, c, _ = timed_cpu([sys.executable, "-c", NUMBA_FLOOR], here)
+            w, c, _ = timed_cpu([sys.executable, str(floor)], here)
             add("numba floor (import + first cached call): wall", w)
             add("numba floor: CPU", c)
-            _, _, out = timed_cpu([sys.executable, "-c", FAMILIES, order], here)
+            _, _, out = timed_cpu([sys.executable, str(families), order], here)
             for k, v in json.loads(out).items():
                 add(k, v)
             for tag, path in (("this", ROOT), ("baseline", args.baseline)):
@@ -134,6 +139,7 @@ def main() -> None:
                 for k, v in r.items():
                     add(f"cobel run task=tmaze_extinction task.runs=1 ({tag}): {k}", v)
             print(f"round {rep + 1}/{args.repeats}", file=sys.stderr, flush=True)
+    shutil.rmtree(scripts, ignore_errors=True)
     print("| measurement | median s | min s |\n|---|---:|---:|")
     for k, v in rows.items():
         print(f"| {k} | {statistics.median(v):.3f} | {min(v):.3f} |")

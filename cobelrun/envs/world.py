@@ -455,6 +455,32 @@ def _parse_layout(layout: str) -> list[str]:
     return lines
 
 
+def _check_warps(world: World, warps: Any, blocked: np.ndarray, goal: np.ndarray,
+                 starts: list[int]) -> dict[int, int]:  # fmt: skip
+    """``{entry: exit}`` of ``warps`` (a mapping of state references), checked."""
+    out: dict[int, int] = {}
+    for k, v in _pairs(warps or {}, "warps"):
+        entry, exit_ = world._index(k, "warps"), world._index(v, "warps")
+        for what, s in (("entry", entry), ("exit", exit_)):
+            if blocked[s]:
+                raise LayoutError(f"warp {what} {world.describe(s)} is a wall cell; "
+                                  "warps join free cells")  # fmt: skip
+        if entry == exit_:
+            raise LayoutError(f"warp {world.describe(entry)} leads to itself")
+        if entry in starts:
+            raise LayoutError(f"warp entry {world.describe(entry)} is a start; an entry is "
+                              "never occupied")  # fmt: skip
+        if goal[entry]:
+            raise LayoutError(f"warp entry {world.describe(entry)} is a goal or terminal; an "
+                              "entry is never occupied (reward its exit instead)")  # fmt: skip
+        out[entry] = exit_
+    for entry, exit_ in out.items():
+        if exit_ in out:
+            raise LayoutError(f"warp exit {world.describe(exit_)} is another warp's entry "
+                              f"(from {world.describe(entry)}); warps do not chain")  # fmt: skip
+    return out
+
+
 def _check_pairs(world: World, pairs: Any, what: str) -> list[tuple[int, int]]:
     out: list[tuple[int, int]] = []
     for pair in pairs or ():
@@ -482,6 +508,7 @@ def from_layout(
     goal_reward: float = 1.0,
     slip: float = 0.0,
     reward_sd: float = 0.0,
+    warps: Mapping[Any, StateRef] | None = None,
 ) -> World:
     """Build a world from an ASCII layout.
 
@@ -511,6 +538,11 @@ def from_layout(
         0 gives a deterministic world.
     reward_sd : float
         Gaussian noise (standard deviation) on every non-zero reward (see :class:`World`).
+    warps : mapping entry -> exit, optional
+        Teleport cells (as neuro-nav's warps): a move that would arrive in ``entry`` arrives
+        in ``exit`` instead, so ``entry`` is never occupied. Each pair is named as places
+        ``warp_N`` (entry) and ``warp_N_exit`` (``cobel show`` draws places). Entries must be
+        free, not starts, not rewarded or terminal, and not another warp's exit.
 
     Returns
     -------
@@ -566,6 +598,11 @@ def from_layout(
                 f"start {world.describe(s)} is a wall cell; starts must be free cells"
             )
 
+    warp_to = _check_warps(world, warps, blocked, terminal | (reward != 0), start_states)
+    for i, (entry, exit_) in enumerate(warp_to.items()):
+        for name, state in ((f"warp_{i}", entry), (f"warp_{i}_exit", exit_)):
+            all_places.setdefault(name, state)
+
     wall_pairs = _check_pairs(world, walls, "walls")
     door_pairs = _check_pairs(world, one_way, "one_way")
     cut = set()
@@ -588,7 +625,7 @@ def from_layout(
                 and not blocked[nxt]
                 and (s, nxt) not in cut
             )
-            succ[s, a] = nxt if ok else s
+            succ[s, a] = warp_to.get(nxt, nxt) if ok else s
     det = np.zeros((n, N_ACTIONS, n))
     det[np.arange(n)[:, None], np.arange(N_ACTIONS)[None, :], succ] = 1.0
     if slip > 0.0:
@@ -620,6 +657,10 @@ def from_layout(
         if isinstance(terminals, int | str):
             terminals = [terminals]
         world.set_terminal({world._index(r, "terminals"): True for r in terminals})
+    for entry in warp_to:
+        if world.terminal[entry] or world.rewards[entry] != 0:
+            raise LayoutError(f"warp entry {world.describe(entry)} is rewarded or terminal; "
+                              "an entry is never occupied (reward its exit instead)")  # fmt: skip
 
     reach = world.reachable()
     for s in np.flatnonzero((world.rewards != 0) | world.terminal):

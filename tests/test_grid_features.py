@@ -61,3 +61,46 @@ def test_tabular_agents_learn_the_path_through_the_warp(cls):
     batch = agent.train(150, 200)
     assert batch.terminated[-20:].all()
     assert np.median(batch.steps[-20:]) == 8
+
+
+KEY_DOOR = """
+#########
+#S..#..G#
+#...D...#
+#K..#...#
+#########
+"""
+
+
+def test_a_key_opens_the_doors():
+    """Top copy: no key, the door is a wall, no reachable goal there; the key's cell warps to
+    the bottom copy, where the door is open and the goal is 8 steps on (2 to the key)."""
+    from cobelrun.envs.world import keys_and_doors
+
+    w = keys_and_doors(KEY_DOOR)
+    assert (w.width, w.height) == (9, 11)  # two copies of 5 rows and a wall row
+    door_top, door_held = w.state([2, 4]), w.state([8, 4])
+    assert w.blocked[door_top] and not w.blocked[door_held]
+    assert w.next_state[w.state([2, 1]), 3] == w.places["key_0_held"]  # down onto the key
+    assert w.places["key_0_held"] == w.state([9, 1])
+    assert np.flatnonzero(w.terminal).tolist() == [w.places["goal_with_key"]]
+    assert "goal" not in w.places  # the goal behind the door cannot be reached without the key
+    assert w.distances([w.state("start")])[w.state("goal_with_key")] == 10
+    with pytest.raises(LayoutError, match=r"layout has doors \('D'\) but no key"):
+        keys_and_doors(KEY_DOOR.replace("K", "."))
+    with pytest.raises(LayoutError, match=r"unknown layout symbol 'X'"):
+        keys_and_doors(KEY_DOOR.replace("K", "X"))
+
+
+@pytest.mark.parametrize("cls", [Sarsa, SRTD])
+def test_tabular_agents_learn_to_fetch_the_key_first(cls):
+    """Near-greedy agents: every final trial takes the key, then the door, to the goal, within
+    20 % of the shortest path (SARSA settles on a 12-step path, SR-TD on the 10-step one)."""
+    from cobelrun.envs.world import keys_and_doors
+
+    env = GridWorldEnv(keys_and_doors(KEY_DOOR))
+    env.unwrapped.np_random = np.random.default_rng(0)
+    agent = cls(env, seed=0, policy="softmax", beta=50.0)
+    batch = agent.train(200, 300)
+    assert batch.terminated[-20:].all()  # the goal exists only with the key: fetched first
+    assert np.median(batch.steps[-20:]) <= 1.2 * 10  # shortest: 10 steps

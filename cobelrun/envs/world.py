@@ -540,9 +540,10 @@ def from_layout(
         Gaussian noise (standard deviation) on every non-zero reward (see :class:`World`).
     warps : mapping entry -> exit, optional
         Teleport cells (as neuro-nav's warps): a move that would arrive in ``entry`` arrives
-        in ``exit`` instead, so ``entry`` is never occupied. Each pair is named as places
-        ``warp_N`` (entry) and ``warp_N_exit`` (``cobel show`` draws places). Entries must be
-        free, not starts, not rewarded or terminal, and not another warp's exit.
+        in ``exit`` instead, so ``entry`` is never occupied. Each pair whose entry has no place
+        name yet is named ``warp_N`` (entry) and ``warp_N_exit`` (``cobel show`` draws places).
+        Entries must be free, not starts, not rewarded or terminal, and not another warp's
+        exit.
 
     Returns
     -------
@@ -600,6 +601,8 @@ def from_layout(
 
     warp_to = _check_warps(world, warps, blocked, terminal | (reward != 0), start_states)
     for i, (entry, exit_) in enumerate(warp_to.items()):
+        if entry in all_places.values():  # named already (e.g. a key)
+            continue
         for name, state in ((f"warp_{i}", entry), (f"warp_{i}_exit", exit_)):
             all_places.setdefault(name, state)
 
@@ -673,6 +676,81 @@ def from_layout(
                 f"({allowed_list(world.starts.tolist())}); open a path or move it"
             )
     return world
+
+
+def keys_and_doors(
+    layout: str,
+    *,
+    goal_reward: float = 1.0,
+    slip: float = 0.0,
+    reward_sd: float = 0.0,
+) -> World:
+    """A maze with doors that a key opens, as a tabular world (the state includes the key).
+
+    The layout takes two more symbols: ``K`` a key, ``D`` a door (a wall cell until the agent
+    has picked up a key; any key opens every door). The world stacks two copies of the maze,
+    separated by a wall row: the top one without the key (doors are walls; the agent starts
+    here) and the bottom one with it (doors are free cells). Stepping onto a key in the top
+    copy lands on the same cell of the bottom copy (a warp, see :func:`from_layout`), so
+    ``state = layer * (height + 1) * width + row * width + col``. Keys are named ``key_N``
+    (top) and ``key_N_held`` (bottom), goals ``goal`` / ``goal_with_key`` where there is one,
+    so ``cobel show`` draws them; a goal is kept in each copy where it can be reached.
+
+    Parameters
+    ----------
+    layout : str
+        As :func:`from_layout`, plus ``K`` (key) and ``D`` (door).
+    goal_reward, slip, reward_sd
+        As :func:`from_layout`.
+
+    Raises
+    ------
+    LayoutError
+        As :func:`from_layout`; a layout with doors but no key.
+    """
+    raw = _parse_layout(layout.replace("K", ".").replace("D", "#"))  # validates the rest
+    rows = textwrap.dedent(layout.expandtabs()).split("\n")
+    rows = [r.rstrip() for r in rows]
+    while rows and not rows[0].strip():
+        rows.pop(0)
+    while rows and not rows[-1].strip():
+        rows.pop()
+    h, w = len(raw), len(raw[0])
+    keys = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "K"]
+    if any("D" in r for r in rows) and not keys:
+        raise LayoutError("layout has doors ('D') but no key ('K') to open them")
+    top = [r.replace("K", ".").replace("D", "#") for r in rows]
+    bottom = [r.replace("K", ".").replace("D", ".").replace("S", ".") for r in rows]
+    off = h + 1  # the bottom copy starts below the separating wall row
+    warps = [[[r, c], [off + r, c]] for r, c in keys]
+    places = {}
+    for i, (r, c) in enumerate(keys):
+        places[f"key_{i}"] = [r, c]
+        places[f"key_{i}_held"] = [off + r, c]
+
+    def build(top_rows: list[str], bottom_rows: list[str]) -> World:
+        return from_layout("\n".join([*top_rows, "#" * w, *bottom_rows]), warps=warps,
+                           places=places, goal_reward=goal_reward, slip=slip,
+                           reward_sd=reward_sd)  # fmt: skip
+
+    # goals only where they can be reached (a goal behind a door is not, without the key)
+    no_goals = build([r.replace("G", ".") for r in top], [r.replace("G", ".") for r in bottom])
+    reach = no_goals.reachable()
+    goals = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "G"]
+    top = ["".join("." if ch == "G" and not reach[r * w + c] else ch for c, ch in enumerate(row))
+           for r, row in enumerate(top)]  # fmt: skip
+    bottom = ["".join("." if ch == "G" and not reach[(off + r) * w + c] else ch
+                      for c, ch in enumerate(row)) for r, row in enumerate(bottom)]  # fmt: skip
+    if len(goals) == 1:
+        r, c = goals[0]
+        if reach[r * w + c]:
+            places["goal"] = [r, c]
+        if reach[(off + r) * w + c]:
+            places["goal_with_key"] = [off + r, c]
+    starts = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "S"]
+    if len(starts) == 1:
+        places["start"] = list(starts[0])
+    return build(top, bottom)
 
 
 def open_field(

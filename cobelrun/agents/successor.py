@@ -24,6 +24,14 @@ They differ only in how ``M`` is learned:
 
 :class:`ValueIteration` learns the same one-step model and ``w`` and plans from scratch by value
 iteration before every action: fully model-based, it is the ceiling of the revaluation tasks.
+
+SR-TD, SR-Dyna and SR-MB run whole trials in compiled code on tabular gridworlds
+(:func:`cobelrun.agents.sr_kernels.run_sr_trials`,
+:func:`cobelrun.agents.srmb_kernels.run_srmb_trials`); with per-step callbacks, noisy rewards
+or ``engine="python"`` the base class's step loop runs, and its :meth:`act` / :meth:`learn`
+call the same compiled building blocks in the same order, so both give identical tables for
+the same seeds. SR-Dyna's replay updates ``M`` (Russek et al. 2017); with ``replay_reward``
+it also updates ``w`` from the replayed rewards (as neuro-nav's ``DynaSR``).
 """
 
 from __future__ import annotations

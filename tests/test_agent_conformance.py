@@ -27,7 +27,8 @@ from cobelrun.envs import DiscreteGridWorldEnv, GridWorldEnv, open_field
 from cobelrun.errors import ConfigError
 
 #: configs whose agents need no torch (the rest are skipped without the deep extra)
-NUMPY_ONLY = {"dyna_q", "mfec"}
+NUMPY_ONLY = {"dyna_q", "mfec", "sarsa", "q_lambda", "sarsa_lambda", "mc_control",
+              "tabular_actor_critic", "dyna_actor_critic"}  # fmt: skip
 CONF = Path(__file__).resolve().parents[1] / "conf" / "agent"
 AGENT_CONFIGS = sorted(p.stem for p in CONF.glob("*.yaml"))
 

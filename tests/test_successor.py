@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 from cobelrun.agents import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
+from cobelrun.agents.base import TrialCallback as TrialCallbackBase
 from cobelrun.analysis.revaluation import revaluation_scores
 from cobelrun.envs import GridWorldEnv, open_field
 from cobelrun.errors import ConfigError
@@ -257,3 +258,98 @@ def test_grid_designs_need_enough_replay():
     assert (
         scores[("reward", "sr_dyna", 10)][0] >= 0.7
     )  # SR-Dyna: latent learning without much replay
+
+
+# -- the compiled trial loops (sr_kernels, srmb_kernels) ------------------------------------
+SR_VARIANTS = [
+    (SRTD, {}),
+    (SRDyna, {"replay_batch": 3}),
+    (SRDyna, {"replay_batch": 2, "replay_reward": True}),
+    (SRMB, {}),
+]
+
+
+def _sr_run(cls, kw, engine, callbacks=(), world=None):
+    from cobelrun.envs import from_layout
+
+    world = world or from_layout("S....\n.#.#.\n....G", slip=0.2)
+    world.starts = np.array([0, 1, 5])  # several starts: the env's generator draws each trial
+    env = GridWorldEnv(world)
+    env.unwrapped.np_random = np.random.default_rng(7)
+    agent = cls(env, seed=11, engine=engine, **kw)
+    batches = [agent.train(12, 40, callbacks), agent.test(3, 40, callbacks)]
+    return agent, batches
+
+
+@pytest.mark.parametrize("policy", ["epsilon_greedy", "softmax"])
+@pytest.mark.parametrize(("cls", "kw"), SR_VARIANTS)
+def test_compiled_and_python_paths_give_identical_tables(cls, kw, policy):
+    """Same seeds: the compiled trial kernel and the Python step loop (per-step hooks) make the
+    same draws, so the trial and step tables and the learned arrays are identical, on a
+    stochastic world with several start states."""
+    kw = {**kw, "policy": policy, "beta": 3.0}
+    a, fast = _sr_run(cls, kw, "compiled")
+    b, slow = _sr_run(cls, kw, "python")
+    for x, y in zip(fast, slow, strict=True):
+        for field in ("start_state", "end_state", "steps", "terminated", "offsets",
+                      "step_state", "step_action", "step_next_state", "step_reward"):  # fmt: skip
+            np.testing.assert_array_equal(getattr(x, field), getattr(y, field), err_msg=field)
+    assert fast[0].steps.sum() > 30
+    for key, arr in a.get_state().items():
+        np.testing.assert_array_equal(arr, b.get_state()[key], err_msg=key)
+
+
+class _Steps(TrialCallbackBase):
+    def __init__(self):
+        self.n = 0
+
+    def _on_step(self, agent, trial, step, transition):
+        self.n += 1
+
+
+class _Ends(TrialCallbackBase):
+    def __init__(self):
+        self.ends = []
+
+    def _on_trial_end(self, agent, trial, record):
+        self.ends.append((trial, len(record["actions"]), float(agent.core.w.sum())))
+
+
+@pytest.mark.parametrize(("cls", "kw"), SR_VARIANTS[1:2] + SR_VARIANTS[3:])
+def test_trial_end_callbacks_run_between_compiled_trials(cls, kw):
+    """Trial-end hooks keep the compiled path (one trial per call) with the same results;
+    per-step hooks take the Python loop, also with the same results; engine='compiled'
+    refuses per-step hooks in one line."""
+    _, plain = _sr_run(cls, kw, "auto")
+    ends = _Ends()
+    _, hooked = _sr_run(cls, kw, "auto", [ends])
+    steps = _Steps()
+    _, stepped = _sr_run(cls, kw, "auto", [steps])
+    for x, y, z in zip(plain, hooked, stepped, strict=True):
+        np.testing.assert_array_equal(x.step_action, y.step_action)
+        np.testing.assert_array_equal(x.step_action, z.step_action)
+    assert [n for _, n, _ in ends.ends] == plain[0].steps.tolist() + plain[1].steps.tolist()
+    assert steps.n == sum(int(b.steps.sum()) for b in plain)
+    with pytest.raises(ConfigError, match=r"agent.engine .compiled. cannot run per-step callbacks"):
+        _sr_run(cls, kw, "compiled", [_Steps()])
+
+
+def test_sr_dyna_replay_reward_moves_w_towards_the_replayed_rewards():
+    """With replay_reward, replayed experiences also update w: at a slow reward rate (0.1),
+    w(goal) after 30 rewarded trials is ~1 - 0.9^30 from experience alone and ~1 with replayed
+    rewards as well."""
+    ws = {}
+    for flag in (False, True):
+        env = GridWorldEnv(open_field(4, 4, starts=[0], goal=15))
+        env.unwrapped.np_random = np.random.default_rng(1)
+        agent = SRDyna(env, seed=3, replay_batch=20, replay_reward=flag, reward_rate=0.1)
+        agent.train(30, 50)
+        ws[flag] = agent.core.w[15]
+    assert ws[False] < 0.97 and ws[True] > 0.999
+
+
+def test_bad_engine_is_one_line_config_error():
+    with pytest.raises(ConfigError, match=r"agent.engine 'fast' is not known; allowed: 'auto'"):
+        SRTD(GridWorldEnv(revaluation_world()), engine="fast")
+    with pytest.raises(ConfigError, match=r"agent.replay_reward must be true or false"):
+        SRDyna(GridWorldEnv(revaluation_world()), replay_reward="yes")

@@ -9,6 +9,14 @@ from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.pma import PMA
 from cobelrun.agents.sfma import SFMA
 from cobelrun.agents.successor import SRMB, SRTD, SRDyna, SuccessorCore, ValueIteration
+from cobelrun.agents.td_control import (
+    DynaActorCritic,
+    MCControl,
+    QLambda,
+    Sarsa,
+    SarsaLambda,
+    TabularActorCritic,
+)
 from cobelrun.errors import CobelError
 
 #: deep and episodic agents, imported on first use (torch / stable-baselines3 / scipy stay lazy)
@@ -27,6 +35,12 @@ __all__ = [
     "SRDyna",
     "SuccessorCore",
     "ValueIteration",
+    "DynaActorCritic",
+    "MCControl",
+    "QLambda",
+    "Sarsa",
+    "SarsaLambda",
+    "TabularActorCritic",
     "Agent",
     "ArraySpec",
     "DynaQ",

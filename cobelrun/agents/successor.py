@@ -24,20 +24,45 @@ They differ only in how ``M`` is learned:
 
 :class:`ValueIteration` learns the same one-step model and ``w`` and plans from scratch by value
 iteration before every action: fully model-based, it is the ceiling of the revaluation tasks.
+
+SR-TD, SR-Dyna and SR-MB run whole trials in compiled code on tabular gridworlds
+(:func:`cobelrun.agents.sr_kernels.run_sr_trials`,
+:func:`cobelrun.agents.srmb_kernels.run_srmb_trials`); with per-step callbacks, noisy rewards
+or ``engine="python"`` the base class's step loop runs, and its :meth:`act` / :meth:`learn`
+call the same compiled building blocks in the same order, so both give identical tables for
+the same seeds. SR-Dyna's replay updates ``M`` (Russek et al. 2017); with ``replay_reward``
+it also updates ``w`` from the replayed rewards (as neuro-nav's ``DynaSR``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition, state_indices
+from cobelrun.agents.base import (
+    Agent,
+    ArraySpec,
+    SeedLike,
+    Transition,
+    TrialCallback,
+    state_indices,
+)
+from cobelrun.agents.codes import POLICIES
+from cobelrun.agents.compiled_trials import (
+    TrialBuffers,
+    WorldTables,
+    check_engine,
+    run_trial_by_trial,
+    use_compiled,
+)
 from cobelrun.agents.policy import check_policy, select
 from cobelrun.errors import ConfigError
+from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
+from cobelrun.signals import critical
 
 
 class SuccessorCore:
@@ -191,7 +216,31 @@ class TabularModelAgent(Agent):
         return np.array([self.q_values(int(s)) for s in obs]).reshape(-1, self.n_actions)
 
 
-class SRTD(TabularModelAgent):
+class _CompiledSR(TabularModelAgent):
+    """Engine choice of the SR agents: whole trials in compiled code (:mod:`sr_kernels`,
+    :mod:`srmb_kernels`), or the base class's step loop (per-step callbacks, noisy rewards,
+    ``engine="python"``) whose :meth:`act` and :meth:`learn` call the same compiled building
+    blocks in the same order, so both paths give identical results for the same seeds."""
+
+    def __init__(self, env: gym.Env, *, engine: str = "auto", **kwargs) -> None:
+        super().__init__(env, **kwargs)
+        self.engine = check_engine(engine)
+        self._tables = WorldTables()
+        self._policy_code = POLICIES[self.policy]
+
+    def _run(
+        self, n_trials: int, max_steps: int, learn: bool, callbacks: Sequence[TrialCallback]
+    ) -> TrialBatch:
+        if use_compiled(self.engine, callbacks, self.env):
+            return run_trial_by_trial(self, self._run_compiled, n_trials, max_steps, learn,
+                                      callbacks)  # fmt: skip
+        return super()._run(n_trials, max_steps, learn, callbacks)
+
+    def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
+        raise NotImplementedError
+
+
+class SRTD(_CompiledSR):
     """SR-TD (Russek et al. 2017): ``M`` and ``w`` learned by TD from experience only.
 
     Parameters
@@ -200,6 +249,9 @@ class SRTD(TabularModelAgent):
         Rate of the TD update of ``M`` (0.3).
     reward_rate
         Rate of the reward weights ``w`` (0.9).
+    engine
+        ``"auto"`` (whole trials compiled unless per-step callbacks or noisy rewards),
+        ``"compiled"`` (require it) or ``"python"`` (the step loop; same results).
     **kwargs
         ``policy``, ``epsilon``, ``beta``, ``gamma``, ``seed`` (see :class:`TabularModelAgent`).
     """
@@ -216,9 +268,40 @@ class SRTD(TabularModelAgent):
     def q_values(self, s: int) -> np.ndarray:
         return self.core.q(s)
 
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        from cobelrun.agents.sr_kernels import sr_act  # numba: on first use
+
+        return int(sr_act(self.rng, self.core.M, self.core.w, int(obs), self._policy_code,
+                          self.epsilon, self.beta))  # fmt: skip
+
     def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
-        self.core.learn_reward(s2, r)
-        self.core.td(s, a, s2, terminal, self.core.greedy(self.rng, s2))
+        from cobelrun.agents.sr_kernels import sr_step
+
+        c = self.core
+        sr_step(self.rng, c.M, c.w, s, a, r, s2, terminal, c.gamma, c.learning_rate,
+                c.reward_rate)  # fmt: skip
+
+    def _model_args(self) -> tuple[Any, ...]:
+        """``dyna, model_next, model_reward, pairs, n_pairs`` of the trial kernel."""
+        return (False, _NO_MODEL_NEXT, _NO_MODEL_REWARD, _NO_PAIRS, np.zeros(1, np.int64))
+
+    def _replay_args(self) -> tuple[int, bool]:
+        return 0, False
+
+    def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
+        from cobelrun.agents.sr_kernels import run_sr_trials  # numba: on first use
+
+        det, next_state, T_cum, R, terminal, starts, env_rng = self._tables.args(self.env)
+        out = TrialBuffers(n_trials, max_steps)
+        c = self.core
+        with critical():  # a signal inside the kernel's generator access corrupts it
+            total = run_sr_trials(
+                self.rng, env_rng, c.M, c.w, *self._model_args(),
+                det, next_state, T_cum, R, terminal, starts,
+                self._policy_code, self.epsilon, self.beta, c.gamma, c.learning_rate,
+                c.reward_rate, *self._replay_args(), n_trials, max_steps, learn, *out.args(),
+            )  # fmt: skip
+        return out.batch(total)
 
     def get_state(self) -> dict[str, np.ndarray]:
         return {"M": self.core.M, "w": self.core.w}
@@ -232,46 +315,83 @@ class SRTD(TabularModelAgent):
                 "reward_rate": self.core.reward_rate}  # fmt: skip
 
 
+_NO_MODEL_NEXT = np.zeros((1, 1), np.int64)
+_NO_MODEL_REWARD = np.zeros((1, 1))
+_NO_PAIRS = np.zeros(1, np.int64)
+
+
 class SRDyna(SRTD):
     """SR-Dyna (Russek et al. 2017): SR-TD plus replayed TD updates of ``M`` after every step.
+
+    Replay draws ``replay_batch`` experienced state-action pairs uniformly (with replacement)
+    and replays the last outcome ``s'`` of each with SR-TD's update of ``M`` (Russek et al.
+    2017: replayed samples update the successor matrix; ``w`` is learned from experience).
+    With ``replay_reward`` a replayed experience also updates ``w(s')`` towards the pair's
+    last reward first, as neuro-nav's ``DynaSR`` does: then replay updates both ``M`` and
+    ``w``.
 
     Parameters
     ----------
     replay_batch
-        Experiences replayed after every step (10), sampled uniformly (with replacement) from
-        the experienced state-action pairs; each replays the last outcome seen for its pair.
+        Experiences replayed after every step (10).
+    replay_reward
+        Replay also updates the reward weights ``w`` (False: only ``M``).
     **kwargs
         See :class:`SRTD`.
     """
 
-    def __init__(self, env: gym.Env, *, replay_batch: int = 10, **kwargs) -> None:
+    state_version = 2  # 2: + model_reward
+
+    def __init__(
+        self, env: gym.Env, *, replay_batch: int = 10, replay_reward: bool = False, **kwargs
+    ) -> None:
         super().__init__(env, **kwargs)
         if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
             raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
+        if not isinstance(replay_reward, bool):
+            raise ConfigError(f"agent.replay_reward must be true or false, got {replay_reward!r}")
         self.replay_batch = replay_batch
+        self.replay_reward = replay_reward
         self.model_next = np.full((self.n_states, self.n_actions), -1, np.int64)
+        self.model_reward = np.zeros((self.n_states, self.n_actions))
 
     def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
         super().learn(s, a, r, s2, terminal)
         self.model_next[s, a] = s2
+        self.model_reward[s, a] = r
         if self.replay_batch == 0:
             return
-        from cobelrun.agents.replay_kernels import sr_dyna_replay  # numba: on first use
+        from cobelrun.agents.sr_kernels import sr_replay_step
 
         pairs = np.flatnonzero(self.model_next.reshape(-1) >= 0)
         terminal = np.ascontiguousarray(self.env.unwrapped.world.terminal, np.bool_)
-        sr_dyna_replay(self.rng, self.core.M, self.core.w, self.model_next, pairs, terminal,
-                       self.replay_batch, self.gamma, self.core.learning_rate)  # fmt: skip
+        c = self.core
+        sr_replay_step(self.rng, c.M, c.w, self.model_next, self.model_reward, pairs, pairs.size,
+                       terminal, self.replay_batch, c.gamma, c.learning_rate, c.reward_rate,
+                       self.replay_reward)  # fmt: skip
+
+    def _model_args(self) -> tuple[Any, ...]:
+        seen = np.flatnonzero(self.model_next.reshape(-1) >= 0)
+        pairs = np.empty(self.model_next.size, np.int64)
+        pairs[: seen.size] = seen
+        return (True, self.model_next, self.model_reward, pairs,
+                np.array([seen.size], np.int64))  # fmt: skip
+
+    def _replay_args(self) -> tuple[int, bool]:
+        return self.replay_batch, self.replay_reward
 
     def get_state(self) -> dict[str, np.ndarray]:
-        return {**super().get_state(), "model_next": self.model_next}
+        return {**super().get_state(), "model_next": self.model_next,
+                "model_reward": self.model_reward}  # fmt: skip
 
     def state_schema(self) -> dict[str, ArraySpec]:
         S, A = self.n_states, self.n_actions
-        return {**super().state_schema(), "model_next": ArraySpec((S, A), "i", low=-1, high=S)}
+        return {**super().state_schema(), "model_next": ArraySpec((S, A), "i", low=-1, high=S),
+                "model_reward": ArraySpec((S, A))}  # fmt: skip
 
     def hyperparameters(self) -> dict:
-        return {**super().hyperparameters(), "replay_batch": self.replay_batch}
+        return {**super().hyperparameters(), "replay_batch": self.replay_batch,
+                "replay_reward": self.replay_reward}  # fmt: skip
 
 
 class _OneStepModel:
@@ -288,12 +408,15 @@ class _OneStepModel:
         row[s2] += self.rate
 
 
-class SRMB(TabularModelAgent):
+class SRMB(_CompiledSR):
     """SR-MB (Russek et al. 2017): ``M`` computed from a learned model and a cached policy.
 
     Acting needs only ``Q(s, :) = T(s, :, :) (I - gamma T_pi)^-1 w``: one linear solve after
-    each change of the model, ``w`` or the cached policy; the full ``M`` is computed when asked
-    for (:meth:`get_state`).
+    each change of the model, ``w`` or the cached policy (none when a step leaves the cached
+    policy as it was: the values solved after the model update still hold); the full ``M``
+    is computed when asked for (:meth:`get_state`). Whole trials run in compiled code
+    (:func:`cobelrun.agents.srmb_kernels.run_srmb_trials`) unless ``engine="python"`` or
+    per-step callbacks ask for the step loop (same results).
 
     Parameters
     ----------
@@ -301,6 +424,8 @@ class SRMB(TabularModelAgent):
         Rate of the one-step model ``T`` (1.0: the last outcome).
     reward_rate
         Rate of the reward weights ``w`` (0.9).
+    engine
+        ``"auto"``, ``"compiled"`` or ``"python"`` (see :class:`SRTD`).
     **kwargs
         ``policy``, ``epsilon``, ``beta``, ``gamma``, ``seed`` (see :class:`TabularModelAgent`).
     """
@@ -317,28 +442,48 @@ class SRMB(TabularModelAgent):
         self.cached_policy = np.full((self.n_states, self.n_actions), 1.0 / self.n_actions)
         self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
         self._v: np.ndarray | None = None  # (I - gamma T_pi)^-1 w, None: out of date
+        self._q = np.empty(self.n_actions)
 
     def _values(self) -> np.ndarray:
         """``v = (I - gamma T_pi)^-1 w`` (terminal rows of ``T_pi`` zero)."""
         if self._v is None:
-            T_pi = np.einsum("sa,sat->st", self.cached_policy, self.model.T)
-            T_pi[self.terminal] = 0.0
-            self._v = np.linalg.solve(np.eye(self.n_states) - self.gamma * T_pi, self.core.w)
+            from cobelrun.agents.srmb_kernels import mb_values  # numba: on first use
+
+            self._v = mb_values(self.model.T, self.cached_policy, self.terminal, self.core.w,
+                                self.gamma)  # fmt: skip
         return self._v
 
     def q_values(self, s: int) -> np.ndarray:
         return self.model.T[s] @ self._values()
 
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        from cobelrun.agents.srmb_kernels import mb_act
+
+        return int(mb_act(self.rng, self.model.T, self._values(), int(obs), self._policy_code,
+                          self.epsilon, self.beta))  # fmt: skip
+
     def learn(self, s: int, a: int, r: float, s2: int, terminal: bool) -> None:
-        self.core.learn_reward(s2, r)
-        self.model.learn(s, a, s2)
-        if terminal:
-            self.terminal[s2] = True
+        from cobelrun.agents.srmb_kernels import mb_learn
+
+        v, valid = mb_learn(self.model.T, self.cached_policy, self.terminal, self.core.w, s, a,
+                            r, s2, terminal, self.gamma, self.model.rate, self.core.reward_rate,
+                            self._q)  # fmt: skip
+        self._v = v if valid else None
+
+    def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
+        from cobelrun.agents.srmb_kernels import run_srmb_trials  # numba: on first use
+
+        det, next_state, T_cum, R, terminal, starts, env_rng = self._tables.args(self.env)
+        out = TrialBuffers(n_trials, max_steps)
+        with critical():
+            total = run_srmb_trials(
+                self.rng, env_rng, self.model.T, self.cached_policy, self.terminal, self.core.w,
+                det, next_state, T_cum, R, terminal, starts,
+                self._policy_code, self.epsilon, self.beta, self.gamma, self.model.rate,
+                self.core.reward_rate, n_trials, max_steps, learn, *out.args(),
+            )  # fmt: skip
         self._v = None
-        q = self.q_values(s)  # the greedy policy where it acted, ties split evenly
-        best = q == q.max()
-        self.cached_policy[s] = best / best.sum()
-        self._v = None
+        return out.batch(total)
 
     def get_state(self) -> dict[str, np.ndarray]:
         self.core.from_model(self.model.T, self.cached_policy, self.terminal)

@@ -455,6 +455,32 @@ def _parse_layout(layout: str) -> list[str]:
     return lines
 
 
+def _check_warps(world: World, warps: Any, blocked: np.ndarray, goal: np.ndarray,
+                 starts: list[int]) -> dict[int, int]:  # fmt: skip
+    """``{entry: exit}`` of ``warps`` (a mapping of state references), checked."""
+    out: dict[int, int] = {}
+    for k, v in _pairs(warps or {}, "warps"):
+        entry, exit_ = world._index(k, "warps"), world._index(v, "warps")
+        for what, s in (("entry", entry), ("exit", exit_)):
+            if blocked[s]:
+                raise LayoutError(f"warp {what} {world.describe(s)} is a wall cell; "
+                                  "warps join free cells")  # fmt: skip
+        if entry == exit_:
+            raise LayoutError(f"warp {world.describe(entry)} leads to itself")
+        if entry in starts:
+            raise LayoutError(f"warp entry {world.describe(entry)} is a start; an entry is "
+                              "never occupied")  # fmt: skip
+        if goal[entry]:
+            raise LayoutError(f"warp entry {world.describe(entry)} is a goal or terminal; an "
+                              "entry is never occupied (reward its exit instead)")  # fmt: skip
+        out[entry] = exit_
+    for entry, exit_ in out.items():
+        if exit_ in out:
+            raise LayoutError(f"warp exit {world.describe(exit_)} is another warp's entry "
+                              f"(from {world.describe(entry)}); warps do not chain")  # fmt: skip
+    return out
+
+
 def _check_pairs(world: World, pairs: Any, what: str) -> list[tuple[int, int]]:
     out: list[tuple[int, int]] = []
     for pair in pairs or ():
@@ -482,6 +508,7 @@ def from_layout(
     goal_reward: float = 1.0,
     slip: float = 0.0,
     reward_sd: float = 0.0,
+    warps: Mapping[Any, StateRef] | None = None,
 ) -> World:
     """Build a world from an ASCII layout.
 
@@ -511,6 +538,12 @@ def from_layout(
         0 gives a deterministic world.
     reward_sd : float
         Gaussian noise (standard deviation) on every non-zero reward (see :class:`World`).
+    warps : mapping entry -> exit, optional
+        Teleport cells (as neuro-nav's warps): a move that would arrive in ``entry`` arrives
+        in ``exit`` instead, so ``entry`` is never occupied. Each pair whose entry has no place
+        name yet is named ``warp_N`` (entry) and ``warp_N_exit`` (``cobel show`` draws places).
+        Entries must be free, not starts, not rewarded or terminal, and not another warp's
+        exit.
 
     Returns
     -------
@@ -566,6 +599,13 @@ def from_layout(
                 f"start {world.describe(s)} is a wall cell; starts must be free cells"
             )
 
+    warp_to = _check_warps(world, warps, blocked, terminal | (reward != 0), start_states)
+    for i, (entry, exit_) in enumerate(warp_to.items()):
+        if entry in all_places.values():  # named already (e.g. a key)
+            continue
+        for name, state in ((f"warp_{i}", entry), (f"warp_{i}_exit", exit_)):
+            all_places.setdefault(name, state)
+
     wall_pairs = _check_pairs(world, walls, "walls")
     door_pairs = _check_pairs(world, one_way, "one_way")
     cut = set()
@@ -588,7 +628,7 @@ def from_layout(
                 and not blocked[nxt]
                 and (s, nxt) not in cut
             )
-            succ[s, a] = nxt if ok else s
+            succ[s, a] = warp_to.get(nxt, nxt) if ok else s
     det = np.zeros((n, N_ACTIONS, n))
     det[np.arange(n)[:, None], np.arange(N_ACTIONS)[None, :], succ] = 1.0
     if slip > 0.0:
@@ -620,6 +660,10 @@ def from_layout(
         if isinstance(terminals, int | str):
             terminals = [terminals]
         world.set_terminal({world._index(r, "terminals"): True for r in terminals})
+    for entry in warp_to:
+        if world.terminal[entry] or world.rewards[entry] != 0:
+            raise LayoutError(f"warp entry {world.describe(entry)} is rewarded or terminal; "
+                              "an entry is never occupied (reward its exit instead)")  # fmt: skip
 
     reach = world.reachable()
     for s in np.flatnonzero((world.rewards != 0) | world.terminal):
@@ -632,6 +676,81 @@ def from_layout(
                 f"({allowed_list(world.starts.tolist())}); open a path or move it"
             )
     return world
+
+
+def keys_and_doors(
+    layout: str,
+    *,
+    goal_reward: float = 1.0,
+    slip: float = 0.0,
+    reward_sd: float = 0.0,
+) -> World:
+    """A maze with doors that a key opens, as a tabular world (the state includes the key).
+
+    The layout takes two more symbols: ``K`` a key, ``D`` a door (a wall cell until the agent
+    has picked up a key; any key opens every door). The world stacks two copies of the maze,
+    separated by a wall row: the top one without the key (doors are walls; the agent starts
+    here) and the bottom one with it (doors are free cells). Stepping onto a key in the top
+    copy lands on the same cell of the bottom copy (a warp, see :func:`from_layout`), so
+    ``state = layer * (height + 1) * width + row * width + col``. Keys are named ``key_N``
+    (top) and ``key_N_held`` (bottom), goals ``goal`` / ``goal_with_key`` where there is one,
+    so ``cobel show`` draws them; a goal is kept in each copy where it can be reached.
+
+    Parameters
+    ----------
+    layout : str
+        As :func:`from_layout`, plus ``K`` (key) and ``D`` (door).
+    goal_reward, slip, reward_sd
+        As :func:`from_layout`.
+
+    Raises
+    ------
+    LayoutError
+        As :func:`from_layout`; a layout with doors but no key.
+    """
+    raw = _parse_layout(layout.replace("K", ".").replace("D", "#"))  # validates the rest
+    rows = textwrap.dedent(layout.expandtabs()).split("\n")
+    rows = [r.rstrip() for r in rows]
+    while rows and not rows[0].strip():
+        rows.pop(0)
+    while rows and not rows[-1].strip():
+        rows.pop()
+    h, w = len(raw), len(raw[0])
+    keys = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "K"]
+    if any("D" in r for r in rows) and not keys:
+        raise LayoutError("layout has doors ('D') but no key ('K') to open them")
+    top = [r.replace("K", ".").replace("D", "#") for r in rows]
+    bottom = [r.replace("K", ".").replace("D", ".").replace("S", ".") for r in rows]
+    off = h + 1  # the bottom copy starts below the separating wall row
+    warps = [[[r, c], [off + r, c]] for r, c in keys]
+    places = {}
+    for i, (r, c) in enumerate(keys):
+        places[f"key_{i}"] = [r, c]
+        places[f"key_{i}_held"] = [off + r, c]
+
+    def build(top_rows: list[str], bottom_rows: list[str]) -> World:
+        return from_layout("\n".join([*top_rows, "#" * w, *bottom_rows]), warps=warps,
+                           places=places, goal_reward=goal_reward, slip=slip,
+                           reward_sd=reward_sd)  # fmt: skip
+
+    # goals only where they can be reached (a goal behind a door is not, without the key)
+    no_goals = build([r.replace("G", ".") for r in top], [r.replace("G", ".") for r in bottom])
+    reach = no_goals.reachable()
+    goals = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "G"]
+    top = ["".join("." if ch == "G" and not reach[r * w + c] else ch for c, ch in enumerate(row))
+           for r, row in enumerate(top)]  # fmt: skip
+    bottom = ["".join("." if ch == "G" and not reach[(off + r) * w + c] else ch
+                      for c, ch in enumerate(row)) for r, row in enumerate(bottom)]  # fmt: skip
+    if len(goals) == 1:
+        r, c = goals[0]
+        if reach[r * w + c]:
+            places["goal"] = [r, c]
+        if reach[(off + r) * w + c]:
+            places["goal_with_key"] = [off + r, c]
+    starts = [(r, c) for r in range(h) for c in range(w) if rows[r][c] == "S"]
+    if len(starts) == 1:
+        places["start"] = list(starts[0])
+    return build(top, bottom)
 
 
 def open_field(

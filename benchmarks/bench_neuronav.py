@@ -1,0 +1,300 @@
+"""cobel's tabular agents against neuro-nav's (awjuliani/neuro-nav) on the same task.
+
+Run on demand (not a test)::
+
+    python benchmarks/bench_neuronav.py --neuronav-python /tmp/nnvenv/bin/python [--repeats 3]
+
+neuro-nav is never installed into cobel's environment: set it up in a throwaway venv from its
+public repository, e.g.::
+
+    git clone https://github.com/awjuliani/neuro-nav /tmp/neuronav
+    python -m venv /tmp/nnvenv && /tmp/nnvenv/bin/pip install /tmp/neuronav
+
+(its grid env imports torch, cv2, matplotlib and gym). This script writes neuro-nav's run
+script itself (:data:`NEURONAV_SCRIPT`) into a temporary folder.
+
+The setting (issue 38): an open 9 x 9 field (neuro-nav's ``GridTemplate.empty`` at
+``GridSize.small``: 11 x 11 with the border walls; cobel's ``open_field(9, 9)``), start in one
+corner, goal (reward 1, terminal) in the opposite one, 16 steps apart; 5 seeds x 200 episodes
+of at most 100 steps (neuro-nav's default episode length); softmax policy, beta 50, learning
+rate 0.3 (cobel's SR agents: also their reward rate), gamma 0.95; Dyna agents replay 3
+experiences per step, uniformly from the experienced pairs (neuro-nav's ``DynaModule`` with
+``recency="uniform"``; cobel's SR-Dyna with ``replay_reward=true``, as neuro-nav's ``DynaSR``
+also updates the reward weights in replay).
+
+Per agent and repetition (the agents interleaved, then the repetitions, so machine load hits
+both alike) it measures
+
+* the run loop: neuro-nav's episode loop (``time.perf_counter`` around it); cobel's phase
+  loop, ``cobel run``'s manifest ``phase_wall_time_s`` (everything a run does per phase:
+  the simulation with numba's once-per-process kernel load, monitors and recording);
+* the whole process: wall time of the subprocess, from start to exit.
+
+and reports medians, steps per second and the cobel / neuro-nav ratios, as a Markdown table
+(and ``--json`` for the raw numbers). The mean episode length of the last 20 episodes shows
+both learned the shortest path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+NEURONAV_SCRIPT = r"""
+import json, sys, time
+import numpy as np
+from neuronav.envs.grid_env import GridEnv, GridObservation, GridSize
+from neuronav.envs.grid_templates import GridTemplate
+from neuronav.agents import td_agents, dyna_agents, mc_agents
+
+name, seeds, episodes, max_steps = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+lr, gamma, beta, replays = 0.3, 0.95, 50.0, 3
+CLASSES = {
+    "q_learning": td_agents.TDQ, "dyna_q": dyna_agents.DynaQ, "sr_td": td_agents.TDSR,
+    "sr_dyna": dyna_agents.DynaSR, "sarsa": td_agents.SARSA, "q_lambda": td_agents.QET,
+    "mc_control": mc_agents.QMC, "tabular_actor_critic": td_agents.TDAC,
+    "dyna_actor_critic": dyna_agents.DynaAC,
+}
+cls = CLASSES[name]
+steps = 0
+last = []
+t0 = time.perf_counter()
+for seed in range(seeds):
+    np.random.seed(seed)
+    env = GridEnv(template=GridTemplate.empty, size=GridSize.small,
+                  obs_type=GridObservation.index, seed=seed)
+    agent = cls(env.state_size, env.action_space.n, lr=lr, gamma=gamma, poltype="softmax",
+                beta=beta)
+    if hasattr(agent, "dyna"):
+        agent.dyna = dyna_agents.DynaModule(env.state_size, num_recall=replays,
+                                            recency="uniform")
+    lengths = []
+    for ep in range(episodes):
+        obs = env.reset(agent_pos=[1, 1], objects={"rewards": {(9, 9): 1.0}},
+                        episode_length=max_steps)
+        agent.reset()
+        if name == "mc_control":
+            agent.exp_list = []
+        if name == "sarsa":
+            agent.last_exp = None
+        n = 0
+        done = False
+        while not done and n < max_steps:
+            act = agent.sample_action(obs)
+            obs2, reward, done, _ = env.step(act)
+            agent.update([obs, act, obs2, reward, done])
+            obs = obs2
+            n += 1
+        steps += n
+        lengths.append(n)
+    last.append(float(np.mean(lengths[-20:])))
+loop = time.perf_counter() - t0
+print(json.dumps({"steps": steps, "loop_s": loop, "last20": float(np.mean(last))}))
+"""
+
+#: cobel in-process, kernels loaded: the same runs (agents from the same configs and overrides)
+#: timed after one warm-up trial per agent; what the simulation itself costs
+COBEL_WARM_SCRIPT = r"""
+import json, sys, time
+import numpy as np
+import yaml
+from omegaconf import OmegaConf
+from cobelrun.config import instantiate
+from cobelrun.envs import GridWorldEnv, open_field
+
+conf, overrides = sys.argv[1], json.loads(sys.argv[2])
+seeds, episodes, max_steps = int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+node = OmegaConf.load(conf)
+for item in overrides:  # agent.KEY=VALUE, the value parsed as YAML (as Hydra does)
+    key, value = item.split("=", 1)
+    OmegaConf.update(node, key.removeprefix("agent."), yaml.safe_load(value))
+node = OmegaConf.to_container(node)
+agents = []
+for seed in range(seeds):
+    env = GridWorldEnv(open_field(9, 9, starts=[0], goal=80))
+    env.unwrapped.np_random = np.random.default_rng(seed)
+    agents.append(instantiate("agent", node, env=env, seed=seed))
+warm = instantiate("agent", node, env=GridWorldEnv(open_field(9, 9, starts=[0], goal=80)), seed=99)
+warm.train(1, max_steps)
+steps = 0
+t0 = time.perf_counter()
+for agent in agents:
+    steps += int(agent.train(episodes, max_steps).steps.sum())
+print(json.dumps({"steps": steps, "loop_s": time.perf_counter() - t0}))
+"""
+
+#: cobel agent configs and their overrides for the setting
+COBEL = {
+    "q_learning": ["agent=q_learning", "agent.learning_rate=0.3"],
+    "dyna_q": ["agent=dyna_q", "agent.learning_rate=0.3", "agent.replay_batch=3",
+               "agent.memory_sampling=visited"],
+    "sr_td": ["agent=sr_td", "agent.learning_rate=0.3", "agent.reward_rate=0.3"],
+    "sr_dyna": ["agent=sr_dyna", "agent.learning_rate=0.3", "agent.reward_rate=0.3",
+                "agent.replay_batch=3", "agent.replay_reward=true"],
+    "sarsa": ["agent=sarsa", "agent.learning_rate=0.3"],
+    "q_lambda": ["agent=q_lambda", "agent.learning_rate=0.3", "agent.lam=0.95",
+                 "agent.trace=accumulating"],
+    "mc_control": ["agent=mc_control", "agent.learning_rate=0.3"],
+    "tabular_actor_critic": ["agent=tabular_actor_critic", "agent.actor_lr=0.3",
+                             "agent.critic_lr=0.3"],
+    "dyna_actor_critic": ["agent=dyna_actor_critic", "agent.actor_lr=0.3",
+                          "agent.critic_lr=0.3", "agent.replay_batch=3"],
+}  # fmt: skip
+
+NAMES = {
+    "q_learning": "Q-learning", "dyna_q": "Dyna-Q, 3 replays", "sr_td": "SR-TD",
+    "sr_dyna": "SR-Dyna, 3 replays", "sarsa": "SARSA", "q_lambda": "Q(lambda) (QET)",
+    "mc_control": "MC control", "tabular_actor_critic": "actor-critic",
+    "dyna_actor_critic": "Dyna actor-critic, 3 replays",
+}  # fmt: skip
+
+
+def cobel_cmd() -> list[str]:
+    exe = Path(sys.executable).with_name("cobel")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "cobelrun.cli"]
+
+
+def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
+    out = tmp / f"cobel_{name}_{time.monotonic_ns()}"
+    args = [*cobel_cmd(), "run", "task=gridworld", "env.world.width=9", "env.world.height=9",
+            "+env.world.starts=[0]", "+env.world.goal=80", *COBEL[name],
+            "agent.policy=softmax", "agent.beta=50", "agent.gamma=0.95",
+            f"task.runs={seeds}", f"task.protocol.phases.0.trials={episodes}",
+            f"task.protocol.max_steps={max_steps}", "task.record.steps=false",
+            "task.record.mcap=false", "task.save_agents=none", f"hydra.run.dir={out}"]  # fmt: skip
+    t0 = time.perf_counter()
+    proc = subprocess.run(args, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"cobel run failed for {name}: {proc.stderr.strip()[-400:]}")
+    manifest = json.loads((out / "manifest.json").read_text())
+    import pyarrow.parquet as pq
+
+    trials = pq.read_table(out / "trials.parquet", columns=["run", "steps"]).to_pydict()
+    steps = sum(trials["steps"])
+    per_run: dict[int, list[int]] = {}
+    for r, s in zip(trials["run"], trials["steps"], strict=True):
+        per_run.setdefault(r, []).append(s)
+    last20 = statistics.mean(statistics.mean(v[-20:]) for v in per_run.values())
+    shutil.rmtree(out, ignore_errors=True)
+    return {"steps": steps, "loop_s": sum(manifest["phase_wall_time_s"].values()),
+            "process_s": wall, "last20": last20}  # fmt: skip
+
+
+def run_cobel_warm(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
+    script = tmp / "cobel_warm.py"
+    script.write_text(COBEL_WARM_SCRIPT)
+    agent = COBEL[name][0].split("=", 1)[1]
+    overrides = [*COBEL[name][1:], "agent.policy=softmax", "agent.beta=50", "agent.gamma=0.95"]
+    proc = subprocess.run(
+        [sys.executable, str(script), str(HERE.parent / "conf" / "agent" / f"{agent}.yaml"),
+         json.dumps(overrides), str(seeds), str(episodes), str(max_steps)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if proc.returncode != 0:
+        raise SystemExit(f"cobel warm run failed for {name}: {proc.stderr.strip()[-400:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def run_neuronav(python: str, script: Path, name: str, seeds: int, episodes: int,
+                 max_steps: int) -> dict:  # fmt: skip
+    t0 = time.perf_counter()
+    proc = subprocess.run([python, str(script), name, str(seeds), str(episodes), str(max_steps)],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"neuro-nav run failed for {name}: {proc.stderr.strip()[-400:]}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {**out, "process_s": wall}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--neuronav-python", default="/tmp/nnvenv/bin/python")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--episodes", type=int, default=200)
+    ap.add_argument("--max-steps", type=int, default=100)
+    ap.add_argument("--agents", default=",".join(COBEL))
+    ap.add_argument("--json", type=Path, help="also write the raw numbers here")
+    ap.add_argument("--add-warm", type=Path, metavar="JSON",
+                    help="only measure cobel warm and add it to an earlier --json file")  # fmt: skip
+    args = ap.parse_args()
+    if args.add_warm:
+        raw = json.loads(args.add_warm.read_text())
+        with tempfile.TemporaryDirectory() as tmpdir:
+            for _ in range(args.repeats):
+                for a in raw:
+                    raw[a].setdefault("cobel_warm", []).append(run_cobel_warm(
+                        a, args.seeds, args.episodes, args.max_steps, Path(tmpdir)))  # fmt: skip
+        args.add_warm.write_text(json.dumps(raw, indent=1))
+        print(table(raw))
+        return
+    agents = args.agents.split(",")
+    unknown = [a for a in agents if a not in COBEL]
+    if unknown:
+        raise SystemExit(f"unknown agent {unknown[0]!r}; allowed: {', '.join(COBEL)}")
+    raw: dict[str, dict[str, list[dict]]] = {
+        a: {"neuronav": [], "cobel": [], "cobel_warm": []} for a in agents
+    }
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        script = tmp / "neuronav_run.py"
+        script.write_text(NEURONAV_SCRIPT)
+        for rep in range(args.repeats):
+            for a in agents:
+                raw[a]["neuronav"].append(run_neuronav(args.neuronav_python, script, a,
+                                                       args.seeds, args.episodes,
+                                                       args.max_steps))  # fmt: skip
+                raw[a]["cobel"].append(run_cobel(a, args.seeds, args.episodes, args.max_steps,
+                                                 tmp))  # fmt: skip
+                raw[a]["cobel_warm"].append(run_cobel_warm(a, args.seeds, args.episodes,
+                                                           args.max_steps, tmp))  # fmt: skip
+                print(f"rep {rep + 1}/{args.repeats} {a}: neuro-nav "
+                      f"{raw[a]['neuronav'][-1]['loop_s']:.2f} s, cobel "
+                      f"{raw[a]['cobel'][-1]['loop_s']:.2f} s", file=sys.stderr, flush=True)  # fmt: skip
+    if args.json:
+        args.json.write_text(json.dumps(raw, indent=1))
+    print(table(raw))
+
+
+def _med(rows: list[dict], key: str) -> float:
+    return statistics.median(r[key] for r in rows)
+
+
+def table(raw: dict[str, dict[str, list[dict]]]) -> str:
+    """The Markdown table of medians: steps per second of the run loop and of the whole
+    process (steps over the process's wall time), and cobel / neuro-nav ratios."""
+    lines = [
+        "| agent | neuro-nav loop | cobel loop | ratio | cobel warm | ratio "
+        "| neuro-nav process | cobel process | ratio | last 20 episodes (nn / cobel) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for a, r in raw.items():
+        nn, cb = r["neuronav"], r["cobel"]
+        nn_loop = statistics.median(x["steps"] / x["loop_s"] for x in nn)
+        cb_loop = statistics.median(x["steps"] / x["loop_s"] for x in cb)
+        warm = r.get("cobel_warm") or [{"steps": float("nan"), "loop_s": 1.0}]
+        cb_warm = statistics.median(x["steps"] / x["loop_s"] for x in warm)
+        nn_proc = statistics.median(x["steps"] / x["process_s"] for x in nn)
+        cb_proc = statistics.median(x["steps"] / x["process_s"] for x in cb)
+        lines.append(
+            f"| {NAMES[a]} | {nn_loop:,.0f} | {cb_loop:,.0f} | {cb_loop / nn_loop:.1f}x "
+            f"| {cb_warm:,.0f} | {cb_warm / nn_loop:.0f}x "
+            f"| {nn_proc:,.0f} | {cb_proc:,.0f} | {cb_proc / nn_proc:.1f}x "
+            f"| {_med(nn, 'last20'):.1f} / {_med(cb, 'last20'):.1f} |"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

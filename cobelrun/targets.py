@@ -59,10 +59,12 @@ ENTRY_POINT_GROUP = "cobel.targets"
 #: the environment variable with the user's own patterns (separated by ``,`` or ``:``)
 ENV_VAR = "COBEL_ALLOW_TARGETS"
 
+_TD_CONTROL = ("Sarsa", "QLambda", "SarsaLambda", "MCControl", "TabularActorCritic",
+               "DynaActorCritic")  # fmt: skip
 _ENVS = ("GridWorldEnv", "DiscreteGridWorldEnv", "TopologyEnv", "TwoAFCEnv", "Continuous2DEnv")
 _WORLDS = ("from_layout", "open_field", "t_maze", "tmaze_paper", "blodgett")
 _AGENTS = ("DynaQ", "PMA", "SFMA", "SRMB", "SRTD", "SRDyna", "ValueIteration", "DQNAgent",
-           "DynaDQN", "DynaDSR", "MFEC")  # fmt: skip
+           "DynaDQN", "DynaDSR", "MFEC", *_TD_CONTROL)  # fmt: skip
 _MONITORS = ("RewardMonitor", "EscapeLatencyMonitor", "ResponseMonitor", "TrajectoryMonitor")
 
 #: cobel's own targets: the classes and functions its configs are meant to build (exact
@@ -80,6 +82,7 @@ BUILTIN: tuple[str, ...] = (
     *(f"cobelrun.envs.{name}" for name in _WORLDS),
     *(f"cobelrun.envs.world.{name}" for name in _WORLDS),
     "cobelrun.envs.world.World",
+    "cobelrun.envs.world.keys_and_doors",
     *(
         f"cobelrun.envs.topology.{name}"
         for name in (
@@ -115,6 +118,7 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.agents.dyna_dqn.DynaDQN",
     "cobelrun.agents.dyna_dsr.DynaDSR",
     "cobelrun.agents.mfec.MFEC",
+    *(f"cobelrun.agents.td_control.{name}" for name in _TD_CONTROL),
     # monitors
     *(f"cobelrun.monitors.{name}" for name in _MONITORS),
     "cobelrun.monitors.activity.ActivityMonitor",

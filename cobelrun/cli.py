@@ -117,14 +117,32 @@ def list_cmd(
     group: Annotated[
         str | None, typer.Argument(help="task, env, agent or protocol (default: all of them).")
     ] = None,
+    config_dir: Annotated[
+        str | None,
+        typer.Option(
+            "--config-dir", "-cd", help="A config folder searched first (as cobel run -cd)."
+        ),
+    ] = None,
+    config_path: Annotated[
+        str | None, typer.Option("--config-path", "-cp", help="The same as --config-dir.")
+    ] = None,
 ) -> None:
     """List the available tasks, environments, agents and protocols with one-line descriptions."""
     from rich.console import Console
     from rich.table import Table
 
-    from cobelrun.config import GROUPS, describe, group_options
+    from cobelrun.compose import announce_shadows, check_yaml_folder, user_config_dir
+    from cobelrun.config import GROUPS, describe, group_options, user_conf_dir
     from cobelrun.errors import suggest
 
+    try:
+        first = user_config_dir(config_dir or config_path)
+        user = first or user_conf_dir()
+        if user is not None:
+            check_yaml_folder(user)
+            announce_shadows(user)
+    except CobelError as exc:
+        fail(str(exc))
     groups = list(GROUPS)
     if group is not None and group not in groups:
         fail(f"unknown group {group!r}{suggest(group, groups)}; allowed: {', '.join(groups)}")
@@ -133,7 +151,7 @@ def list_cmd(
         table = Table(title=f"{g}  (choose with {g}=NAME)", title_justify="left", box=None)
         table.add_column("name", style="bold cyan", no_wrap=True)
         table.add_column("description")
-        for name, path in group_options(g).items():
+        for name, path in group_options(g, first).items():
             table.add_row(name, describe(path))
         console.print(table)
         console.print()

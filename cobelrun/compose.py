@@ -23,8 +23,15 @@ from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 from cobelrun.targets import check_config, check_target
 
 __all__ = [
+    "YAML_NODE_LIMIT",
+    "announce_shadows",
+    "check_yaml_folder",
+    "check_yaml_size",
     "composer",
+    "config_args",
     "foreign_sweeper",
+    "load_config",
+    "shadows",
     "user_config_dir",
     "validate",
     "yaml_error",
@@ -57,33 +64,202 @@ _STRUCT_KEY = re.compile(r"Key '([^']+)' is not in struct")
 _COULD_NOT_OVERRIDE = re.compile(r"Could not (?:override|append to config) '([^']+)'")
 
 
-def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> str:
+def _walk_to(cfg: Any, parts: list[str]) -> tuple[Any, int]:
+    """The node at ``parts`` of ``cfg`` (list indices included) and how many parts exist."""
+    from omegaconf import ListConfig
+
+    node: Any = cfg
+    for i, part in enumerate(parts):
+        if isinstance(node, DictConfig) and part in node:
+            node = node[part]
+        elif isinstance(node, ListConfig) and part.isdigit() and int(part) < len(node):
+            node = node[int(part)]
+        else:
+            return node, i
+    return node, len(parts)
+
+
+#: the schema model of each fixed place of a composed config (``phases.N``: each phase)
+def _schema_at(path: list[str]) -> type | None:
+    from cobelrun.schema import PhaseSpec, ProtocolSpec, RecordSpec, RunSpec, TaskSpec
+
+    if len(path) == 4 and path[:3] == ["task", "protocol", "phases"] and path[3].isdigit():
+        return PhaseSpec
+    return {(): RunSpec, ("task",): TaskSpec, ("task", "protocol"): ProtocolSpec,
+            ("task", "record"): RecordSpec}.get(tuple(path))  # fmt: skip
+
+
+#: arguments the runner gives a target itself (``cobelrun.runner.build_task``), not a config
+_PROVIDED = {"agent": ("env", "seed")}
+
+
+def _node_keys(path: list[str], node: Any) -> tuple[list[str], str, bool]:
+    """(keys a node takes, what the node is, whether a key outside them may be added) for the
+    node at ``path``: a schema model's fields, a ``_target_``'s parameters, or the keys the node
+    has."""
+    model = _schema_at(path)
+    if model is not None:
+        names = [n for n in model.model_fields if not n.startswith("_")]
+        extra = model.model_config.get("extra") != "forbid"
+        if model.__name__ == "PhaseSpec":
+            phase = node.get("name") if isinstance(node, DictConfig) else None
+            label = f"phase {path[3]}" + (f" ({phase!r})" if isinstance(phase, str) else "")
+            return names, label, extra
+        return names, ".".join(path) or "the config", extra
+    if isinstance(node, DictConfig):
+        target = node.get("_target_")
+        params = _target_params(str(target)) if isinstance(target, str) else None
+        if params is not None:
+            names, kwargs = params
+            given = _PROVIDED.get(".".join(path), ())
+            return [n for n in names if n not in given], f"{'.'.join(path)} ({target})", kwargs
+        return [str(k) for k in node.keys() if not str(k).startswith("_")], ".".join(path), True
+    return [], ".".join(path), True
+
+
+def _target_signature(target: str) -> dict[str, Any] | None:
+    """A target's parameters (``inspect.Parameter`` by name), or None if it cannot be looked
+    at. The gate decides first: nothing unallowed is imported."""
+    from cobelrun.config import target_parameters
+    from cobelrun.targets import is_allowed
+
+    if not is_allowed(target):
+        return None
+    try:
+        from hydra.utils import get_object
+
+        params, _ = target_parameters(get_object(target))
+    except Exception:  # an import error is reported when the target is built
+        return None
+    return params
+
+
+def _target_params(target: str) -> tuple[list[str], bool] | None:
+    """A target's keyword parameters and whether it takes ``**kwargs``."""
+    import inspect
+
+    params = _target_signature(target)
+    if params is None:
+        return None
+    kinds = (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+    names = [n for n, p in params.items() if p.kind not in kinds]
+    kwargs = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    return names, kwargs
+
+
+def _failed_key(exc: Exception) -> str | None:
     text = str(exc)
     m = _COULD_NOT_OVERRIDE.search(text)
     if m and _STRUCT_KEY.search(text + str(exc.__cause__ or "")):
-        full = m.group(1)
+        return m.group(1)
+    return None
+
+
+def _declared_keys(
+    exc: Exception, overrides: list[str], cfg_for_keys: DictConfig | None
+) -> list[str] | None:
+    """``overrides`` with ``KEY=VALUE`` made ``++KEY=VALUE`` where Hydra refused a key that the
+    config's YAML does not set but its schema model or its ``_target_`` takes (a phase's
+    ``max_steps``; ``env.world.goal_reward`` of a world function with that argument); None when
+    the refused key is not such a key."""
+    full = _failed_key(exc)
+    if full is None or cfg_for_keys is None:
+        return None
+    parts = full.split(".")
+    node, found = _walk_to(cfg_for_keys, parts[:-1])
+    if found < len(parts) - 1:
+        return None
+    names, _, _ = _node_keys(parts[:-1], node)
+    if parts[-1] not in names:
+        return None
+    out, changed = [], False
+    for o in overrides:
+        key = o.split("=", 1)[0]
+        if key.lstrip("+") == full and not key.startswith("++") and "=" in o:
+            out.append("++" + o.lstrip("+"))
+            changed = True
+        else:
+            out.append(o)
+    return out if changed else None
+
+
+def _check_deletions(parsed: list[Any], cfg: DictConfig) -> None:
+    """Refuse ``~KEY`` that deletes a setting the run uses (a schema field or a target's
+    argument with a value): the code's default would replace the config's value without a
+    word (``~task.runs`` ran 1 run). Deleting what is optional (a monitor, a key whose default
+    is null) stays allowed, and so does a key set again by a later override."""
+    import inspect
+
+    for o in parsed:
+        if not o.is_delete():
+            continue
+        parts = o.key_or_group.split(".")
+        node, found = _walk_to(cfg, parts[:-1])
+        if found < len(parts) - 1 or (isinstance(node, DictConfig) and parts[-1] in node):
+            continue
+        leaf, default = parts[-1], None
+        model = _schema_at(parts[:-1])
+        if model is not None and leaf in model.model_fields:
+            field = model.model_fields[leaf]
+            default = "required" if field.is_required() else field.default
+        elif isinstance(node, DictConfig) and isinstance(node.get("_target_"), str):
+            params = _target_signature(str(node.get("_target_")))
+            if params is None or leaf not in params:
+                continue  # not looked at (the gate reports a refused target), or no argument
+            empty = params[leaf].default is inspect.Parameter.empty
+            default = "required" if empty else params[leaf].default
+        if default is None or default == {} or default == []:
+            continue
+        what = (
+            "a required key" if default == "required" else f"a setting (its default: {default!r})"
+        )
+        raise ConfigError(
+            f"{o.input_line} deletes {o.key_or_group}, {what} that the run uses; set it "
+            f"instead ({o.key_or_group}=VALUE)"
+        )
+
+
+_MERGING = re.compile(r"Error merging override (\S+?)=")
+
+
+def _explain_compose_error(exc: Exception, cfg_for_keys: DictConfig | None) -> str:
+    from omegaconf import ListConfig
+
+    from cobelrun.schema import PhaseSpec
+
+    text = str(exc)
+    full = _failed_key(exc)
+    merging = _MERGING.search(text)
+    if full is None and merging is not None and cfg_for_keys is not None:
+        # Hydra's bare "Error merging override": a list index past the end, usually
+        key = merging.group(1).lstrip("+~")
+        parts = key.split(".")
+        node, found = _walk_to(cfg_for_keys, parts)
+        if found < len(parts) and isinstance(node, ListConfig):
+            where = ".".join(parts[:found])
+            if where == "task.protocol.phases":
+                names = [str(p.get("name")) if isinstance(p, DictConfig) else "?" for p in node]
+                listed = ", ".join(f"{i} {n!r}" for i, n in enumerate(names))
+                return (
+                    f"{key}: there is no phase {parts[found]}; the protocol has {len(node)} "
+                    f"phases ({listed}); add phases in a protocol config (protocol=NAME)"
+                )
+            return f"{key}: {where} has {len(node)} items (indices 0..{len(node) - 1})"
+    if full is not None:
         parts = full.split(".")
         # the first part of the path that does not exist (a misspelled group such as
         # task.monitors.map.every names 'map', not 'every'), and the keys next to it
-        node: Any = cfg_for_keys
-        at = len(parts) - 1
-        for i, part in enumerate(parts[:-1]):
-            if not (isinstance(node, DictConfig) and part in node):
-                at = i
-                break
-            node = node[part]
-        allowed: list[str] = []
-        if isinstance(node, DictConfig):
-            allowed = [str(k) for k in node.keys() if not str(k).startswith("_")]
+        node, at = _walk_to(cfg_for_keys, parts[:-1])
+        allowed, label, extra = _node_keys(parts[:at], node)
         leaf = parts[at]
+        if not allowed and label != ".".join(parts[:at]):  # a target without arguments
+            return f"unknown key '{full}': {label} takes no arguments"
         where = ""
-        if at < len(parts) - 1:
-            where = f": {'.'.join(parts[:at]) or 'the config'} has no '{leaf}'"
+        if at < len(parts) - 1 or _schema_at(parts[:at]) is PhaseSpec:
+            where = f": {label} has no '{leaf}'"
         hint = f"; allowed: {allowed_list(allowed)}" if allowed else ""
-        return (
-            f"unknown key '{full}'{where}{suggest(leaf, allowed)}{hint} "
-            f"(use +{full}=... to add a new key)"
-        )
+        add = f" (use +{full}=... to add a new key)" if extra else ""
+        return f"unknown key '{full}'{where}{suggest(leaf, allowed)}{hint}{add}"
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     return first
 
@@ -152,6 +328,38 @@ def user_config_dir(value: str | None) -> Path | None:
     return path
 
 
+#: the config-folder flags ``cobel run`` takes (Hydra's), which ``show`` and ``list`` take too
+_DIR_FLAGS = ("-cd", "--config-dir", "-cp", "--config-path")
+_NAME_FLAGS = ("-cn", "--config-name")
+
+
+def config_args(args: list[str]) -> tuple[Path | None, str, list[str]]:
+    """``-cd/--config-dir``, ``-cp/--config-path`` and ``-cn/--config-name`` taken out of
+    ``args`` (as ``cobel run`` reads them): (the user's config folder or None, the config's
+    name, the other arguments). A flag without its value is a one-line ConfigError."""
+    folder: str | None = None
+    name = "config"
+    rest: list[str] = []
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        flag, eq, value = arg.partition("=")
+        if flag in _DIR_FLAGS + _NAME_FLAGS:
+            if not eq:
+                if i + 1 >= len(args):
+                    raise ConfigError(f"{flag} needs a value")
+                value = args[i + 1]
+                i += 1
+            if flag in _DIR_FLAGS:
+                folder = value
+            else:
+                name = value
+        else:
+            rest.append(arg)
+        i += 1
+    return user_config_dir(folder), name, rest
+
+
 @contextlib.contextmanager
 def composer(
     config_dir: Path | None = None, config_name: str = "config"
@@ -191,6 +399,9 @@ def composer(
                 base_cfg = compose(config_name, overrides=plain)
             except HydraException:
                 pass
+            declared = _declared_keys(exc, overrides, base_cfg)
+            if declared is not None:  # a key the schema or the target takes: set it after all
+                return _compose(declared, return_hydra_config)
             raise ConfigError(_explain_compose_error(exc, base_cfg)) from None
         except Exception as exc:  # YAML syntax errors, Hydra's ValueErrors on odd overrides
             msg = yaml_error(exc)
@@ -198,6 +409,7 @@ def composer(
                 lines = str(exc).strip().splitlines()
                 msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
             raise ConfigError(msg) from None
+        _check_deletions(_parse(overrides), cfg)
         check_config(cfg)  # the instantiation gate: every _target_, before anything is built
         return cfg
 
@@ -224,11 +436,14 @@ def validate(
     multirun: bool,
     config_dir: Path | None = None,
     config_name: str = "config",
+    built: dict[str, Any] | None = None,
 ) -> tuple[DictConfig, list[dict]]:
     """Compose (first sweep combination) and build everything once; raise one-line errors.
 
     Returns the composed config of the first combination, ``hydra`` node included, and for a
-    sweep its jobs (``cobelrun.sweep.plan``; empty for a single run).
+    sweep its jobs (``cobelrun.sweep.plan``; empty for a single run). ``built``, when given,
+    receives the task built from it (``built["task"]``), so a single run need not build it
+    again.
     """
     from cobelrun.runner import build_task
     from cobelrun.sweep import plan
@@ -261,7 +476,7 @@ def validate(
         _writable_root(Path(str(out)))
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     try:
-        build_task(job_cfg, probe_agent=True)
+        task = build_task(job_cfg, probe_agent=True)
     except CobelError:
         raise
     except Exception as exc:  # a value no check anticipated: still one line, nothing written
@@ -269,6 +484,8 @@ def validate(
         raise ConfigError(
             f"invalid config: {type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
         ) from exc
+    if built is not None:
+        built["task"] = task
     return cfg, jobs
 
 
@@ -301,6 +518,8 @@ def load_config(path: Path) -> DictConfig:
 #: the most nodes a config file may hold once its YAML aliases are expanded (a config of the
 #: paper's tasks has a few hundred; "billion laughs" files expand to 10^9 and more)
 YAML_NODE_LIMIT = 1_000_000
+#: the largest config file read (a task's config is a few KiB)
+YAML_BYTES_LIMIT = 16 * 2**20
 #: the most YAML files of a user's config folder that are checked (a -cd at a huge folder)
 YAML_FILE_LIMIT = 5_000
 _YAML_CHECKED: dict[tuple[str, int, int], None] = {}
@@ -315,6 +534,8 @@ def check_yaml_size(path: Path, limit: int | None = None) -> None:
     is counted with each shared node counted once per use (memoised, so this takes
     milliseconds). A file that does not parse is left to the loader's own one-line error.
     """
+    import stat as stat_
+
     import yaml
 
     limit = YAML_NODE_LIMIT if limit is None else limit
@@ -322,6 +543,13 @@ def check_yaml_size(path: Path, limit: int | None = None) -> None:
         stat = path.stat()
     except OSError:
         return
+    if not stat_.S_ISREG(stat.st_mode):
+        raise ConfigError(f"{path} is not a regular file (a config must be one)")
+    if stat.st_size > YAML_BYTES_LIMIT:
+        raise ConfigError(
+            f"{path} holds {stat.st_size:,} bytes; a config file may hold at most "
+            f"{YAML_BYTES_LIMIT:,} (refusing to read it)"
+        )
     key = (str(path), stat.st_mtime_ns, stat.st_size)
     if key in _YAML_CHECKED:
         return

@@ -225,7 +225,7 @@ def _check_null(where: str, annotation: Any, param: inspect.Parameter) -> None:
     raise ConfigError(f"{where} must not be null")
 
 
-def _parameters(target: Any) -> tuple[dict[str, inspect.Parameter], dict[str, Any]]:
+def target_parameters(target: Any) -> tuple[dict[str, inspect.Parameter], dict[str, Any]]:
     """A callable's parameters and type hints; for a class whose ``__init__`` passes
     ``**kwargs`` on to its base class, the base's parameters too (so they are checked)."""
 
@@ -265,7 +265,7 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
     whose parameters are then the allowed extra keys.
     """
     target = _target(where, node)
-    params, hints = _parameters(target)
+    params, hints = target_parameters(target)
     takes_kwargs = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
     allowed = [
         n for n, p in params.items()
@@ -278,6 +278,10 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
         if key not in params or key in provided:
             if takes_kwargs:
                 continue
+            if not allowed:
+                raise ConfigError(
+                    f"unknown key '{where}.{key}': {where} ({node['_target_']}) takes no arguments"
+                )
             raise ConfigError(
                 f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: {allowed_list(allowed)}"
             )

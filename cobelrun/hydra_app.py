@@ -9,6 +9,7 @@ input fails with one line before any output folder is created.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import sys
@@ -37,8 +38,9 @@ from cobelrun.io.lock import RunLock, refuse_existing
 from cobelrun.safety import check_folder, check_inside, results_root
 
 
-def job(cfg: DictConfig) -> str:
-    """The Hydra task function: run one job into Hydra's output folder."""
+def job(cfg: DictConfig, task: Any = None) -> str:
+    """The Hydra task function: run one job into Hydra's output folder (``task``: the task
+    already built from ``cfg`` by the up-front validation of a single run)."""
     from hydra.core.hydra_config import HydraConfig
 
     from cobelrun.progress import run_progress
@@ -53,7 +55,7 @@ def job(cfg: DictConfig) -> str:
         return result
     try:
         with run_progress(f"{cfg.task.name}") as progress:
-            run(cfg, run_dir, progress=progress)
+            run(cfg, run_dir, progress=progress, task=task)
     except CobelError as exc:
         LOG.info("failed: %s", exc)
         print(f"cobel: error: {exc}", file=sys.stderr)
@@ -351,7 +353,8 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             parsed.overrides = overrides
     if not informational:
         results_root()  # COBEL_RESULTS="" is refused before anything is composed
-        cfg, jobs = validate(overrides, multirun, user_dir, config_name)
+        built: dict[str, Any] = {}
+        cfg, jobs = validate(overrides, multirun, user_dir, config_name, built)
         if multirun and user_dir is not None and basic_sweeper(cfg, overrides):
             # a saved run's .hydra/config.yaml has no defaults list, so Hydra's basic sweeper
             # would run the jobs without cobel's sweep folder, index and resume
@@ -388,7 +391,7 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
                 raise CobelError(f"cannot write the run folder {run_dir}: {exc.strerror}") from None
             try:
                 check_new_run(run_dir)
-                return run_composed(cfg, extra, user_dir, config_name)
+                return run_composed(cfg, extra, user_dir, config_name, built.get("task"))
             finally:
                 lock.__exit__(None, None, None)
     if sweep_dir is None:
@@ -551,7 +554,11 @@ def report_unexpected(func: Callable[[], Any]) -> Any:
 
 
 def run_composed(
-    cfg: DictConfig, extra: list[str], config_dir: Path | None, config_name: str
+    cfg: DictConfig,
+    extra: list[str],
+    config_dir: Path | None,
+    config_name: str,
+    task: Any = None,
 ) -> int:
     """Run one job on the config that :func:`validate` composed; return the exit code.
 
@@ -560,7 +567,8 @@ def run_composed(
     ``extra`` (``hydra.run.dir=...``, from :func:`run_folder`) and ``hydra.mode=RUN`` are
     applied and recorded among the Hydra overrides as Hydra would, Hydra's logging is
     configured, and the job runs through Hydra's ``run_job`` (output folder, ``.hydra/``
-    files, job logging, callbacks) with Hydra's error reporting.
+    files, job logging, callbacks) with Hydra's error reporting. ``task``: the task
+    :func:`validate` built from ``cfg``, run as it is (not built a second time).
     """
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.utils import configure_log, run_job
@@ -582,7 +590,8 @@ def run_composed(
             ret = run_job(
                 hydra_context=HydraContext(config_loader=GlobalHydra.instance().config_loader(),
                                            callbacks=callbacks),  # type: ignore[arg-type]
-                task_function=job, config=cfg, job_dir_key="hydra.run.dir",
+                task_function=functools.partial(job, task=task), config=cfg,
+                job_dir_key="hydra.run.dir",
                 job_subdir_key=None, configure_logging=True,
             )  # fmt: skip
             callbacks.on_run_end(config=cfg, config_name=config_name, job_return=ret)

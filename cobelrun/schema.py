@@ -189,6 +189,11 @@ class TaskSpec(Spec):
     def _check_task(self) -> TaskSpec:
         if self.job is None and self.protocol is None:
             raise _error(f"task {self.name!r} has no protocol; pick one with protocol=NAME")
+        if isinstance(self.record.runs, list) and any(r >= self.runs for r in self.record.runs):
+            raise _error(
+                "{where}.record.runs must be 'all' or a list of run indices in "
+                f"0..{self.runs - 1} (task.runs is {self.runs}), got {list(self.record.runs)!r}"
+            )
         if isinstance(self.save_agents, list) and any(r >= self.runs for r in self.save_agents):
             raise _error(
                 "{where}.save_agents must be all, last, none or a list of run indices in "

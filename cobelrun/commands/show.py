@@ -16,6 +16,7 @@ Examples:
   cobel show env=tmaze_paper
   cobel show task=latent_learning --out blodgett.png
   cobel show env=gridworld_layout env.layout=...      # any `cobel run` overrides
+  cobel show -cd myconf env=mymaze                     # a config folder, as cobel run -cd
 """
 
 
@@ -64,7 +65,7 @@ def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, st
     """
     import matplotlib.pyplot as plt
 
-    from cobelrun.compose import composer
+    from cobelrun.compose import composer, config_args
     from cobelrun.config import instantiate, register_resolvers
     from cobelrun.envs.base import HasGeometry
     from cobelrun.errors import CobelError
@@ -72,7 +73,8 @@ def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, st
     from cobelrun.figures.runs import ascii_geometry, draw_geometry
 
     register_resolvers()
-    with composer() as compose:
+    config_dir, config_name, overrides = config_args(overrides)  # -cd/-cp/-cn as cobel run
+    with composer(config_dir, config_name) as compose:
         cfg = compose(overrides)
     env = instantiate("env", cfg.env)
     base = env.unwrapped

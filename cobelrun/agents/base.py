@@ -577,42 +577,58 @@ def check_load_from(agent: Agent, load_from: str, runs: int) -> None:
     ``.npy`` headers first, so nothing oversized is read) and its value checks. ``load_from``
     is a file (``{run}`` replaced by the run index) or a run folder (its ``agents.npz`` or an
     older layout's agent files). One ConfigError line naming the file and what is wrong."""
-    from cobelrun.io.agents_archive import read_agent
+    runs = int(runs)
+    if "{run}" not in load_from and Path(load_from).is_dir():
+        _check_saved_folder(agent, Path(load_from), range(runs))
+        return
+    for run in range(runs):
+        path = Path(load_from.replace("{run}", str(run)))
+        if path.is_dir():
+            _check_saved_folder(agent, path, [run])
+        elif not path.is_file():
+            raise ConfigError(f"agent.load_from: {path} does not exist")
+        else:
+            agent._read_checked(path)
+
+
+def _check_saved_folder(agent: Agent, path: Path, runs: Sequence[int] | range) -> None:
+    """Check the saved agents of ``runs`` in run folder ``path``: its ``agents.npz`` in one
+    pass (shapes and dtypes from the headers, then values), an older layout's files for the
+    runs the archive lacks."""
+    from cobelrun.io.agents_archive import iter_agents, runs_in
     from cobelrun.io.run_folder import RunFolder
+
+    schema = agent.state_schema()
 
     def header_check(key: str, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
         spec = schema.get(key)
         return None if spec is None else spec.header_problem(shape, dtype)
 
-    schema = agent.state_schema()
-    for run in range(int(runs)):
-        path = Path(load_from.replace("{run}", str(run)))
-        if path.is_dir():
-            folder = RunFolder(path)
-            if folder.agents_archive.is_file():
-                source = f"{folder.agents_archive} (run {run})"
-                try:
-                    found = read_agent(folder.agents_archive, run, header_check)
-                except ConfigError as exc:
-                    raise ConfigError(f"cannot load agent from {source}: {exc}") from None
-                except Exception as exc:  # a damaged archive: zip, npy header, layout
-                    raise ConfigError(f"cannot load agent from {folder.agents_archive}: "
-                                      f"{exc}") from None  # fmt: skip
-                if found is not None:
-                    arrays, meta = found
+    folder = RunFolder(path)
+    archive = folder.agents_archive
+    have: set[int] = set()
+    if archive.is_file():
+        try:
+            have = set(runs_in(archive))
+            for run, arrays, meta in iter_agents(archive, runs, header_check):
 
-                    def fail(what: str, source: str = source) -> ConfigError:
-                        return ConfigError(f"cannot load agent from {source}: {what}")
+                def fail(what: str, run: int = run) -> ConfigError:
+                    return ConfigError(f"cannot load agent from {archive} (run {run}): {what}")
 
-                    agent._check_loaded(dict(arrays), dict(meta), fail)
-                    continue
-            legacy = folder.legacy_agent(run)
-            if legacy is None:
-                raise ConfigError(
-                    f"agent.load_from: {path} has no saved agent for run {run} "
-                    "(task.save_agents decides which runs are saved)"
-                )
-            path = legacy
-        elif not path.is_file():
-            raise ConfigError(f"agent.load_from: {path} does not exist")
-        agent._read_checked(path)
+                agent._check_loaded(dict(arrays), dict(meta), fail)
+        except ConfigError as exc:
+            if str(exc).startswith("cannot load agent"):
+                raise
+            raise ConfigError(f"cannot load agent from {archive}: {exc}") from None
+        except Exception as exc:  # a damaged archive: zip, npy header, layout
+            raise ConfigError(f"cannot load agent from {archive}: {exc}") from None
+    for run in runs:
+        if run in have:
+            continue
+        legacy = folder.legacy_agent(run)
+        if legacy is None:
+            raise ConfigError(
+                f"agent.load_from: {folder.path} has no saved agent for run {run} "
+                "(task.save_agents decides which runs are saved)"
+            )
+        agent._read_checked(legacy)

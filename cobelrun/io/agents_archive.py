@@ -26,14 +26,14 @@ import shutil
 import time
 import zipfile
 import zlib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from copy import deepcopy
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["AgentArchive", "merge_agent_parts", "read_agent", "runs_in"]
+__all__ = ["AgentArchive", "iter_agents", "merge_agent_parts", "read_agent", "runs_in"]
 
 RUNS = "runs"
 META = "__meta__"
@@ -325,3 +325,102 @@ def read_agent(
         arrays = {key: _slice(zf, key, start, n, dtype).reshape(shape)
                   for key, (start, n, shape, dtype) in plan.items()}  # fmt: skip
         return arrays, meta
+
+
+def iter_agents(
+    path: str | os.PathLike[str], runs: Collection[int], check: HeaderCheck | None = None
+) -> Iterator[tuple[int, dict[str, np.ndarray], dict[str, Any]]]:
+    """(run, state arrays, metadata) of every agent in an archive whose run is in ``runs``,
+    in one pass over each member (one run's arrays in memory at a time): checking all the
+    agents of a 20,000-run job reads the archive once, where :func:`read_agent` per run would
+    decompress each member up to that run again. Headers, shapes and ``check`` as
+    :func:`read_agent`, for every listed run before any value is read."""
+    from cobelrun.safety import check_allocation
+
+    wanted = {int(r) for r in runs}
+    with zipfile.ZipFile(path) as zf:
+        runs_arr = _small(zf, RUNS, "iu", 1)
+        metas = _small(zf, META, "U", 1)
+        if metas.shape[0] != runs_arr.shape[0]:
+            raise ValueError(f"{META} has {metas.shape[0]} rows for {runs_arr.size} runs")
+        plan = _plan(zf, runs_arr)
+        picked = [i for i, r in enumerate(runs_arr.tolist()) if int(r) in wanted]
+        for i in picked:
+            for key, (rows, _, dtype) in plan.items():
+                problem = check(key, rows[i], dtype) if check is not None else None
+                if problem:
+                    from cobelrun.errors import ConfigError
+
+                    raise ConfigError(f"key {key!r} of run {int(runs_arr[i])}: {problem}")
+        if picked:
+            need = max(sum(math.prod(rows[i]) * d.itemsize for rows, _, d in plan.values())
+                       for i in picked)  # fmt: skip
+            check_allocation(str(path), need, "one saved agent's arrays",
+                             "this archive was not written for this machine or is damaged")  # fmt: skip
+        streams = {key: _open_values(zf, key) for key in plan}
+        try:
+            last = picked[-1] if picked else -1
+            for i in range(last + 1):
+                arrays = {}
+                for key, (rows, sizes, dtype) in plan.items():
+                    data = _read_exact(streams[key], sizes[i] * dtype.itemsize, key)
+                    arrays[key] = np.frombuffer(data, dtype).reshape(rows[i])
+                if int(runs_arr[i]) in wanted:
+                    meta = json.loads(str(metas[i]))
+                    if not isinstance(meta, dict):
+                        raise ValueError(f"{META} of run {int(runs_arr[i])} is not a JSON object")
+                    yield int(runs_arr[i]), arrays, meta
+        finally:
+            for fh in streams.values():
+                fh.close()
+
+
+def _plan(
+    zf: zipfile.ZipFile, runs: np.ndarray
+) -> dict[str, tuple[list[tuple[int, ...]], list[int], np.dtype]]:
+    """Per state key: every run's shape, its number of values and the dtype, from the
+    ``<key>.shape`` members and the headers (nothing else read)."""
+    from cobelrun.io.validate import read_npy_header
+
+    out = {}
+    for name in zf.namelist():
+        if not name.endswith(".npy"):
+            continue
+        key = name[: -len(".npy")]
+        if key in (RUNS, META) or key.endswith(SHAPE):
+            continue
+        shapes = _small(zf, key + SHAPE, "iu", 2)
+        if shapes.shape[0] != runs.shape[0]:
+            raise ValueError(f"{key}{SHAPE} has {shapes.shape[0]} rows for {runs.size} runs")
+        rows = [tuple(int(n) for n in r) for r in shapes.tolist()]
+        if any(n < 0 for r in rows for n in r):
+            raise ValueError(f"{key}{SHAPE} holds a negative size")
+        sizes = [math.prod(r) for r in rows]
+        with zf.open(name) as fh:
+            flat_shape, dtype = read_npy_header(fh)
+        if len(flat_shape) != 1 or flat_shape[0] != sum(sizes):
+            raise ValueError(f"{key} holds {flat_shape} values, its shapes say {sum(sizes)}")
+        if dtype.kind not in "biuf":
+            raise ValueError(f"{key} holds {dtype}, not numbers")
+        out[key] = (rows, sizes, dtype)
+    return out
+
+
+def _open_values(zf: zipfile.ZipFile, key: str) -> Any:
+    """Member ``key`` opened just past its ``.npy`` header."""
+    from cobelrun.io.validate import read_npy_header
+
+    fh = zf.open(f"{key}.npy")
+    read_npy_header(fh)
+    return fh
+
+
+def _read_exact(fh: Any, n: int, key: str) -> bytearray:
+    buf = bytearray(n)
+    view, pos = memoryview(buf), 0
+    while pos < n:
+        got = fh.readinto(view[pos:])
+        if not got:
+            raise ValueError(f"member {key!r} is cut short")
+        pos += got
+    return buf

@@ -79,7 +79,7 @@ def test_load_from_agent_of_another_shape_is_refused_before_any_folder(cobel, re
     """A saved agent of a 7x7 T-maze loaded into a gridworld of another size."""
     proc = cobel("run", "--quiet", "task=gridworld", "task.runs=1", f"+agent.load_from={real_run}")
     line = _one_line(proc)
-    assert "cannot load agent from" in line and "key 'Q': expected shape" in line
+    assert "cannot load agent from" in line and "key 'Q' of run 0: expected shape" in line
     _no_run_folder(tmp_path / "results")
 
 
@@ -121,7 +121,7 @@ def test_agents_npz_bomb_is_refused_from_its_header(real_run, tmp_path):
     t0 = time.perf_counter()
     try:
         with pytest.raises(
-            ConfigError, match=r"key 'Q': expected shape \(49, 4\), got \(250000000,\)"
+            ConfigError, match=r"key 'Q' of run 0: expected shape \(49, 4\), got \(250000000,\)"
         ):
             check_load_from(agent, str(saved), 1)
         _, peak = tracemalloc.get_traced_memory()
@@ -226,3 +226,25 @@ def test_copy_helper_keeps_links(tmp_path):
     copy_folder(tmp_path / "a", tmp_path / "b")
     assert (tmp_path / "b" / "x").is_symlink()
     shutil.rmtree(tmp_path / "b")
+
+
+def test_load_from_checks_every_run_in_one_pass(real_run, tmp_path):
+    """A saved job's archive is checked for every run the new job needs: the intact one
+    passes, a run it lacks is one line naming the run, and a {run} file pattern is checked
+    file by file."""
+    from cobelrun.agents.base import check_load_from
+    from cobelrun.errors import ConfigError
+    from cobelrun.hydra_app import composer
+    from cobelrun.runner import build_task
+
+    with composer() as compose:
+        cfg = compose(list(TINY))
+    agent = build_task(cfg).make_agent(seed=0)
+    check_load_from(agent, str(real_run), 1)
+    with pytest.raises(ConfigError, match=r"has no saved agent for run 1"):
+        check_load_from(agent, str(real_run), 2)
+    (tmp_path / "r0").mkdir()
+    shutil.copy(real_run / "agents.npz", tmp_path / "r0" / "agents.npz")
+    check_load_from(agent, str(tmp_path / "r{run}"), 1)
+    with pytest.raises(ConfigError, match=r"r1 does not exist"):
+        check_load_from(agent, str(tmp_path / "r{run}"), 2)

@@ -158,14 +158,33 @@ def test_sweep_job_folder_linking_outside_is_not_followed(real_sweep, tmp_path):
     assert {p: p.stat().st_mtime_ns for p in outside.rglob("*")} == before
 
 
-def test_collect_refuses_a_damaged_job_table(real_sweep, tmp_path):
+def test_collect_leaves_out_a_job_whose_table_is_cut_short(real_sweep, tmp_path):
+    """A job whose table has no footer is not done (`cobel status` says failed), so collect
+    takes the other job and says one was left out."""
+    import pandas as pd
+
     sweep = copy_folder(real_sweep, tmp_path / "sweep")
     (sweep / "1" / "steps.parquet").write_bytes(b"PAR1" + b"\0" * 100 + b"PAR1")
+    code, out, exc = invoke("collect", str(sweep))
+    assert exc is None and code == 0, out
+    assert "collected 1 of 2 jobs" in out
+    assert set(pd.read_parquet(sweep / "collected" / "steps.parquet")["job"]) == {0}
+
+
+def test_collect_refuses_a_table_with_a_damaged_page(real_sweep, tmp_path):
+    """The footer intact, a byte of the data changed: the page checksum catches it, one line
+    naming the file, and no collected file or temporary file is left."""
+    import pyarrow.parquet as pq
+
+    sweep = copy_folder(real_sweep, tmp_path / "sweep")
+    path = sweep / "1" / "steps.parquet"
+    col = pq.read_metadata(path).row_group(0).column(0)
+    raw = bytearray(path.read_bytes())
+    raw[col.data_page_offset + col.total_compressed_size - 3] ^= 0xFF
+    path.write_bytes(bytes(raw))
     line = one_error_line(*invoke("collect", str(sweep)), "steps.parquet")
-    assert "not a readable Parquet table" in line
-    assert (
-        not list((sweep / "collected").glob(".*tmp*")) if (sweep / "collected").exists() else True
-    )
+    assert "is damaged" in line
+    assert not list((sweep / "collected").glob("*steps*"))
 
 
 def test_load_manifest_and_plot_refuse_a_manifest_of_wrong_types(real_run, tmp_path):

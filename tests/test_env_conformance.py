@@ -46,6 +46,7 @@ from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import TrialKeysMonitor
 from cobelrun.recorder import SCHEMA_VERSION
 from cobelrun.runner import build_task, run
+from cobelrun.targets import allow
 
 COBEL_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("cobel/"))
 ENV_CONFIGS = sorted(group_options("env"))
@@ -82,6 +83,8 @@ def make_env(source: tuple[str, str, tuple[str, ...]]) -> gym.Env:
     if kind == "yaml":  # a user's env: its module sits next to its conf/ folder
         if str(EXAMPLES) not in sys.path:
             sys.path.insert(0, str(EXAMPLES))
+        target = str(OmegaConf.load(name)._target_)
+        allow([target.rpartition(".")[0] + ".*"])  # a user's class: allowed as a user does
         return instantiate("env", OmegaConf.load(name))
     return instantiate("env", compose(f"env={name}", *extra).env)
 

@@ -466,6 +466,7 @@ def validate(
         first = jobs[0]["overrides"] if jobs else overrides
     with composer(config_dir, config_name) as compose:
         cfg = compose(first, return_hydra_config=True)
+    _check_hydra_paths(cfg)
     if not multirun:
         try:
             out = OmegaConf.select(cfg, "hydra.run.dir")
@@ -487,6 +488,45 @@ def validate(
     if built is not None:
         built["task"] = task
     return cfg, jobs
+
+
+#: how a log file's name must start: inside the job's output folder
+_IN_OUTPUT = ("${hydra.runtime.output_dir}/", "${hydra:runtime.output_dir}/")
+
+
+def _check_hydra_paths(cfg: DictConfig) -> None:
+    """Files Hydra writes besides the run's own stay inside the run folder: its record of the
+    job (``hydra.output_subdir``, relative, no ``..``) and log files of the logging configs
+    (``filename`` under ``${hydra.runtime.output_dir}/``), so a config from elsewhere cannot
+    make Hydra write, or truncate, a file outside it."""
+    from pathlib import PurePosixPath
+
+    sub = OmegaConf.select(cfg, "hydra.output_subdir", default=None)
+    if sub is not None:
+        parts = PurePosixPath(str(sub)).parts
+        if str(sub).startswith("/") or ".." in parts or "${" in str(sub):
+            raise ConfigError(
+                f"hydra.output_subdir must be a folder name inside the run folder (like .hydra), "
+                f"got {sub!r}"
+            )
+    for node_key in ("hydra.job_logging", "hydra.hydra_logging"):
+        node = OmegaConf.select(cfg, node_key, default=None)
+        if not isinstance(node, DictConfig):
+            continue
+        raw = OmegaConf.to_container(node, resolve=False)
+        handlers = raw.get("handlers") if isinstance(raw, dict) else None
+        for name, handler in (handlers or {}).items():
+            name_ = handler.get("filename") if isinstance(handler, dict) else None
+            if name_ is None:
+                continue
+            text = str(name_)
+            inside = text.startswith(_IN_OUTPUT) and ".." not in PurePosixPath(text).parts
+            here = "/" not in text and text.endswith(".log")  # hydra/hydra_logging=hydra_debug
+            if not (inside or here):
+                raise ConfigError(
+                    f"{node_key}.handlers.{name}.filename must name a log file inside the run "
+                    f"folder (${{hydra.runtime.output_dir}}/NAME.log), got {text!r}"
+                )
 
 
 def foreign_sweeper(overrides: list[str]) -> str | None:

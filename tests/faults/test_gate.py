@@ -191,8 +191,30 @@ def test_logging_config_classes_are_gated(override, where):
 
 def test_an_interpolated_target_is_refused():
     """A ``_target_`` is a literal dotted path: an interpolation could pick any value."""
-    with pytest.raises(ConfigError, match="env._target_ must name a class or function as a dotted"):
+    with pytest.raises(
+        ConfigError, match=r"env\._target_ must name a class or function as a dotted"
+    ):
         validate([*TINY, "env._target_='${oc.env:HOME}'"], multirun=False)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [("hydra.job_logging.handlers.file.filename=/tmp/x/.bashrc",
+      "hydra.job_logging.handlers.file.filename must name a log file inside the run folder"),
+     ("hydra.job_logging.handlers.file.filename='${hydra.runtime.output_dir}/../../x.log'",
+      "must name a log file inside the run folder"),
+     ("hydra.output_subdir=/tmp/x", "hydra.output_subdir must be a folder name inside the run"),
+     ("hydra.output_subdir=../..", "hydra.output_subdir must be a folder name inside the run")],
+)  # fmt: skip
+def test_hydra_cannot_be_made_to_write_outside_the_run_folder(override, message):
+    with pytest.raises(ConfigError, match=message):
+        validate([*TINY, override], multirun=False)
+
+
+def test_hydras_own_logging_choices_pass():
+    for choice in ("hydra/hydra_logging=hydra_debug", "hydra/job_logging=default",
+                   "hydra/job_logging=stdout"):  # fmt: skip
+        validate([*TINY, choice], multirun=False)
 
 
 def test_logging_factories_are_gated():

@@ -137,8 +137,10 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
     from cobelrun.runner import run
     from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
     from cobelrun.sweep import write_job_status as status
+    from cobelrun.targets import check_config
 
     try:
+        check_config(cfg)  # each job's own composition (its swept values) through the gate
         chash = job_config_hash(cfg)
         if is_complete(run_dir, chash):  # a sweeper other than cobel's may hand us done jobs
             return job_result(run_dir, wants_number)

@@ -233,6 +233,24 @@ def test_every_swept_target_is_checked_not_only_the_first_jobs():
                  multirun=True)  # fmt: skip
 
 
+def test_a_swept_node_with_a_target_fails_its_job_only(cobel, tmp_path):
+    """A swept value that is a whole node (not a ``_target_`` key) is checked in the job: that
+    job fails with the one line, the others run, the payload never does."""
+    canary = tmp_path / "pwned"
+    sweep = tmp_path / "sweep"
+    bad = f"{{_target_: uuid._get_command_stdout, _args_: [touch, '{canary}']}}"
+    good = "{_target_: cobelrun.monitors.RewardMonitor}"
+    proc = cobel("run", "-m", *TINY, f"++task.monitors.reward=choice({good},{bad})",
+                 f"hydra.sweep.dir={sweep}", "hydra/launcher=basic", "--quiet")  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    import json
+
+    jobs = [json.loads((sweep / str(i) / "job.json").read_text()) for i in (0, 1)]
+    assert [j["status"] for j in jobs] == ["completed", "failed"]
+    assert "'uuid._get_command_stdout' is not an allowed target" in jobs[1]["error"]
+    assert not canary.exists()
+
+
 def test_instantiate_and_factory_refuse_too(tmp_path):
     """Defence in depth: the library's own builders refuse, whoever calls them."""
     canary = tmp_path / "canary"

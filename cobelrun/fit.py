@@ -32,10 +32,13 @@ __all__ = [
     "PARAMS",
     "ChoiceData",
     "FitResult",
+    "check_action_set",
+    "check_choices",
     "fit_choices",
     "load_choices",
     "q_learning_nll",
     "simulate_choices",
+    "task_sizes",
 ]
 
 #: fittable parameters: config key -> (model name, default bounds)
@@ -144,8 +147,16 @@ def simulate_choices(
     return pd.DataFrame(rows, columns=["trial", "state", "choice", "reward"])
 
 
+#: columns a choice table may have: required, then optional
+REQUIRED_COLUMNS = ("choice", "reward")
+OPTIONAL_COLUMNS = ("trial", "state", "session")
+#: largest state count accepted when the task does not say how many states it has
+MAX_STATES = 100_000
+
+
 def load_choices(path: str | Path) -> pd.DataFrame:
-    """Read a choice table (``.parquet`` or ``.csv``) and check its columns."""
+    """Read a choice table (``.parquet`` or ``.csv``) and check its columns and values
+    (:func:`check_choices`)."""
     p = Path(path)
     if not p.is_file():
         raise CobelError(f"data file {p} does not exist")
@@ -153,13 +164,107 @@ def load_choices(path: str | Path) -> pd.DataFrame:
         data = pd.read_csv(p) if p.suffix == ".csv" else pd.read_parquet(p)
     except Exception as exc:
         raise CobelError(f"cannot read {p}: {exc}") from None
-    missing = [c for c in ("choice", "reward") if c not in data]
-    if missing:
-        raise CobelError(f"{p} has no {', '.join(missing)} column; it needs choice and reward "
-                         f"(state and session optional), it has: {', '.join(data.columns)}")  # fmt: skip
-    if data.empty:
-        raise CobelError(f"{p} has no trials")
+    check_columns(data, str(p))
     return data
+
+
+def check_columns(data: pd.DataFrame, source: str = "the data") -> None:
+    """Refuse a table without ``choice``/``reward``, with unknown columns, or without rows."""
+    cols = [str(c) for c in data.columns]
+    missing = [c for c in REQUIRED_COLUMNS if c not in cols]
+    if missing:
+        raise CobelError(f"{source} has no {', '.join(missing)} column; it needs choice and reward "
+                         f"({', '.join(OPTIONAL_COLUMNS)} optional), it has: "
+                         f"{', '.join(cols) or 'no columns'}")  # fmt: skip
+    extra = [c for c in cols if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if extra:
+        raise CobelError(f"{source} has unknown column(s) {', '.join(extra)}; allowed: "
+                         f"{', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)} (drop or rename them)")  # fmt: skip
+    if data.empty:
+        raise CobelError(f"{source} has no trials")
+
+
+def _show(value: Any) -> str:
+    """A cell value as an error shows it (``nan``, ``0.7``, ``'left'``)."""
+    return repr(value.item() if isinstance(value, np.generic) else value)
+
+
+def _integer_column(data: pd.DataFrame, column: str, source: str, low: int, high: int | None,
+                    what: str) -> np.ndarray:  # fmt: skip
+    """The column as int64, refusing non-numbers, non-integers, non-finite values and values
+    outside ``low..high`` (``high`` inclusive; ``None``: no upper limit)."""
+    values = pd.to_numeric(data[column], errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CobelError(f"{source}: {column} must be a finite integer {what}, got "
+                         f"{_show(data[column].iloc[i])} in row {i}")  # fmt: skip
+    frac = values != np.round(values)
+    if frac.any():
+        i = int(np.flatnonzero(frac)[0])
+        raise CobelError(f"{source}: {column} must be an integer {what}, got {_show(values[i])} "
+                         f"in row {i}")  # fmt: skip
+    out_of_range = (values < low) | (values > high if high is not None else False)
+    if np.any(out_of_range):
+        i = int(np.flatnonzero(out_of_range)[0])
+        allowed = f"{low}..{high}" if high is not None else f">= {low}"
+        raise CobelError(f"{source}: {column} must lie in {allowed}, got {values[i]:g} in row {i}")
+    return values.astype(np.int64)
+
+
+def check_choices(
+    data: pd.DataFrame,
+    n_actions: int | None = None,
+    n_states: int | None = None,
+    source: str = "the data",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Validate a choice table and return its arrays.
+
+    Parameters
+    ----------
+    data
+        One row per trial: ``choice``, ``reward`` (``trial``, ``state``, ``session`` optional).
+    n_actions
+        The task's number of actions; choices must lie in ``0..n_actions - 1`` (default: the
+        largest choice + 1).
+    n_states
+        The task's number of states; states must lie in ``0..n_states - 1`` (default: the
+        largest state + 1, at most :data:`MAX_STATES`).
+    source
+        How errors name the table (e.g. its file).
+
+    Returns
+    -------
+    tuple
+        ``choices, rewards, states, sessions, n_states, n_actions``.
+
+    Raises
+    ------
+    CobelError
+        One line naming the column, the bad value, its row and what is allowed.
+    """
+    check_columns(data, source)
+    high = None if n_actions is None else int(n_actions) - 1
+    choices = _integer_column(data, "choice", source, 0, high, "(an action index)")
+    rewards = pd.to_numeric(data["reward"], errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(rewards)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CobelError(f"{source}: reward must be a finite number, got "
+                         f"{_show(data['reward'].iloc[i])} in row {i}")  # fmt: skip
+    if "state" in data:
+        high = (int(n_states) if n_states is not None else MAX_STATES) - 1
+        states = _integer_column(data, "state", source, 0, high, "(a state index)")
+    else:
+        states = np.zeros(len(data), np.int64)
+    sessions = (
+        pd.factorize(data["session"])[0].astype(np.int64)
+        if "session" in data
+        else np.zeros(len(data), np.int64)
+    )
+    n_a = int(n_actions) if n_actions is not None else int(choices.max()) + 1
+    n_s = int(n_states) if n_states is not None else int(states.max()) + 1
+    return choices, rewards, states, sessions, n_s, n_a
 
 
 @dataclass(frozen=True)
@@ -180,33 +285,26 @@ class ChoiceData:
     n_actions: int
 
     @classmethod
-    def from_table(cls, data: pd.DataFrame, n_actions: int | None = None) -> ChoiceData:
-        """Arrays of a table with ``choice``, ``reward`` (``state``, ``session`` optional).
+    def from_table(
+        cls,
+        data: pd.DataFrame,
+        n_actions: int | None = None,
+        n_states: int | None = None,
+        source: str = "the data",
+    ) -> ChoiceData:
+        """Arrays of a table with ``choice``, ``reward`` (``trial``, ``state``, ``session``
+        optional), validated by :func:`check_choices`.
 
         Parameters
         ----------
         data
             One row per trial, in order.
-        n_actions
-            Number of actions (default: the largest choice + 1).
+        n_actions, n_states
+            The task's numbers of actions and states (default: the largest value + 1).
+        source
+            How errors name the table.
         """
-        choices = data["choice"].to_numpy(dtype=np.int64)
-        rewards = data["reward"].to_numpy(dtype=np.float64)
-        states = (data["state"] if "state" in data else pd.Series(0, index=data.index)).to_numpy(
-            np.int64
-        )
-        sessions = (
-            pd.factorize(data["session"])[0] if "session" in data else np.zeros(len(data), np.int64)
-        )
-        n_actions = int(n_actions or choices.max() + 1)
-        if choices.min() < 0 or choices.max() >= n_actions:
-            raise CobelError(
-                f"choices must lie in 0..{n_actions - 1}, got {choices.min()}..{choices.max()}"
-            )
-        if states.min() < 0:
-            raise CobelError(f"states must be >= 0, got {states.min()}")
-        return cls(choices, rewards, states, np.asarray(sessions, np.int64),
-                   int(states.max() + 1), n_actions)  # fmt: skip
+        return cls(*check_choices(data, n_actions, n_states, source))
 
     def __len__(self) -> int:
         return len(self.choices)
@@ -215,6 +313,37 @@ class ChoiceData:
         """Negative log-likelihood of the choices (:func:`q_learning_nll`)."""
         return q_learning_nll(learning_rate, beta, self.choices, self.rewards, self.states,
                               self.sessions, self.n_states, self.n_actions, q0)  # fmt: skip
+
+
+def task_sizes(env: Any) -> tuple[int | None, int | None]:
+    """``(n_actions, n_states)`` of a composed env (``None`` where it does not say)."""
+    from cobelrun.envs.base import DiscreteStates, StateObservations
+
+    n_actions = getattr(env.action_space, "n", None)
+    base = getattr(env, "unwrapped", env)
+    n_states: int | None = None
+    if isinstance(base, DiscreteStates):
+        n_states = int(base.n_states)
+    elif isinstance(base, StateObservations):
+        n_states = len(base.observations)
+    return (None if n_actions is None else int(n_actions)), n_states
+
+
+def check_action_set(data: pd.DataFrame, n_actions: int | None, task: str,
+                     source: str = "the data") -> None:  # fmt: skip
+    """Refuse choice data whose action set differs from the task's: choices outside
+    ``0..n_actions - 1``, or fewer actions than the task has (e.g. 2-choice data against the
+    T-maze's 4 actions)."""
+    if n_actions is None:
+        return
+    values = pd.to_numeric(data["choice"], errors="coerce")
+    if not values.notna().all():
+        return  # check_choices names the bad value
+    top = int(values.max())
+    if top != n_actions - 1:
+        raise CobelError(f"{source} has choices 0..{top} ({top + 1} actions) but task {task}'s env "
+                         f"has {n_actions} actions (0..{n_actions - 1}); fit it with a task of "
+                         f"{top + 1} actions")  # fmt: skip
 
 
 @dataclass
@@ -257,9 +386,11 @@ def fit_choices(
     initial: Mapping[str, float] | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     n_actions: int | None = None,
+    n_states: int | None = None,
     method: str = "scipy",
     n_trials: int = 200,
     seed: int = 0,
+    source: str = "the data",
 ) -> FitResult:
     """Fit ``params`` (``agent.learning_rate``, ``agent.beta``) to choice data by maximum
     likelihood; the others stay at ``initial``.
@@ -288,7 +419,7 @@ def fit_choices(
         raise ConfigError(f"unknown fit method {method!r}; allowed: 'scipy', 'optuna'")
     values = {key: float((initial or {}).get(key, 0.5 if "rate" in key else 1.0)) for key in PARAMS}
     ranges = {key: tuple(map(float, (bounds or {}).get(key, PARAMS[key][1]))) for key in params}
-    table = ChoiceData.from_table(data, n_actions)
+    table = ChoiceData.from_table(data, n_actions, n_states, source)
 
     def nll(x: Sequence[float]) -> float:
         v = {**values, **dict(zip(params, x, strict=True))}
@@ -318,6 +449,9 @@ def fit_choices(
                        n_trials=n_trials)  # fmt: skip
         estimate = [float(study.best_params[k]) for k in params]
         value = float(study.best_value)
+    if not (np.all(np.isfinite(estimate)) and math.isfinite(value)):
+        raise CobelError(f"the fit of {source} did not converge (estimate {estimate}, nll "
+                         f"{value}); nothing written")  # fmt: skip
     return FitResult(
         params=dict(zip(params, estimate, strict=True)),
         nll=value,

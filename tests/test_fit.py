@@ -188,5 +188,5 @@ def test_fit_checks_its_input():
     d = simulate_choices(20, 0.3, 4.0)
     with pytest.raises(ConfigError, match="method"):
         fit_choices(d, ["agent.beta"], method="grid")
-    with pytest.raises(CobelError, match="choices must lie"):
+    with pytest.raises(CobelError, match=r"choice must lie in 0..1, got 5"):
         fit_choices(d.assign(choice=5), ["agent.beta"], n_actions=2)

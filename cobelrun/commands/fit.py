@@ -41,7 +41,14 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
 
     from cobelrun.config import instantiate, register_resolvers
     from cobelrun.errors import ConfigError
-    from cobelrun.fit import PARAMS, fit_choices, load_choices
+    from cobelrun.fit import (
+        PARAMS,
+        check_action_set,
+        check_choices,
+        fit_choices,
+        load_choices,
+        task_sizes,
+    )
     from cobelrun.hydra_app import composer
 
     special, overrides = _split(args)
@@ -65,15 +72,20 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
         raise ConfigError(f"the composed agent has no {', '.join(missing)}; pick an agent that "
                           f"has them (e.g. agent=dyna_q)")  # fmt: skip
     env = instantiate("env", cfg.env)
-    n_actions = getattr(env.action_space, "n", None)
+    n_actions, n_states = task_sizes(env)
     data_path = Path(special["data"])
+    data = load_choices(data_path)
+    check_choices(data, None, n_states, str(data_path))
+    check_action_set(data, n_actions, str(cfg.task.get("name", "the task")), str(data_path))
     result = fit_choices(
-        load_choices(data_path),
+        data,
         params,
         initial={k: float(v) for k, v in initial.items() if v is not None},
-        n_actions=None if n_actions is None else int(n_actions),
+        n_actions=n_actions,
+        n_states=n_states,
         method=special.get("method", "scipy"),
         n_trials=n_trials,
+        source=str(data_path),
     )
     return result, data_path
 

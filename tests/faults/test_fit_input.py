@@ -26,7 +26,7 @@ def _fit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, data: pd.DataFrame, *e
     path = tmp_path / "choices.csv"
     data.to_csv(path, index=False)
     return CliRunner().invoke(
-        app, ["fit", "task=two_afc", "agent=dyna_q", f"data={path}", *extra], catch_exceptions=False
+        app, ["fit", "task=two_afc", "agent=q_learning", f"data={path}", *extra], catch_exceptions=False
     )
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cobelrun.envs.bandit import BanditEnv
 from cobelrun.envs.choice import TwoAFCEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
 from cobelrun.envs.topology_env import TopologyEnv
@@ -34,6 +35,7 @@ ENV_IDS: dict[str, str] = {
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
     "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
+    "cobel/Bandit-v0": "cobelrun.envs.bandit:BanditEnv",
     "cobel/Continuous2D-v0": "cobelrun.envs.continuous:Continuous2DEnv",
 }
 
@@ -68,6 +70,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ENV_IDS",
+    "BanditEnv",
     "Continuous2DEnv",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",

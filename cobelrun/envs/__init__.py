@@ -19,6 +19,7 @@ from typing import Any
 from cobelrun.envs.bandit import BanditEnv
 from cobelrun.envs.choice import TwoAFCEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
+from cobelrun.envs.sequence import SequenceEnv
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
     World,
@@ -36,6 +37,7 @@ ENV_IDS: dict[str, str] = {
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
     "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
     "cobel/Bandit-v0": "cobelrun.envs.bandit:BanditEnv",
+    "cobel/Sequence-v0": "cobelrun.envs.sequence:SequenceEnv",
     "cobel/Continuous2D-v0": "cobelrun.envs.continuous:Continuous2DEnv",
 }
 
@@ -74,6 +76,7 @@ __all__ = [
     "Continuous2DEnv",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
+    "SequenceEnv",
     "TopologyEnv",
     "TwoAFCEnv",
     "World",

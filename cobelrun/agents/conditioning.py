@@ -50,15 +50,11 @@ class _Conditioning(Agent):
 
     observation_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Box,)
     action_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Discrete,)
+    requires: ClassVar[tuple[str, ...]] = ("trial_script",)
 
     def __init__(self, env: gym.Env, *, response_beta: float, response_threshold: float,
                  seed: SeedLike) -> None:  # fmt: skip
-        super().__init__(env, seed=seed)
-        from cobelrun.envs.sequence import SequenceEnv
-
-        if not isinstance(env.unwrapped, SequenceEnv):
-            raise ConfigError(f"agent {type(self).__name__} needs a conditioning env "
-                              f"(env=sequence), got {type(env.unwrapped).__name__}")  # fmt: skip
+        super().__init__(env, seed=seed)  # checks the trial_script contract (env=sequence)
         self.seq = env.unwrapped
         self.response_beta = _number("response_beta", response_beta, 0.0)
         self.response_threshold = _number("response_threshold", response_threshold, -1e9)

@@ -80,16 +80,6 @@ class BanditEnv(gym.Env[int, int]):
         """One state."""
         return 1
 
-    def state_index(self, ref: Any) -> int:
-        """The one state (0)."""
-        if ref not in (0, "0", "start"):
-            raise ConfigError(f"the bandit has one state, 0; got {ref!r}")
-        return 0
-
-    def poses_of(self, states: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
-        """No geometry: every pose is ``(0, 0, 0)``."""
-        return np.zeros((len(states), 3))
-
     def _arm(self, ref: Any) -> int:
         text = str(ref).removeprefix("arm_")
         if not text.isdigit() or int(text) >= len(self.reward_probs):

@@ -53,9 +53,10 @@ class SequenceEnv(gym.Env[np.ndarray, int]):
     Arguments
     ---------
     cues : list of str
-        Conditioned stimuli (e.g. ``[A, B, X]``).
+        Conditioned stimuli (e.g. ``[A, B, X]``; default ``[A]``).
     trial_types : mapping name -> {cues: {cue: [on, off]}, outcome: float, us: int, context: str}
-        The trial types (``us`` default ``length - 1``, ``context`` optional).
+        The trial types (``us`` default ``length - 1``, ``context`` optional; default: the first
+        cue on for the whole trial, outcome 1).
     contexts : list of str
         Context cues (e.g. ``[ctx_A, ctx_B]``); default none.
     length : int
@@ -74,8 +75,8 @@ class SequenceEnv(gym.Env[np.ndarray, int]):
 
     def __init__(
         self,
-        cues: Sequence[str],
-        trial_types: Mapping[str, Mapping[str, Any]],
+        cues: Sequence[str] = ("A",),
+        trial_types: Mapping[str, Mapping[str, Any]] | None = None,
         contexts: Sequence[str] = (),
         length: int = 10,
         csc: bool = False,
@@ -87,6 +88,9 @@ class SequenceEnv(gym.Env[np.ndarray, int]):
         if int(length) < 1:
             raise ConfigError(f"length must be >= 1 step, got {length}")
         self.length, self.csc = int(length), bool(csc)
+        if trial_types is None:  # one delay-conditioning trial of the first cue
+            trial_types = {str(cues[0]): {"cues": {str(cues[0]): [0, self.length]},
+                                          "outcome": 1.0}}  # fmt: skip
         self.n_cs, self.n_cues = len(cues), len(self.cue_names)
         if not trial_types:
             raise ConfigError("trial_types must name at least one trial type")
@@ -182,16 +186,28 @@ class SequenceEnv(gym.Env[np.ndarray, int]):
         i = self._type if trial_type is None else trial_type
         return self._presence[i].max(axis=0)
 
-    def _obs(self) -> np.ndarray:
-        x = self._presence[self._type, self._t]
+    def _obs(self, i: int | None = None, t: int | None = None) -> np.ndarray:
+        i = self._type if i is None else i
+        t = self._t if t is None else t
+        x = self._presence[i, t]
         if not self.csc:
             return x.copy()
         code = np.zeros((self.n_cs, self.length), np.float32)
         for j in range(self.n_cs):
-            on = self._onset[self._type, j]
+            on = self._onset[i, j]
             if on >= 0 and x[j] > 0:
-                code[j, self._t - on] = 1.0
+                code[j, t - on] = 1.0
         return np.concatenate([x, code.ravel()])
+
+    @property
+    def observations(self) -> np.ndarray:
+        """``(n_trial_types, d)``: each trial type's observation at its first cue onset (the
+        probes of activity monitors and agents' predictions)."""
+        rows = []
+        for i in range(len(self.type_names)):
+            onsets = self._onset[i][self._onset[i] >= 0]
+            rows.append(self._obs(i, int(onsets.min()) if len(onsets) else 0))
+        return np.array(rows, np.float32)
 
     def trial_info(self) -> dict[str, Any]:
         """``trial_type``, ``cues``, ``t`` and ``state`` of the current trial (as ``info``)."""

@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
+import cobelrun
 from cobelrun.choice_models import MODELS, model_logp
 from cobelrun.cli import app
 from cobelrun.config import register_resolvers
@@ -225,3 +226,16 @@ def test_bandit_env_and_reversal_phases(reversal):
         BanditEnv([0.5, 1.5])
     rewards = [BanditEnv([1.0, 0.0]).step(1)[1] for _ in range(3)]
     assert rewards == [0.0, 0.0, 0.0]
+
+
+def test_fit_recovers_cobels_own_q_learning_agent(tmp_path, monkeypatch):
+    """The q_learning likelihood is the likelihood of cobel's agent=q_learning (DynaQ without
+    replay, softmax): 20 runs of task=reversal_bandit (lr 0.3, beta 5), fitted from the run's
+    trials table, give intervals that hold the agent's parameters."""
+    r = cobelrun.run("reversal_bandit", ["task.runs=20"], out=tmp_path / "run")
+    t = r.trials.rename(columns={"start_state": "state", "run": "session"})
+    data = t[["session", "trial", "state", "choice", "reward"]]
+    fit = fit_choices(data, n_actions=2, n_states=1)
+    for key, truth in (("agent.learning_rate", 0.3), ("agent.beta", 5.0)):
+        lo, hi = fit.ci[key]
+        assert lo <= truth <= hi, (key, fit.params[key], fit.ci[key])

@@ -27,6 +27,11 @@ using computational models"):
     Noisy win-stay / lose-shift: after a reward repeat the last action, after none switch to
     one of the others (uniformly); with probability ``epsilon`` choose at random instead
     (Wilson & Collins 2019, model 2). The first trial of a session is random.
+``rw_response``
+    Classical conditioning (``agent=rescorla_wagner`` on ``env=sequence``): the state is the
+    trial type, ``features[s]`` its conditioned stimuli; ``V = w . features[s]``, the choice is
+    the response at the cue's onset, ``P(respond) = 1 / (1 + exp(-response_beta (V -
+    response_threshold)))``, and ``w += alpha (asymptote * US - V) features[s]`` (saliences 1).
 
 Values restart at 0 at every session.
 """
@@ -57,11 +62,15 @@ class ParamSpec:
         Allowed range (inclusive); the fit searches a transformed, unbounded space.
     transform
         ``logit`` (a rate or probability on ``bounds``) or ``log`` (a positive scale).
+    default
+        Value when neither the config nor the caller gives one (None: the middle of a logit
+        range, 1 on a log scale).
     """
 
     key: str
     bounds: tuple[float, float]
     transform: str = "logit"
+    default: float | None = None
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,8 @@ class ChoiceModel:
         Rows of the ``(n_memory, n_states, n_actions)`` memory array.
     description
         One line for listings.
+    fitted
+        How many of the first parameters are fitted by default (None: all).
     """
 
     name: str
@@ -87,16 +98,26 @@ class ChoiceModel:
     params: tuple[ParamSpec, ...]
     n_memory: int
     description: str
+    fitted: int | None = None
 
     @property
     def keys(self) -> list[str]:
         """Config keys of the parameters, in kernel order."""
         return [p.key for p in self.params]
 
+    @property
+    def default_keys(self) -> list[str]:
+        """The parameters fitted unless told otherwise (the first ``fitted``; the rest are
+        fixed at the config's values)."""
+        return self.keys[: self.fitted] if self.fitted else self.keys
+
 
 LR = ParamSpec("agent.learning_rate", (0.0, 1.0), "logit")
 BETA = ParamSpec("agent.beta", (1e-3, 50.0), "log")
 EPSILON = ParamSpec("agent.epsilon", (0.0, 1.0), "logit")
+RESPONSE_BETA = ParamSpec("agent.response_beta", (1e-3, 50.0), "log")
+THRESHOLD = ParamSpec("agent.response_threshold", (-10.0, 10.0), "logit", 0.5)
+ASYMPTOTE = ParamSpec("agent.asymptote", (1e-3, 10.0), "log")
 
 #: every model with a likelihood, by name
 MODELS: dict[str, ChoiceModel] = {
@@ -118,13 +139,32 @@ MODELS: dict[str, ChoiceModel] = {
             "Q-learning + replay of a tabular model memory, softmax (alpha, beta)",
         ),
         ChoiceModel("wsls", 3, (EPSILON,), 1, "noisy win-stay / lose-shift (epsilon)"),
+        ChoiceModel(
+            "rw_response",
+            4,
+            (LR, RESPONSE_BETA, THRESHOLD, ASYMPTOTE),
+            1,
+            "Rescorla-Wagner conditioning, logistic response on V (alpha, "
+            "response_beta; threshold and asymptote fixed)",
+            fitted=2,
+        ),
     )
 }
 
 
 @numba.njit(cache=True)
-def model_probs(code, theta, mem, s, n_actions, out):  # pragma: no cover
-    """Choice probabilities of state ``s`` into ``out`` (length ``n_actions``)."""
+def model_probs(code, theta, mem, w, features, s, n_actions, out):  # pragma: no cover
+    """Choice probabilities of state ``s`` into ``out`` (length ``n_actions``); ``w`` and
+    ``features`` (n_states, n_features) are the cue weights and cues of ``rw_response``."""
+    if code == 4:  # rw_response: theta = lr, response_beta, threshold, asymptote
+        v = 0.0
+        for j in range(features.shape[1]):
+            v += w[j] * features[s, j]
+        z = theta[1] * (v - theta[2])
+        z = min(max(z, -700.0), 700.0)
+        out[1] = 1.0 / (1.0 + math.exp(-z))
+        out[0] = 1.0 - out[1]
+        return
     if code == 3:  # wsls: mem[0, 0, 0] last action (-1: none), mem[0, 0, 1] last reward > 0
         eps = theta[0]
         last = int(mem[0, 0, 0])
@@ -154,9 +194,9 @@ def model_probs(code, theta, mem, s, n_actions, out):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def model_choose(code, theta, mem, s, n_actions, out, u):  # pragma: no cover
+def model_choose(code, theta, mem, w, features, s, n_actions, out, u):  # pragma: no cover
     """Sample a choice in state ``s`` from a uniform draw ``u`` (probabilities into ``out``)."""
-    model_probs(code, theta, mem, s, n_actions, out)
+    model_probs(code, theta, mem, w, features, s, n_actions, out)
     acc = 0.0
     for b in range(n_actions):
         acc += out[b]
@@ -166,8 +206,16 @@ def model_choose(code, theta, mem, s, n_actions, out, u):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def model_update(code, theta, mem, s, a, r):  # pragma: no cover
+def model_update(code, theta, mem, w, features, s, a, r):  # pragma: no cover
     """Learn from choosing ``a`` in state ``s`` and receiving ``r``."""
+    if code == 4:
+        v = 0.0
+        for j in range(features.shape[1]):
+            v += w[j] * features[s, j]
+        delta = theta[3] * r - v
+        for j in range(features.shape[1]):
+            w[j] += theta[0] * delta * features[s, j]
+        return
     if code == 3:
         mem[0, 0, 0] = a
         mem[0, 0, 1] = 1.0 if r > 0 else 0.0
@@ -194,7 +242,7 @@ def model_update(code, theta, mem, s, a, r):  # pragma: no cover
 
 @numba.njit(cache=True)
 def _logp_kernel(
-    code, theta, n_memory, choices, rewards, states, sessions, n_states, n_actions
+    code, theta, n_memory, choices, rewards, states, sessions, n_states, n_actions, features
 ):  # pragma: no cover
     n = choices.shape[0]
     out = np.empty(n)
@@ -202,15 +250,17 @@ def _logp_kernel(
     if code == 3:
         mem[0, 0, 0] = -1.0
     p = np.empty(n_actions)
+    w = np.zeros(features.shape[1])
     for t in range(n):
         if t > 0 and sessions[t] != sessions[t - 1]:
             mem[:, :, :] = 0.0
+            w[:] = 0.0
             if code == 3:
                 mem[0, 0, 0] = -1.0
         s, a = states[t], choices[t]
-        model_probs(code, theta, mem, s, n_actions, p)
+        model_probs(code, theta, mem, w, features, s, n_actions, p)
         out[t] = math.log(max(p[a], 1e-300))
-        model_update(code, theta, mem, s, a, rewards[t])
+        model_update(code, theta, mem, w, features, s, a, rewards[t])
     return out
 
 
@@ -223,6 +273,7 @@ def model_logp(
     sessions: np.ndarray,
     n_states: int,
     n_actions: int,
+    features: np.ndarray | None = None,
 ) -> np.ndarray:
     """Log-probability of each observed choice given the history before it (compiled).
 
@@ -237,9 +288,20 @@ def model_logp(
         ``sessions`` changes.
     n_states, n_actions
         Table size.
+    features
+        ``(n_states, n_features)`` cues of every state (``rw_response``: which conditioned
+        stimuli a trial type shows); default none.
     """
     return _logp_kernel(model.code, np.asarray(theta, np.float64), model.n_memory, choices,
-                        rewards, states, sessions, int(n_states), int(n_actions))  # fmt: skip
+                        rewards, states, sessions, int(n_states), int(n_actions),
+                        as_features(features, n_states))  # fmt: skip
+
+
+def as_features(features: np.ndarray | None, n_states: int) -> np.ndarray:
+    """``features`` as a C-contiguous float64 (n_states, k) array (``(n_states, 0)`` for none)."""
+    if features is None:
+        return np.zeros((int(n_states), 0))
+    return np.ascontiguousarray(features, np.float64)
 
 
 class ModelAgent:
@@ -256,8 +318,10 @@ class ModelAgent:
     """
 
     def __init__(self, model: ChoiceModel, theta: np.ndarray, n_states: int, n_actions: int,
-                 rng: np.random.Generator) -> None:  # fmt: skip
+                 rng: np.random.Generator, features: np.ndarray | None = None) -> None:  # fmt: skip
         self.model, self.theta = model, np.asarray(theta, np.float64)
+        self.features = as_features(features, n_states)
+        self.w = np.zeros(self.features.shape[1])
         self.n_actions, self.rng = int(n_actions), rng
         self.mem = np.zeros((model.n_memory, n_states, n_actions))
         if model.code == 3:
@@ -266,12 +330,13 @@ class ModelAgent:
 
     def act(self, state: int) -> int:
         """Sample a choice in ``state``."""
-        return int(model_choose(self.model.code, self.theta, self.mem, int(state),
-                                self.n_actions, self._p, self.rng.random()))  # fmt: skip
+        return int(model_choose(self.model.code, self.theta, self.mem, self.w, self.features,
+                                int(state), self.n_actions, self._p, self.rng.random()))  # fmt: skip
 
     def learn(self, state: int, action: int, reward: float) -> None:
         """Update after the outcome."""
-        model_update(self.model.code, self.theta, self.mem, int(state), int(action), float(reward))
+        model_update(self.model.code, self.theta, self.mem, self.w, self.features, int(state),
+                     int(action), float(reward))  # fmt: skip
 
 
 # ------------------------------------------------------------ compiled objective and optimiser
@@ -288,10 +353,10 @@ def _theta(phi, idx, base, lo, hi, islog):  # pragma: no cover
 
 @numba.njit(cache=True)
 def _objective(code, phi, idx, base, lo, hi, islog, weights, n_memory, choices, rewards,
-               states, sessions, n_states, n_actions):  # pragma: no cover  # fmt: skip
+               states, sessions, n_states, n_actions, features):  # pragma: no cover  # fmt: skip
     theta = _theta(phi, idx, base, lo, hi, islog)
     lp = _logp_kernel(code, theta, n_memory, choices, rewards, states, sessions, n_states,
-                      n_actions)  # fmt: skip
+                      n_actions, features)  # fmt: skip
     total = 0.0
     for t in range(lp.shape[0]):
         total -= weights[t] * lp[t]
@@ -319,14 +384,14 @@ def _positive_definite(A):  # pragma: no cover
 
 @numba.njit(cache=True)
 def newton_fit(code, phi0, phi_lo, phi_hi, idx, base, lo, hi, islog, weights, n_memory,
-               choices, rewards, states, sessions, n_states, n_actions, max_iter):  # pragma: no cover  # fmt: skip
+               choices, rewards, states, sessions, n_states, n_actions, features, max_iter):  # pragma: no cover  # fmt: skip
     """Minimise the weighted negative log-likelihood over ``phi`` (the transformed fitted
     parameters) inside the box ``[phi_lo, phi_hi]`` by Levenberg-Marquardt-damped Newton
     steps with central-difference derivatives; returns ``(phi, value, iterations)``."""
     k = phi0.shape[0]
     phi = np.minimum(np.maximum(phi0.copy(), phi_lo), phi_hi)
     args = (idx, base, lo, hi, islog, weights, n_memory, choices, rewards, states, sessions,
-            n_states, n_actions)  # fmt: skip
+            n_states, n_actions, features)  # fmt: skip
     f = _objective(code, phi, *args)
     lam = 1e-3
     h = 1e-4

@@ -37,6 +37,7 @@ __all__ = [
     "load_choices",
     "q_learning_nll",
     "simulate_choices",
+    "task_features",
     "task_sizes",
 ]
 
@@ -276,6 +277,7 @@ class ChoiceData:
     sessions: np.ndarray
     n_states: int
     n_actions: int
+    features: np.ndarray | None = None
 
     @classmethod
     def from_table(
@@ -320,6 +322,18 @@ def task_sizes(env: Any) -> tuple[int | None, int | None]:
     elif isinstance(base, StateObservations):
         n_states = len(base.observations)
     return (None if n_actions is None else int(n_actions)), n_states
+
+
+def task_features(env: Any) -> np.ndarray | None:
+    """``(n_trial_types, n_cs)``: the conditioned stimuli of every trial type of a conditioning
+    env (the ``trial_script`` contract), else None."""
+    from cobelrun.envs.base import TrialScript
+
+    base = getattr(env, "unwrapped", env)
+    if not isinstance(base, TrialScript):
+        return None
+    n_types = len(getattr(base, "observations", []))
+    return np.array([base.trial_cues(i)[: base.n_cs] for i in range(n_types)], np.float64)
 
 
 def check_action_set(data: pd.DataFrame, n_actions: int | None, task: str,
@@ -506,6 +520,7 @@ def fit_choices(
     params: Sequence[str] | None = None,
     *,
     model: str = "q_learning",
+    features: np.ndarray | None = None,
     initial: Mapping[str, float] | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     n_actions: int | None = None,
@@ -531,6 +546,8 @@ def fit_choices(
         Config keys to fit (default: all of the model's); the others stay at ``initial``.
     model
         A model of :data:`cobelrun.choice_models.MODELS`.
+    features
+        ``(n_states, k)`` cues of every state, for ``rw_response`` (default: the table's).
     initial
         Values of every model parameter (the fixed ones and the first start), by config key.
     bounds
@@ -558,13 +575,13 @@ def fit_choices(
     """
     from scipy.optimize import minimize
 
-    from cobelrun.choice_models import MODELS, model_logp, newton_fit
+    from cobelrun.choice_models import MODELS, as_features, model_logp, newton_fit
 
     if model not in MODELS:
         raise ConfigError(f"unknown model {model!r}; models with a likelihood: "
                           f"{', '.join(MODELS)}")  # fmt: skip
     spec = MODELS[model]
-    params = list(spec.keys if params is None else params)
+    params = list(spec.default_keys if params is None else params)
     unknown = [p for p in params if p not in spec.keys]
     if unknown or not params:
         raise ConfigError(f"cannot fit {unknown or 'nothing'} with model {model}; its "
@@ -579,7 +596,8 @@ def fit_choices(
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"bounds of {p.key} must be finite with low < high, got [{lo}, {hi}]")
         ranges[p.key] = (lo, hi)
-    defaults = {p.key: 0.5 * (p.bounds[0] + p.bounds[1]) if p.transform == "logit" else 1.0
+    defaults = {p.key: p.default if p.default is not None
+                else 0.5 * (p.bounds[0] + p.bounds[1]) if p.transform == "logit" else 1.0
                 for p in spec.params}  # fmt: skip
     values = {k: float((initial or {}).get(k, defaults[k])) for k in spec.keys}
     bad = [k for k, v in values.items() if not math.isfinite(v)]
@@ -591,13 +609,26 @@ def fit_choices(
     space = _Space(fitted, ranges)
     index = [spec.keys.index(p.key) for p in fitted]
     base = np.array([values[k] for k in spec.keys], np.float64)
+    if features is None:
+        features = table.features
+    if spec.name == "rw_response":
+        if features is None:
+            raise ConfigError("model rw_response needs the cues of every trial type: fit it "
+                              "with a conditioning task (env=sequence)")  # fmt: skip
+        if table.n_actions != 2:
+            raise ConfigError(f"model rw_response fits respond / no response (2 actions), the "
+                              f"data have {table.n_actions}")  # fmt: skip
+    feats = as_features(features, table.n_states)
+    if feats.shape[0] != table.n_states:
+        raise ConfigError(f"features must have one row per state ({table.n_states}), got "
+                          f"{feats.shape[0]}")  # fmt: skip
     args = (table.choices, table.rewards, table.states, table.sessions, table.n_states,
             table.n_actions)  # fmt: skip
 
     def logp(phi: np.ndarray) -> np.ndarray:
         theta = base.copy()
         theta[index] = space.to_natural(phi)
-        return model_logp(spec, theta, *args)
+        return model_logp(spec, theta, *args, feats)
 
     islog = space.log.astype(np.bool_)
     idx = np.array(index, np.int64)
@@ -614,7 +645,7 @@ def fit_choices(
         for x0 in starts:
             x, fx, _ = newton_fit(spec.code, np.asarray(x0, np.float64), space.phi_lo,
                                   space.phi_hi, idx, base, space.lo, space.hi, islog, weights,
-                                  spec.n_memory, *args, 100)  # fmt: skip
+                                  spec.n_memory, *args, feats, 100)  # fmt: skip
             if math.isfinite(fx) and (best is None or fx < best[1]):
                 best = (np.asarray(x, np.float64), float(fx))
         if best is None:

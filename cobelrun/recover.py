@@ -308,12 +308,16 @@ def _chunk(task: ChoiceTask, work: Sequence[tuple[str, int, Any]], candidates: S
                                                          n_starts)]  # fmt: skip
 
 
+#: models of one-choice tasks (``rw_response`` is fitted to conditioning tasks by cobel fit)
+RECOVERABLE = [m for m in MODELS if m != "rw_response"]
+
+
 def check_models(models: Sequence[str]) -> None:
-    """Refuse names without a likelihood, naming the fittable models."""
-    unknown = [m for m in models if m not in MODELS]
+    """Refuse names without a likelihood on choice tasks, naming the models that have one."""
+    unknown = [m for m in models if m not in RECOVERABLE]
     if unknown or not models:
-        raise ConfigError(f"model(s) {', '.join(unknown) or 'none given'} have no likelihood; "
-                          f"models that can be fitted: {', '.join(MODELS)}")  # fmt: skip
+        raise ConfigError(f"model(s) {', '.join(unknown) or 'none given'} have no likelihood on "
+                          f"choice tasks; models that can be fitted: {', '.join(RECOVERABLE)}")  # fmt: skip
 
 
 def parameter_recovery(table: pd.DataFrame) -> pd.DataFrame:

@@ -106,3 +106,32 @@ def test_td_needs_the_serial_compound(tmp_path):
     with pytest.raises(ConfigError, match=r"env\.csc=true"):
         cobelrun.run("blocking", [*TD, "env.csc=false", "task.runs=1"], out=tmp_path / "x")
     assert not (tmp_path / "x").exists()
+
+
+def test_fit_recovers_rescorla_wagner_from_responses(tmp_path, monkeypatch):
+    """`cobel fit task=acquisition_extinction agent=rescorla_wagner` on the responses of 20
+    simulated RW agents (learning rate 0.3, response_beta 8): the intervals hold both."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from cobelrun.cli import app
+
+    r = cobelrun.run("acquisition_extinction", [*RW, "task.runs=20", "agent.learning_rate=0.3",
+                                                "agent.response_beta=8"], out=tmp_path / "r")  # fmt: skip
+    t = r.trials
+    data = t.rename(columns={"run": "session", "start_state": "state", "response": "choice"})
+    data[["session", "trial", "state", "choice", "reward"]].to_csv(tmp_path / "c.csv", index=False)
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["fit", "task=acquisition_extinction", "agent=rescorla_wagner",
+                                   "data=c.csv"], catch_exceptions=False)  # fmt: skip
+    assert out.exit_code == 0, out.stderr
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    assert fit["model"] == "rw_response"
+    assert fit["fixed"] == {"agent.response_threshold": 0.5, "agent.asymptote": 1.0}
+    for key, truth in (("agent.learning_rate", 0.3), ("agent.response_beta", 8.0)):
+        lo, hi = fit["ci95"][key]
+        assert lo <= truth <= hi, (key, fit["params"][key], lo, hi)
+    bad = CliRunner().invoke(app, ["fit", "task=acquisition_extinction", "agent=td_conditioning",
+                                   "data=c.csv", "--out", "x.json"])  # fmt: skip
+    assert bad.exit_code != 0 and "agent TDConditioning has no choice likelihood" in bad.stderr

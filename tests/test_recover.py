@@ -63,7 +63,29 @@ def _reference_logp(model: str, theta, data: pd.DataFrame, n_actions: int = 2) -
     return np.array(out)
 
 
-@pytest.mark.parametrize("model", list(MODELS))
+CHOICE_MODELS = [m for m in MODELS if m != "rw_response"]
+
+
+def test_rw_response_kernel_matches_a_direct_computation():
+    rng = np.random.default_rng(0)
+    features = np.array([[1.0, 0.0], [1.0, 1.0]])  # trial types A and AB
+    states, choices = rng.integers(0, 2, 80), rng.integers(0, 2, 80)
+    rewards = (states == 0).astype(float)  # A+, AB- (conditioned inhibition)
+    lr, rb, th, asym = 0.3, 6.0, 0.5, 1.0
+    w, ref = np.zeros(2), []
+    for s, a, r in zip(states, choices, rewards, strict=True):
+        v = w @ features[s]
+        p1 = 1 / (1 + np.exp(-rb * (v - th)))
+        ref.append(np.log(p1 if a == 1 else 1 - p1))
+        w += lr * (asym * r - v) * features[s]
+    got = model_logp(MODELS["rw_response"], np.array([lr, rb, th, asym]), choices, rewards,
+                     states, np.zeros(80, np.int64), 2, 2, features)  # fmt: skip
+    np.testing.assert_allclose(got, ref, rtol=1e-10)
+    with pytest.raises(ConfigError, match="needs the cues of every trial type"):
+        fit_choices(pd.DataFrame({"choice": choices, "reward": rewards}), model="rw_response")
+
+
+@pytest.mark.parametrize("model", CHOICE_MODELS)
 def test_kernel_matches_a_direct_computation(reversal, model):
     theta = {"wsls": [0.2]}.get(model, [0.35, 3.0])
     data = reversal.simulate(MODELS[model], np.array(theta), 3)
@@ -165,7 +187,10 @@ def test_cli_recover_writes_its_folder(tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["models=[q_learning,dqn]"], "model(s) dqn have no likelihood; models that can be fitted"),
+        (
+            ["models=[q_learning,dqn]"],
+            "model(s) dqn have no likelihood on choice tasks; models that can be fitted",
+        ),
         (["models=[q_learning]", "prior.agent.beta=uniform(3,3)"], "empty support"),
         (["models=[q_learning]", "prior.agent.gamma=uniform(0,1)"], "not a parameter of any model"),
         (["models=[q_learning]", "n=0"], "n must be >= 1"),

@@ -56,8 +56,10 @@ def agent_model(cfg: Any) -> str:
     target = str(cfg.agent.get("_target_", "")) if cfg.get("agent") is not None else ""
     if target == "cobelrun.agents.DynaQ":
         return "q_learning" if str(cfg.agent.get("replay", "off")) == "off" else "dyna_q"
+    if target == "cobelrun.agents.RescorlaWagner":
+        return "rw_response"
     raise ConfigError(f"agent {target.rsplit('.', 1)[-1] or 'none'} has no choice likelihood; "
-                      f"fittable agents: agent=q_learning, agent=dyna_q, or name a model= "
+                      f"fittable agents: agent=q_learning, agent=dyna_q, agent=rescorla_wagner, or name a model= "
                       f"({', '.join(MODELS)})")  # fmt: skip
 
 
@@ -73,6 +75,7 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
         check_choices,
         fit_choices,
         load_choices,
+        task_features,
         task_sizes,
     )
     from cobelrun.hydra_app import composer
@@ -90,7 +93,9 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
     model = special.get("model") or agent_model(cfg)
     keys = MODELS[model].keys
     raw = special.get("params", "").strip()
-    params = [p.strip() for p in raw.strip("[]").split(",") if p.strip()] or keys
+    params = [p.strip() for p in raw.strip("[]").split(",") if p.strip()] or MODELS[
+        model
+    ].default_keys
     unknown = [p for p in params if p not in keys]
     if unknown:
         raise ConfigError(f"cannot fit {', '.join(unknown)} with model {model}; fittable: "
@@ -106,6 +111,7 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
         data,
         params,
         model=model,
+        features=task_features(env),
         initial={k: float(v) for k, v in initial.items() if isinstance(v, int | float)},
         n_actions=n_actions,
         n_states=n_states,

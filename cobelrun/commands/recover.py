@@ -63,14 +63,20 @@ def plan(args: list[str]) -> dict[str, Any]:
     from cobelrun.config import register_resolvers
     from cobelrun.errors import ConfigError
     from cobelrun.hydra_app import composer
-    from cobelrun.recover import ChoiceTask, check_models, default_priors, parse_prior
+    from cobelrun.recover import (
+        RECOVERABLE,
+        ChoiceTask,
+        check_models,
+        default_priors,
+        parse_prior,
+    )
 
     special, prior_args, overrides = _split(args)
     raw = special.get("models", "").strip()
     models = [m.strip() for m in raw.strip("[]").split(",") if m.strip()]
     if not models:
         raise ConfigError(f"cobel recover needs models=[...]; models that can be fitted: "
-                          f"{', '.join(MODELS)}")  # fmt: skip
+                          f"{', '.join(RECOVERABLE)}")  # fmt: skip
     check_models(models)
     bounds = {p.key: p.bounds for m in MODELS.values() for p in m.params}
     priors = default_priors()

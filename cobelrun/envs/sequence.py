@@ -209,6 +209,12 @@ class SequenceEnv(gym.Env[np.ndarray, int]):
             rows.append(self._obs(i, int(onsets.min()) if len(onsets) else 0))
         return np.array(rows, np.float32)
 
+    def first_onset(self, trial_type: int | None = None) -> int:
+        """The step at which a trial type's first cue comes on (0 without cues)."""
+        i = self._type if trial_type is None else trial_type
+        onsets = self._onset[i][self._onset[i] >= 0]
+        return int(onsets.min()) if len(onsets) else 0
+
     def trial_info(self) -> dict[str, Any]:
         """``trial_type``, ``cues``, ``t`` and ``state`` of the current trial (as ``info``)."""
         return self._info()

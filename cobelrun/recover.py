@@ -297,9 +297,12 @@ def recover(
                                       for c in chunks)  # fmt: skip
         rows = [r for part in parts for r in part]
     table = pd.DataFrame(rows)
-    order = {m: i for i, m in enumerate(models)}
-    return table.sort_values(["generating", "agent", "fitted"], key=lambda c: c.map(order)
-                             if c.name == "generating" else c).reset_index(drop=True)  # fmt: skip
+    gen_order = {m: i for i, m in enumerate(models)}
+    fit_order = {m: i for i, m in enumerate(candidates)}
+    keys = {"generating": gen_order, "fitted": fit_order}
+    return table.sort_values(["generating", "agent", "fitted"],
+                             key=lambda c: c.map(keys[c.name]) if c.name in keys else c
+                             ).reset_index(drop=True)  # fmt: skip
 
 
 def _chunk(task: ChoiceTask, work: Sequence[tuple[str, int, Any]], candidates: Sequence[str],
@@ -353,7 +356,9 @@ def confusion(table: pd.DataFrame, criterion: str = "bic") -> pd.DataFrame:
     best = table.assign(_s=score).sort_values("_s").groupby(["generating", "agent"],
                                                             sort=False).head(1)  # fmt: skip
     generating = list(dict.fromkeys(table["generating"]))
-    fitted = list(dict.fromkeys(table["fitted"]))
+    # the generating models first, in their order, so that the diagonal is the diagonal
+    fitted = [m for m in generating if m in set(table["fitted"])]
+    fitted += [m for m in dict.fromkeys(table["fitted"]) if m not in fitted]
     counts = pd.crosstab(best["generating"], best["fitted"]).reindex(
         index=generating, columns=fitted, fill_value=0
     )

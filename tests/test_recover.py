@@ -141,6 +141,8 @@ def test_recovery_tables(reversal):
     wsls = params[params["model"] == "wsls"].iloc[0]
     assert wsls["r"] > 0.8 and abs(wsls["bias"]) < 0.05
     conf = confusion(table, "bic")
+    assert list(conf.index) == list(conf.columns) == ["wsls", "q_learning"]
+    assert list(table["fitted"][:2]) == ["wsls", "q_learning"]
     assert conf.loc["wsls", "wsls"] >= 0.9
     np.testing.assert_allclose(conf.sum(axis=1), 1.0)
 

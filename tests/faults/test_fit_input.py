@@ -26,7 +26,9 @@ def _fit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, data: pd.DataFrame, *e
     path = tmp_path / "choices.csv"
     data.to_csv(path, index=False)
     return CliRunner().invoke(
-        app, ["fit", "task=two_afc", "agent=q_learning", f"data={path}", *extra], catch_exceptions=False
+        app,
+        ["fit", "task=two_afc", "agent=q_learning", f"data={path}", *extra],
+        catch_exceptions=False,
     )
 
 
@@ -98,3 +100,32 @@ def test_good_data_writes_finite_numbers(tmp_path, monkeypatch):
 def test_check_choices_without_a_task_caps_the_state_count():
     with pytest.raises(CobelError, match=r"state must lie in 0..99999, got 1e\+12"):
         check_choices(GOOD.assign(state=1e12))
+
+
+def test_junk_tables_give_a_cobel_error_or_finite_numbers():
+    """Hypothesis: tables of mixed junk (strings, NaN, inf, huge and negative numbers, floats)
+    in the choice/reward/state/session columns either fit to finite numbers or raise a
+    CobelError; nothing else escapes."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from cobelrun.fit import fit_choices
+
+    cell = st.one_of(st.integers(-3, 5), st.floats(allow_nan=True, allow_infinity=True),
+                     st.sampled_from(["left", "", "1"]), st.just(1e12), st.none())  # fmt: skip
+
+    @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(st.lists(st.tuples(cell, cell, cell, cell), min_size=0, max_size=12),
+           st.sampled_from([("choice", "reward"), ("choice", "reward", "state"),
+                            ("choice", "reward", "state", "session")]))  # fmt: skip
+    def check(rows, cols):
+        data = pd.DataFrame([r[: len(cols)] for r in rows], columns=list(cols))
+        try:
+            fit = fit_choices(data, n_actions=2, n_states=4, n_starts=1, polish=False)
+        except CobelError:
+            return
+        d = fit.to_dict()
+        assert np.isfinite(d["nll"]) and all(np.isfinite(v) for v in d["params"].values())
+        json.dumps(d, allow_nan=False)
+
+    check()

@@ -8,19 +8,16 @@ from typing import Annotated, Any
 
 import typer
 
-HELP = """Fit a choice model to behavioural choice data by maximum likelihood, with
-standard errors, 95 % intervals, AIC/BIC and a held-out log-likelihood.
+HELP = """Fit a choice model to behavioural choice data by maximum likelihood, with standard errors, 95 % intervals, AIC/BIC and a held-out log-likelihood.
 
 \b
   cobel fit task=two_afc agent=q_learning data=CHOICES.parquet
   cobel fit task=reversal_bandit model=wsls data=CHOICES.csv
-  cobel fit ... params=[agent.learning_rate]  # fit only these; the rest keep the config's values
+  cobel fit ... params=\\[agent.learning_rate]  # others: config values
   cobel fit ... starts=10 method=optuna n_trials=300
-\b
-data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally
-trial, state and session; no other columns. Choices must use the task's actions, states its
-states. model: q_learning, rescorla_wagner, dyna_q or wsls (default: the agent's own model,
-agent=q_learning or agent=dyna_q). Writes fit.json (--out) and prints the estimates.
+  cobel fit task=blocking agent=rescorla_wagner data=RESPONSES.csv
+
+data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally trial, state and session; no other columns. Choices must use the task's actions, states its states. model: q_learning, rescorla_wagner, dyna_q, wsls or rw_response (default: the agent's own: agent=q_learning, agent=dyna_q, agent=rescorla_wagner on a conditioning task). Writes fit.json (--out) and prints the estimates. docs/modelling.md has a worked example.
 """
 
 SPECIAL = ("data", "params", "method", "n_trials", "model", "starts")

@@ -11,20 +11,14 @@ from typing import Annotated, Any
 
 import typer
 
-HELP = """Simulate synthetic agents, fit every candidate model to each: parameter recovery
-(true vs fitted, Pearson r, bias, interval coverage) and model recovery (confusion matrices
-by AIC, BIC and held-out log-likelihood).
+HELP = """Simulate synthetic agents, fit every candidate model to each: parameter recovery (true vs fitted, Pearson r, bias, interval coverage) and model recovery (confusion matrices by AIC, BIC and held-out log-likelihood).
 
 \b
-  cobel recover task=reversal_bandit models=[q_learning,rescorla_wagner,dyna_q,wsls] n=100
-  cobel recover task=two_afc models=[q_learning] n=100 task.protocol.phases.0.trials=200
+  cobel recover task=reversal_bandit models=\\[q_learning,rescorla_wagner,dyna_q,wsls] n=100
+  cobel recover task=two_afc models=\\[q_learning] n=100 task.protocol.phases.0.trials=200
   cobel recover ... prior.agent.beta=loguniform(1,20) starts=3 jobs=2 seed=3 --out DIR
-\b
-models: q_learning, rescorla_wagner, dyna_q, wsls. Priors (defaults): agent.learning_rate
-uniform(0.1,0.9), agent.beta loguniform(1,10), agent.epsilon uniform(0.05,0.5). The task must
-be one choice per trial (two_afc, reversal_bandit); other overrides change it as in cobel run.
-Writes DIR (default recover-TASK): recovery.parquet (one row per agent and fitted model),
-parameters.csv, confusion.csv, recover.json, parameter_recovery.png, model_recovery.png.
+
+models: q_learning, rescorla_wagner, dyna_q, wsls. Priors (defaults): agent.learning_rate uniform(0.1,0.9), agent.beta loguniform(1,10), agent.epsilon uniform(0.05,0.5). The task must be one choice per trial (two_afc, reversal_bandit); other overrides change it as in cobel run. Writes DIR (default recover-TASK): recovery.parquet (one row per agent and fitted model), parameters.csv, confusion.csv, recover.json, parameter_recovery.png, model_recovery.png. See docs/modelling.md.
 """
 
 SPECIAL = ("models", "n", "starts", "jobs")

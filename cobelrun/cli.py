@@ -269,6 +269,10 @@ from cobelrun.commands.fit import register as _register_fit  # noqa: E402
 
 _register_fit(app)
 
+from cobelrun.commands.recover import register as _register_recover  # noqa: E402
+
+_register_recover(app)
+
 
 @app.command("status")
 def status_cmd(

@@ -1,17 +1,17 @@
-"""Fit an agent's learning parameters to behavioural choice data by maximum likelihood.
+"""Fit choice models to behavioural choice data by maximum likelihood, with uncertainty.
 
-The model is the tabular Q-learner at the heart of cobel's Dyna-Q agent, applied to choice
-trials (one decision per trial, as in two-alternative forced choice or bandit tasks): after
-choosing action ``a`` in state ``s`` and receiving reward ``r``,
-``Q[s, a] += learning_rate * (r - Q[s, a])``; choices follow the softmax policy
-``P(a | s) = exp(beta Q[s, a]) / sum_b exp(beta Q[s, b])`` (Sutton & Barto 2018, ch. 2 and 6;
-Daw 2011, "Trial-by-trial data analysis using computational models"). The negative
-log-likelihood of the observed choices is minimised with scipy (L-BFGS-B from several starts;
-the likelihood is smooth in both parameters) or with Optuna's TPE sampler.
+The models (:mod:`cobelrun.choice_models`: softmax Q-learning, Rescorla-Wagner over compound
+cues, Dyna-Q with replay, noisy win-stay/lose-shift) give the probability of each observed
+choice given the trials before it (Daw 2011, "Trial-by-trial data analysis using computational
+models"; Wilson & Collins 2019, eLife 8:e49547). :func:`fit_choices` minimises the negative
+log-likelihood with scipy's L-BFGS-B from several starts in a transformed space (logit for
+rates, log for inverse temperatures), or with Optuna's TPE sampler, and reports standard
+errors from a numerical Hessian at the optimum (delta method), 95 % intervals, AIC/BIC and
+the held-out log-likelihood of a session split.
 
 Data: a table (Parquet or CSV) with one row per trial, in order: ``choice`` (action index),
-``reward`` and optionally ``state`` (default 0) and ``session`` (values reset between
-sessions; e.g. runs of a cobel trials table).
+``reward`` and optionally ``trial``, ``state`` (default 0) and ``session`` (values reset
+between sessions; e.g. runs of a cobel trials table). :func:`check_choices` validates it.
 """
 
 from __future__ import annotations
@@ -29,20 +29,17 @@ import pandas as pd
 from cobelrun.errors import CobelError, ConfigError
 
 __all__ = [
-    "PARAMS",
     "ChoiceData",
     "FitResult",
+    "check_action_set",
+    "check_choices",
     "fit_choices",
     "load_choices",
     "q_learning_nll",
     "simulate_choices",
+    "task_features",
+    "task_sizes",
 ]
-
-#: fittable parameters: config key -> (model name, default bounds)
-PARAMS: dict[str, tuple[str, tuple[float, float]]] = {
-    "agent.learning_rate": ("learning_rate", (0.0, 1.0)),
-    "agent.beta": ("beta", (1e-3, 50.0)),
-}
 
 
 @numba.njit(cache=True)
@@ -144,8 +141,16 @@ def simulate_choices(
     return pd.DataFrame(rows, columns=["trial", "state", "choice", "reward"])
 
 
+#: columns a choice table may have: required, then optional
+REQUIRED_COLUMNS = ("choice", "reward")
+OPTIONAL_COLUMNS = ("trial", "state", "session")
+#: largest state count accepted when the task does not say how many states it has
+MAX_STATES = 100_000
+
+
 def load_choices(path: str | Path) -> pd.DataFrame:
-    """Read a choice table (``.parquet`` or ``.csv``) and check its columns."""
+    """Read a choice table (``.parquet`` or ``.csv``) and check its columns and values
+    (:func:`check_choices`)."""
     p = Path(path)
     if not p.is_file():
         raise CobelError(f"data file {p} does not exist")
@@ -153,13 +158,107 @@ def load_choices(path: str | Path) -> pd.DataFrame:
         data = pd.read_csv(p) if p.suffix == ".csv" else pd.read_parquet(p)
     except Exception as exc:
         raise CobelError(f"cannot read {p}: {exc}") from None
-    missing = [c for c in ("choice", "reward") if c not in data]
-    if missing:
-        raise CobelError(f"{p} has no {', '.join(missing)} column; it needs choice and reward "
-                         f"(state and session optional), it has: {', '.join(data.columns)}")  # fmt: skip
-    if data.empty:
-        raise CobelError(f"{p} has no trials")
+    check_columns(data, str(p))
     return data
+
+
+def check_columns(data: pd.DataFrame, source: str = "the data") -> None:
+    """Refuse a table without ``choice``/``reward``, with unknown columns, or without rows."""
+    cols = [str(c) for c in data.columns]
+    missing = [c for c in REQUIRED_COLUMNS if c not in cols]
+    if missing:
+        raise CobelError(f"{source} has no {', '.join(missing)} column; it needs choice and reward "
+                         f"({', '.join(OPTIONAL_COLUMNS)} optional), it has: "
+                         f"{', '.join(cols) or 'no columns'}")  # fmt: skip
+    extra = [c for c in cols if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if extra:
+        raise CobelError(f"{source} has unknown column(s) {', '.join(extra)}; allowed: "
+                         f"{', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)} (drop or rename them)")  # fmt: skip
+    if data.empty:
+        raise CobelError(f"{source} has no trials")
+
+
+def _show(value: Any) -> str:
+    """A cell value as an error shows it (``nan``, ``0.7``, ``'left'``)."""
+    return repr(value.item() if isinstance(value, np.generic) else value)
+
+
+def _integer_column(data: pd.DataFrame, column: str, source: str, low: int, high: int | None,
+                    what: str) -> np.ndarray:  # fmt: skip
+    """The column as int64, refusing non-numbers, non-integers, non-finite values and values
+    outside ``low..high`` (``high`` inclusive; ``None``: no upper limit)."""
+    values = pd.to_numeric(data[column], errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CobelError(f"{source}: {column} must be a finite integer {what}, got "
+                         f"{_show(data[column].iloc[i])} in row {i}")  # fmt: skip
+    frac = values != np.round(values)
+    if frac.any():
+        i = int(np.flatnonzero(frac)[0])
+        raise CobelError(f"{source}: {column} must be an integer {what}, got {_show(values[i])} "
+                         f"in row {i}")  # fmt: skip
+    out_of_range = (values < low) | (values > high if high is not None else False)
+    if np.any(out_of_range):
+        i = int(np.flatnonzero(out_of_range)[0])
+        allowed = f"{low}..{high}" if high is not None else f">= {low}"
+        raise CobelError(f"{source}: {column} must lie in {allowed}, got {values[i]:g} in row {i}")
+    return values.astype(np.int64)
+
+
+def check_choices(
+    data: pd.DataFrame,
+    n_actions: int | None = None,
+    n_states: int | None = None,
+    source: str = "the data",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Validate a choice table and return its arrays.
+
+    Parameters
+    ----------
+    data
+        One row per trial: ``choice``, ``reward`` (``trial``, ``state``, ``session`` optional).
+    n_actions
+        The task's number of actions; choices must lie in ``0..n_actions - 1`` (default: the
+        largest choice + 1).
+    n_states
+        The task's number of states; states must lie in ``0..n_states - 1`` (default: the
+        largest state + 1, at most :data:`MAX_STATES`).
+    source
+        How errors name the table (e.g. its file).
+
+    Returns
+    -------
+    tuple
+        ``choices, rewards, states, sessions, n_states, n_actions``.
+
+    Raises
+    ------
+    CobelError
+        One line naming the column, the bad value, its row and what is allowed.
+    """
+    check_columns(data, source)
+    high = None if n_actions is None else int(n_actions) - 1
+    choices = _integer_column(data, "choice", source, 0, high, "(an action index)")
+    rewards = pd.to_numeric(data["reward"], errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(rewards)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CobelError(f"{source}: reward must be a finite number, got "
+                         f"{_show(data['reward'].iloc[i])} in row {i}")  # fmt: skip
+    if "state" in data:
+        high = (int(n_states) if n_states is not None else MAX_STATES) - 1
+        states = _integer_column(data, "state", source, 0, high, "(a state index)")
+    else:
+        states = np.zeros(len(data), np.int64)
+    sessions = (
+        pd.factorize(data["session"])[0].astype(np.int64)
+        if "session" in data
+        else np.zeros(len(data), np.int64)
+    )
+    n_a = int(n_actions) if n_actions is not None else int(choices.max()) + 1
+    n_s = int(n_states) if n_states is not None else int(states.max()) + 1
+    return choices, rewards, states, sessions, n_s, n_a
 
 
 @dataclass(frozen=True)
@@ -178,35 +277,29 @@ class ChoiceData:
     sessions: np.ndarray
     n_states: int
     n_actions: int
+    features: np.ndarray | None = None
 
     @classmethod
-    def from_table(cls, data: pd.DataFrame, n_actions: int | None = None) -> ChoiceData:
-        """Arrays of a table with ``choice``, ``reward`` (``state``, ``session`` optional).
+    def from_table(
+        cls,
+        data: pd.DataFrame,
+        n_actions: int | None = None,
+        n_states: int | None = None,
+        source: str = "the data",
+    ) -> ChoiceData:
+        """Arrays of a table with ``choice``, ``reward`` (``trial``, ``state``, ``session``
+        optional), validated by :func:`check_choices`.
 
         Parameters
         ----------
         data
             One row per trial, in order.
-        n_actions
-            Number of actions (default: the largest choice + 1).
+        n_actions, n_states
+            The task's numbers of actions and states (default: the largest value + 1).
+        source
+            How errors name the table.
         """
-        choices = data["choice"].to_numpy(dtype=np.int64)
-        rewards = data["reward"].to_numpy(dtype=np.float64)
-        states = (data["state"] if "state" in data else pd.Series(0, index=data.index)).to_numpy(
-            np.int64
-        )
-        sessions = (
-            pd.factorize(data["session"])[0] if "session" in data else np.zeros(len(data), np.int64)
-        )
-        n_actions = int(n_actions or choices.max() + 1)
-        if choices.min() < 0 or choices.max() >= n_actions:
-            raise CobelError(
-                f"choices must lie in 0..{n_actions - 1}, got {choices.min()}..{choices.max()}"
-            )
-        if states.min() < 0:
-            raise CobelError(f"states must be >= 0, got {states.min()}")
-        return cls(choices, rewards, states, np.asarray(sessions, np.int64),
-                   int(states.max() + 1), n_actions)  # fmt: skip
+        return cls(*check_choices(data, n_actions, n_states, source))
 
     def __len__(self) -> int:
         return len(self.choices)
@@ -217,9 +310,56 @@ class ChoiceData:
                               self.sessions, self.n_states, self.n_actions, q0)  # fmt: skip
 
 
+def task_sizes(env: Any) -> tuple[int | None, int | None]:
+    """``(n_actions, n_states)`` of a composed env (``None`` where it does not say)."""
+    from cobelrun.envs.base import DiscreteStates, StateObservations
+
+    n_actions = getattr(env.action_space, "n", None)
+    base = getattr(env, "unwrapped", env)
+    n_states: int | None = None
+    if isinstance(base, DiscreteStates):
+        n_states = int(base.n_states)
+    elif isinstance(base, StateObservations):
+        n_states = len(base.observations)
+    return (None if n_actions is None else int(n_actions)), n_states
+
+
+def task_features(env: Any) -> np.ndarray | None:
+    """``(n_trial_types, n_cs)``: the conditioned stimuli of every trial type of a conditioning
+    env (the ``trial_script`` contract), else None."""
+    from cobelrun.envs.base import TrialScript
+
+    base = getattr(env, "unwrapped", env)
+    if not isinstance(base, TrialScript):
+        return None
+    n_types = len(getattr(base, "observations", []))
+    return np.array([base.trial_cues(i)[: base.n_cs] for i in range(n_types)], np.float64)
+
+
+def check_action_set(data: pd.DataFrame, n_actions: int | None, task: str,
+                     source: str = "the data") -> None:  # fmt: skip
+    """Refuse choice data whose action set differs from the task's: choices outside
+    ``0..n_actions - 1``, or fewer actions than the task has (e.g. 2-choice data against the
+    T-maze's 4 actions)."""
+    if n_actions is None:
+        return
+    values = pd.to_numeric(data["choice"], errors="coerce")
+    if not values.notna().all():
+        return  # check_choices names the bad value
+    top = int(values.max())
+    if top != n_actions - 1:
+        raise CobelError(f"{source} has choices 0..{top} ({top + 1} actions) but task {task}'s env "
+                         f"has {n_actions} actions (0..{n_actions - 1}); fit it with a task of "
+                         f"{top + 1} actions")  # fmt: skip
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
 @dataclass
 class FitResult:
-    """Maximum-likelihood estimates.
+    """Maximum-likelihood estimates with their uncertainty.
 
     Attributes
     ----------
@@ -231,6 +371,24 @@ class FitResult:
         Number of choices fitted.
     method
         ``scipy`` or ``optuna``.
+    fixed
+        Values of the model's parameters that were not fitted.
+    model
+        The choice model (:data:`cobelrun.choice_models.MODELS`).
+    se
+        Standard error of each estimate (delta method from the inverse Hessian of the
+        negative log-likelihood in the transformed space); ``None`` where it is not defined
+        (an estimate on its bound, or a Hessian that is not positive definite).
+    ci
+        95 % interval of each parameter: ``estimate ± 1.96 se`` in the transformed space
+        (logit / log), mapped back, so it stays inside the bounds; ``None`` like ``se``.
+    heldout
+        Held-out log-likelihood of a session split (``ll``, ``n_train``, ``n_test``, ``split``),
+        the model fitted to the training part only; ``None`` when not asked for.
+    starts
+        Number of optimiser starts (the first from the config's values, then random ones).
+    notes
+        Why an ``se`` is missing, per parameter.
     """
 
     params: dict[str, float]
@@ -238,90 +396,334 @@ class FitResult:
     n_trials: int
     method: str
     fixed: dict[str, float] = field(default_factory=dict)
+    model: str = "q_learning"
+    se: dict[str, float | None] = field(default_factory=dict)
+    ci: dict[str, tuple[float, float] | None] = field(default_factory=dict)
+    heldout: dict[str, Any] | None = None
+    starts: int = 1
+    notes: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def k(self) -> int:
+        """Number of fitted parameters."""
+        return len(self.params)
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion: ``2 nll + 2 k``."""
+        return 2 * self.nll + 2 * self.k
 
     @property
     def bic(self) -> float:
         """Bayesian information criterion: ``2 nll + k ln n``."""
-        return 2 * self.nll + len(self.params) * math.log(self.n_trials)
+        return 2 * self.nll + self.k * math.log(self.n_trials)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict."""
-        return {"params": self.params, "fixed": self.fixed, "nll": self.nll,
-                "bic": self.bic, "n_trials": self.n_trials, "method": self.method}  # fmt: skip
+        """JSON-ready dict (non-finite numbers become ``null``)."""
+        return {
+            "model": self.model,
+            "params": self.params,
+            "se": {k: _finite_or_none(v) for k, v in self.se.items()},
+            "ci95": {
+                k: (None if v is None else [float(v[0]), float(v[1])]) for k, v in self.ci.items()
+            },
+            "fixed": self.fixed,
+            "nll": self.nll,
+            "aic": self.aic,
+            "bic": self.bic,
+            "k": self.k,
+            "n_trials": self.n_trials,
+            "heldout": self.heldout,
+            "starts": self.starts,
+            "method": self.method,
+            "notes": self.notes,
+        }
+
+
+# ---------------------------------------------------------------- transformed parameter space
+#: logit-space limit: a rate within ~5e-5 of its bound counts as on the bound
+_LOGIT_LIMIT = 10.0
+
+
+class _Space:
+    """Maps a model's fitted parameters between their natural range and an unbounded space
+    (scaled logit or log), where the optimiser searches and the Hessian is taken."""
+
+    def __init__(self, specs: Sequence[Any], bounds: Mapping[str, tuple[float, float]]) -> None:
+        self.keys = [p.key for p in specs]
+        self.lo = np.array([bounds[k][0] for k in self.keys], np.float64)
+        self.hi = np.array([bounds[k][1] for k in self.keys], np.float64)
+        self.log = np.array([p.transform == "log" and bounds[p.key][0] > 0 for p in specs])
+        self.phi_lo = np.where(self.log, np.log(np.maximum(self.lo, 1e-300)), -_LOGIT_LIMIT)
+        self.phi_hi = np.where(self.log, np.log(np.maximum(self.hi, 1e-300)), _LOGIT_LIMIT)
+
+    def to_natural(self, phi: np.ndarray) -> np.ndarray:
+        phi = np.asarray(phi, np.float64)
+        sig = 1.0 / (1.0 + np.exp(-phi))
+        return np.where(self.log, np.exp(phi), self.lo + (self.hi - self.lo) * sig)
+
+    def to_phi(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, np.float64)
+        u = np.clip((x - self.lo) / (self.hi - self.lo), 1e-12, 1 - 1e-12)
+        phi = np.where(self.log, np.log(np.maximum(x, 1e-300)), np.log(u / (1 - u)))
+        return np.clip(phi, self.phi_lo, self.phi_hi)
+
+    def jacobian(self, phi: np.ndarray) -> np.ndarray:
+        """``dx/dphi`` per parameter."""
+        sig = 1.0 / (1.0 + np.exp(-np.asarray(phi, np.float64)))
+        return np.where(self.log, np.exp(phi), (self.hi - self.lo) * sig * (1 - sig))
+
+    def on_bound(self, phi: np.ndarray) -> np.ndarray:
+        tol = 1e-3 * np.maximum(1.0, np.abs(self.phi_hi - self.phi_lo))
+        return (phi <= self.phi_lo + tol) | (phi >= self.phi_hi - tol)
+
+    def random(self, rng: np.random.Generator) -> np.ndarray:
+        """A random start: log-uniform on a log scale, uniform on the middle 90 % otherwise."""
+        u = rng.uniform(0.05, 0.95, len(self.keys))
+        return np.where(self.log, self.phi_lo + u * (self.phi_hi - self.phi_lo),
+                        np.log(u / (1 - u)))  # fmt: skip
+
+
+def hessian(f: Any, x: np.ndarray, step: float = 1e-3) -> np.ndarray:
+    """Central-difference Hessian of a smooth scalar function ``f`` at ``x`` (2k^2 + 1 calls)."""
+    x = np.asarray(x, np.float64)
+    k = len(x)
+    h = step * np.maximum(1.0, np.abs(x))
+    f0 = f(x)
+    H = np.empty((k, k))
+    for i in range(k):
+        ei = np.zeros(k)
+        ei[i] = h[i]
+        H[i, i] = (f(x + ei) - 2 * f0 + f(x - ei)) / h[i] ** 2
+        for j in range(i):
+            ej = np.zeros(k)
+            ej[j] = h[j]
+            H[i, j] = H[j, i] = (f(x + ei + ej) - f(x + ei - ej) - f(x - ei + ej)
+                                 + f(x - ei - ej)) / (4 * h[i] * h[j])  # fmt: skip
+    return H
+
+
+def heldout_split(table: ChoiceData) -> tuple[np.ndarray, str]:
+    """Boolean mask of the held-out trials: every second session when there are several
+    (sessions 2, 4, ... by order of appearance), else the second half of the trials (predicted
+    with the first half's history)."""
+    codes = np.asarray(table.sessions)
+    if len(np.unique(codes)) >= 2:
+        return (codes % 2) == 1, "every second session"
+    test = np.zeros(len(codes), bool)
+    test[len(codes) // 2 :] = True
+    return test, "second half of the trials"
 
 
 def fit_choices(
-    data: pd.DataFrame,
-    params: Sequence[str],
+    data: pd.DataFrame | ChoiceData,
+    params: Sequence[str] | None = None,
     *,
+    model: str = "q_learning",
+    features: np.ndarray | None = None,
     initial: Mapping[str, float] | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     n_actions: int | None = None,
+    n_states: int | None = None,
     method: str = "scipy",
     n_trials: int = 200,
+    n_starts: int = 5,
+    heldout: bool = True,
+    uncertainty: bool = True,
+    polish: bool = True,
     seed: int = 0,
+    source: str = "the data",
 ) -> FitResult:
-    """Fit ``params`` (``agent.learning_rate``, ``agent.beta``) to choice data by maximum
-    likelihood; the others stay at ``initial``.
+    """Fit a choice model's parameters by maximum likelihood, with standard errors, 95 %
+    intervals, AIC/BIC and a held-out log-likelihood.
 
     Parameters
     ----------
     data
-        One row per trial: ``choice``, ``reward`` (``state``, ``session`` optional).
+        One row per trial: ``choice``, ``reward`` (``trial``, ``state``, ``session``
+        optional), or a checked :class:`ChoiceData`.
     params
-        Config keys to fit (see :data:`PARAMS`).
+        Config keys to fit (default: all of the model's); the others stay at ``initial``.
+    model
+        A model of :data:`cobelrun.choice_models.MODELS`.
+    features
+        ``(n_states, k)`` cues of every state, for ``rw_response`` (default: the table's).
     initial
-        Values of every model parameter (the fixed ones and the scipy start), by config key.
+        Values of every model parameter (the fixed ones and the first start), by config key.
     bounds
-        Search range per fitted key (default from :data:`PARAMS`).
-    n_actions
-        Number of actions (default: the largest choice + 1).
+        Search range per fitted key (default: the model's).
+    n_actions, n_states
+        The task's numbers of actions and states (default: the largest value + 1).
     method
-        ``scipy`` (L-BFGS-B from 5 starts) or ``optuna`` (TPE, ``n_trials`` evaluations).
+        ``scipy``: compiled damped-Newton searches (Levenberg-Marquardt, numerical
+        derivatives) in the transformed space from ``n_starts`` starts, the best polished by
+        scipy's L-BFGS-B; ``optuna``: the first start is the best point of a TPE search
+        (``n_trials`` evaluations).
+    n_starts
+        Optimiser starts: the first from ``initial``, the others random (seeded).
+    heldout
+        Also fit the training part of a session split (:func:`heldout_split`) and report the
+        held-out trials' log-likelihood.
+    uncertainty
+        Compute standard errors and intervals (a numerical Hessian).
+    polish
+        Polish the best start with scipy's L-BFGS-B (``cobel recover`` skips it for speed).
     seed
-        Seed of the starts / sampler.
+        Seed of the random starts / sampler.
+    source
+        How errors name the data.
     """
-    unknown = [p for p in params if p not in PARAMS]
+    from scipy.optimize import minimize
+
+    from cobelrun.choice_models import MODELS, as_features, model_logp, newton_fit
+
+    if model not in MODELS:
+        raise ConfigError(f"unknown model {model!r}; models with a likelihood: "
+                          f"{', '.join(MODELS)}")  # fmt: skip
+    spec = MODELS[model]
+    params = list(spec.default_keys if params is None else params)
+    unknown = [p for p in params if p not in spec.keys]
     if unknown or not params:
-        raise ConfigError(f"cannot fit {unknown or 'nothing'}; fittable: {', '.join(PARAMS)}")
+        raise ConfigError(f"cannot fit {unknown or 'nothing'} with model {model}; its "
+                          f"parameters: {', '.join(spec.keys)}")  # fmt: skip
     if method not in ("scipy", "optuna"):
         raise ConfigError(f"unknown fit method {method!r}; allowed: 'scipy', 'optuna'")
-    values = {key: float((initial or {}).get(key, 0.5 if "rate" in key else 1.0)) for key in PARAMS}
-    ranges = {key: tuple(map(float, (bounds or {}).get(key, PARAMS[key][1]))) for key in params}
-    table = ChoiceData.from_table(data, n_actions)
+    if n_starts < 1:
+        raise ConfigError(f"starts must be >= 1, got {n_starts}")
+    ranges: dict[str, tuple[float, float]] = {}
+    for p in spec.params:
+        lo, hi = map(float, (bounds or {}).get(p.key, p.bounds))
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ConfigError(f"bounds of {p.key} must be finite with low < high, got [{lo}, {hi}]")
+        ranges[p.key] = (lo, hi)
+    defaults = {p.key: p.default if p.default is not None
+                else 0.5 * (p.bounds[0] + p.bounds[1]) if p.transform == "logit" else 1.0
+                for p in spec.params}  # fmt: skip
+    values = {k: float((initial or {}).get(k, defaults[k])) for k in spec.keys}
+    bad = [k for k, v in values.items() if not math.isfinite(v)]
+    if bad:
+        raise ConfigError(f"{', '.join(bad)} must be finite, got {values[bad[0]]}")
+    table = (data if isinstance(data, ChoiceData)
+             else ChoiceData.from_table(data, n_actions, n_states, source))  # fmt: skip
+    fitted = [p for p in spec.params if p.key in params]
+    space = _Space(fitted, ranges)
+    index = [spec.keys.index(p.key) for p in fitted]
+    base = np.array([values[k] for k in spec.keys], np.float64)
+    if features is None:
+        features = table.features
+    if spec.name == "rw_response":
+        if features is None:
+            raise ConfigError("model rw_response needs the cues of every trial type: fit it "
+                              "with a conditioning task (env=sequence)")  # fmt: skip
+        if table.n_actions != 2:
+            raise ConfigError(f"model rw_response fits respond / no response (2 actions), the "
+                              f"data have {table.n_actions}")  # fmt: skip
+    feats = as_features(features, table.n_states)
+    if feats.shape[0] != table.n_states:
+        raise ConfigError(f"features must have one row per state ({table.n_states}), got "
+                          f"{feats.shape[0]}")  # fmt: skip
+    args = (table.choices, table.rewards, table.states, table.sessions, table.n_states,
+            table.n_actions)  # fmt: skip
 
-    def nll(x: Sequence[float]) -> float:
-        v = {**values, **dict(zip(params, x, strict=True))}
-        return table.nll(v["agent.learning_rate"], v["agent.beta"])
+    def logp(phi: np.ndarray) -> np.ndarray:
+        theta = base.copy()
+        theta[index] = space.to_natural(phi)
+        return model_logp(spec, theta, *args, feats)
 
-    rng = np.random.default_rng(seed)
-    if method == "scipy":
-        from scipy.optimize import minimize
+    islog = space.log.astype(np.bool_)
+    idx = np.array(index, np.int64)
 
-        best = None
-        for i in range(5):
-            x0 = [values[k] if i == 0 else rng.uniform(*ranges[k]) for k in params]
-            x0 = [min(max(v, ranges[k][0]), ranges[k][1]) for v, k in zip(x0, params, strict=True)]
-            res = minimize(nll, x0, method="L-BFGS-B", bounds=[ranges[k] for k in params])
-            if best is None or res.fun < best.fun:
-                best = res
-        assert best is not None
-        estimate, value = [float(v) for v in best.x], float(best.fun)
-    else:
-        try:
-            import optuna
-        except ImportError:
-            raise CobelError("method=optuna needs optuna: pip install 'cobelrun[fit]'") from None
-        optuna.logging.set_verbosity(optuna.logging.WARNING)
-        study = optuna.create_study(sampler=optuna.samplers.TPESampler(seed=seed))
-        study.optimize(lambda t: nll([t.suggest_float(k, *ranges[k]) for k in params]),
-                       n_trials=n_trials)  # fmt: skip
-        estimate = [float(study.best_params[k]) for k in params]
-        value = float(study.best_value)
+    def optimise(weights: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+        def f(phi: np.ndarray) -> float:
+            return -float(logp(phi) @ weights)
+
+        best: tuple[np.ndarray, float] | None = None
+        starts = [space.to_phi([values[k] for k in params])]
+        if method == "optuna":
+            starts = [_optuna_start(f, space, n_trials, seed)]
+        starts += [space.random(rng) for _ in range(n_starts - 1)]
+        for x0 in starts:
+            x, fx, _ = newton_fit(spec.code, np.asarray(x0, np.float64), space.phi_lo,
+                                  space.phi_hi, idx, base, space.lo, space.hi, islog, weights,
+                                  spec.n_memory, *args, feats, 100)  # fmt: skip
+            if math.isfinite(fx) and (best is None or fx < best[1]):
+                best = (np.asarray(x, np.float64), float(fx))
+        if best is None:
+            raise CobelError(f"the fit of {source} did not converge (no start gave a finite "
+                             f"likelihood); nothing written")  # fmt: skip
+        if polish:
+            box = list(zip(space.phi_lo, space.phi_hi, strict=True))
+            res = minimize(f, best[0], method="L-BFGS-B", bounds=box)
+            if math.isfinite(res.fun) and res.fun < best[1]:
+                best = (np.asarray(res.x, np.float64), float(res.fun))
+        return best
+
+    all_trials = np.ones(len(table))
+    phi, value = optimise(all_trials, np.random.default_rng(seed))
+    estimate = space.to_natural(phi)
+    if not (np.all(np.isfinite(estimate)) and math.isfinite(value)):
+        raise CobelError(f"the fit of {source} did not converge (estimate {estimate.tolist()}, "
+                         f"nll {value}); nothing written")  # fmt: skip
+    se: dict[str, float | None] = {}
+    ci: dict[str, tuple[float, float] | None] = {}
+    notes: dict[str, str] = {}
+    if uncertainty:
+        H = hessian(lambda x: -float(logp(x).sum()), phi)
+        edge = space.on_bound(phi)
+        free = ~edge
+        cov = np.full((len(phi), len(phi)), np.nan)
+        if free.any():
+            try:
+                sub = H[np.ix_(free, free)]
+                np.linalg.cholesky(sub)
+                cov[np.ix_(free, free)] = np.linalg.inv(sub)
+            except np.linalg.LinAlgError:
+                for k in np.flatnonzero(free):
+                    notes[space.keys[k]] = "Hessian not positive definite (flat likelihood)"
+        jac = space.jacobian(phi)
+        for i, key in enumerate(space.keys):
+            sd = math.sqrt(cov[i, i]) if cov[i, i] > 0 else math.nan
+            if edge[i]:
+                notes[key] = "estimate on its bound"
+            if math.isfinite(sd):
+                se[key] = float(abs(jac[i]) * sd)
+                lo_hi = space.to_natural(np.array([phi - 1.96 * sd * np.eye(len(phi))[i],
+                                                   phi + 1.96 * sd * np.eye(len(phi))[i]]))  # fmt: skip
+                ci[key] = (float(lo_hi[0][i]), float(lo_hi[1][i]))
+            else:
+                se[key], ci[key] = None, None
+    held: dict[str, Any] | None = None
+    if heldout and len(table) >= 4:
+        test, split = heldout_split(table)
+        phi_train, _ = optimise((~test).astype(np.float64), np.random.default_rng(seed + 1))
+        ll = float(logp(phi_train)[test].sum())
+        held = {"ll": ll, "ll_per_trial": ll / int(test.sum()), "n_train": int((~test).sum()),
+                "n_test": int(test.sum()), "split": split}  # fmt: skip
     return FitResult(
-        params=dict(zip(params, estimate, strict=True)),
+        params={k: float(v) for k, v in zip(space.keys, estimate, strict=True)},
         nll=value,
         n_trials=len(table),
         method=method,
         fixed={k: v for k, v in values.items() if k not in params},
+        model=model,
+        se=se,
+        ci=ci,
+        heldout=held,
+        starts=n_starts,
+        notes=notes,
     )
+
+
+def _optuna_start(f: Any, space: _Space, n_trials: int, seed: int) -> np.ndarray:
+    """The best point of an Optuna TPE search in the transformed space."""
+    try:
+        import optuna
+    except ImportError:
+        raise CobelError("method=optuna needs optuna: pip install 'cobelrun[fit]'") from None
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(sampler=optuna.samplers.TPESampler(seed=seed))
+    keys = [f"x{i}" for i in range(len(space.keys))]
+    study.optimize(lambda t: f(np.array([t.suggest_float(k, lo, hi) for k, lo, hi
+                                         in zip(keys, space.phi_lo, space.phi_hi, strict=True)])),
+                   n_trials=n_trials)  # fmt: skip
+    return np.array([study.best_params[k] for k in keys])

@@ -45,6 +45,17 @@ def small_env(env_cls: type[GridWorldEnv], seed: int = 0) -> GridWorldEnv:
     return env
 
 
+def small_sequence(seed: int = 0) -> gym.Env:
+    """Conditioning trials: A+ and AB- (cues at steps 1-3, US at 3), with the serial compound."""
+    from cobelrun.envs import SequenceEnv
+
+    env = SequenceEnv(["A", "B"], {"A": {"cues": {"A": [1, 4]}, "outcome": 1.0, "us": 3},
+                                   "AB": {"cues": {"A": [1, 4], "B": [1, 4]}, "us": 3}},
+                      length=5, csc=True)  # fmt: skip
+    env.np_random = np.random.default_rng(seed)
+    return env
+
+
 def build(name: str, seed: int = 3, env_seed: int = 0) -> tuple[gym.Env, Agent]:
     """Agent ``name`` from its YAML on the first small env whose spaces it supports."""
     if name not in NUMPY_ONLY:
@@ -57,6 +68,7 @@ def build(name: str, seed: int = 3, env_seed: int = 0) -> tuple[gym.Env, Agent]:
         lambda: small_env(GridWorldEnv, env_seed),
         lambda: small_env(DiscreteGridWorldEnv, env_seed),
         lambda: ImageObservations(small_env(GridWorldEnv, env_seed)),
+        lambda: small_sequence(env_seed),  # conditioning agents (the trial_script contract)
     ):
         env = make()
         try:
@@ -64,7 +76,11 @@ def build(name: str, seed: int = 3, env_seed: int = 0) -> tuple[gym.Env, Agent]:
         except ConfigError as exc:
             if not any(
                 m in str(exc)
-                for m in ("does not support observation space", "needs image observations")
+                for m in (
+                    "does not support observation space",
+                    "needs image observations",
+                    "needs an environment with 'trial_script'",
+                )
             ):
                 raise
             error = exc

@@ -167,20 +167,20 @@ def test_cli_fit(cobel, tmp_path):
     data = tmp_path / "choices.parquet"
     simulate_choices(500, TRUE_LR, TRUE_BETA, seed=3).to_parquet(data)
     out = tmp_path / "fit.json"
-    proc = cobel("fit", "task=two_afc", "agent=dyna_q", f"data={data}",
+    proc = cobel("fit", "task=two_afc", "agent=q_learning", f"data={data}",
                  "params=[agent.learning_rate,agent.beta]", "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     est = json.loads(out.read_text())["params"]
     assert abs(est["agent.learning_rate"] - TRUE_LR) < 0.1
     assert abs(est["agent.beta"] - TRUE_BETA) / TRUE_BETA < 0.25
     # beta fixed at the config's value, only the learning rate fitted
-    proc = cobel("fit", "task=two_afc", "agent=dyna_q", "agent.beta=4.0", f"data={data}",
+    proc = cobel("fit", "task=two_afc", "agent=q_learning", "agent.beta=4.0", f"data={data}",
                  "params=[agent.learning_rate]", "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert json.loads(out.read_text())["fixed"]["agent.beta"] == 4.0
-    bad = cobel("fit", "task=two_afc", "agent=dyna_q", f"data={tmp_path / 'no.parquet'}")
+    bad = cobel("fit", "task=two_afc", "agent=q_learning", f"data={tmp_path / 'no.parquet'}")
     assert bad.returncode == 2 and "does not exist" in bad.stderr
-    bad = cobel("fit", "task=two_afc", "agent=dyna_q", f"data={data}", "params=[agent.gamma]")
+    bad = cobel("fit", "task=two_afc", "agent=q_learning", f"data={data}", "params=[agent.gamma]")
     assert bad.returncode == 2 and "fittable" in bad.stderr
 
 
@@ -188,5 +188,5 @@ def test_fit_checks_its_input():
     d = simulate_choices(20, 0.3, 4.0)
     with pytest.raises(ConfigError, match="method"):
         fit_choices(d, ["agent.beta"], method="grid")
-    with pytest.raises(CobelError, match="choices must lie"):
+    with pytest.raises(CobelError, match=r"choice must lie in 0..1, got 5"):
         fit_choices(d.assign(choice=5), ["agent.beta"], n_actions=2)

@@ -4,6 +4,7 @@ import importlib
 from typing import Any
 
 from cobelrun.agents.base import Agent, ArraySpec, Transition, TrialCallback
+from cobelrun.agents.conditioning import RescorlaWagner, TDConditioning
 from cobelrun.agents.dyna_q import DynaQ
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.pma import PMA
@@ -33,6 +34,8 @@ __all__ = [
     "SRMB",
     "SRTD",
     "SRDyna",
+    "RescorlaWagner",
+    "TDConditioning",
     "SuccessorCore",
     "ValueIteration",
     "DynaActorCritic",

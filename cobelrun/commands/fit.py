@@ -8,19 +8,19 @@ from typing import Annotated, Any
 
 import typer
 
-HELP = """Fit agent parameters to behavioural choice data by maximum likelihood.
+HELP = """Fit a choice model to behavioural choice data by maximum likelihood, with standard errors, 95 % intervals, AIC/BIC and a held-out log-likelihood.
 
 \b
-  cobel fit task=two_afc agent=dyna_q data=CHOICES.parquet params=[agent.learning_rate,agent.beta]
-  cobel fit ... method=optuna n_trials=300      # Optuna TPE instead of scipy L-BFGS-B
-\b
-data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally
-state and session. Parameters not fitted keep the composed config's values (any `cobel run`
-override works, e.g. agent.beta=3); the env gives the number of actions. Writes fit.json
-(--out) and prints the estimates. Model: softmax Q-learning (see cobelrun.fit).
+  cobel fit task=two_afc agent=q_learning data=CHOICES.parquet
+  cobel fit task=reversal_bandit model=wsls data=CHOICES.csv
+  cobel fit ... params=\\[agent.learning_rate]  # others: config values
+  cobel fit ... starts=10 method=optuna n_trials=300
+  cobel fit task=blocking agent=rescorla_wagner data=RESPONSES.csv
+
+data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally trial, state and session; no other columns. Choices must use the task's actions, states its states. model: q_learning, rescorla_wagner, dyna_q, wsls or rw_response (default: the agent's own: agent=q_learning, agent=dyna_q, agent=rescorla_wagner on a conditioning task). Writes fit.json (--out) and prints the estimates. docs/modelling.md has a worked example.
 """
 
-SPECIAL = ("data", "params", "method", "n_trials")
+SPECIAL = ("data", "params", "method", "n_trials", "model", "starts")
 
 
 def _split(args: list[str]) -> tuple[dict[str, str], list[str]]:
@@ -35,45 +35,87 @@ def _split(args: list[str]) -> tuple[dict[str, str], list[str]]:
     return special, rest
 
 
+def _int(special: dict[str, str], key: str, default: int) -> int:
+    from cobelrun.errors import ConfigError
+
+    try:
+        return int(special.get(key, str(default)))
+    except ValueError:
+        raise ConfigError(f"{key} must be an integer, got {special[key]!r}") from None
+
+
+def agent_model(cfg: Any) -> str:
+    """The likelihood model of the composed agent (``q_learning`` for Dyna-Q without replay,
+    ``dyna_q`` with it); a one-line error naming the fittable agents otherwise."""
+    from cobelrun.choice_models import MODELS
+    from cobelrun.errors import ConfigError
+
+    target = str(cfg.agent.get("_target_", "")) if cfg.get("agent") is not None else ""
+    if target == "cobelrun.agents.DynaQ":
+        return "q_learning" if str(cfg.agent.get("replay", "off")) == "off" else "dyna_q"
+    if target == "cobelrun.agents.RescorlaWagner":
+        return "rw_response"
+    raise ConfigError(f"agent {target.rsplit('.', 1)[-1] or 'none'} has no choice likelihood; "
+                      f"fittable agents: agent=q_learning, agent=dyna_q, agent=rescorla_wagner, or name a model= "
+                      f"({', '.join(MODELS)})")  # fmt: skip
+
+
 def run_fit(args: list[str]) -> tuple[Any, Path]:
     """Compose the config from ``args``, read the data and fit; return (result, data path)."""
     from omegaconf import OmegaConf
 
+    from cobelrun.choice_models import MODELS
     from cobelrun.config import instantiate, register_resolvers
     from cobelrun.errors import ConfigError
-    from cobelrun.fit import PARAMS, fit_choices, load_choices
+    from cobelrun.fit import (
+        check_action_set,
+        check_choices,
+        fit_choices,
+        load_choices,
+        task_features,
+        task_sizes,
+    )
     from cobelrun.hydra_app import composer
 
     special, overrides = _split(args)
     if "data" not in special:
         raise ConfigError("cobel fit needs data=CHOICES.parquet (choice, reward per trial)")
-    raw = special.get("params", "[agent.learning_rate,agent.beta]").strip()
-    params = [p.strip() for p in raw.strip("[]").split(",") if p.strip()]
-    unknown = [p for p in params if p not in PARAMS]
-    if unknown or not params:
-        raise ConfigError(f"cannot fit {unknown or 'nothing'}; fittable: {', '.join(PARAMS)}")
-    try:
-        n_trials = int(special.get("n_trials", "200"))
-    except ValueError:
-        raise ConfigError(f"n_trials must be an integer, got {special['n_trials']!r}") from None
+    if "model" in special and special["model"] not in MODELS:
+        raise ConfigError(f"unknown model {special['model']!r}; models with a likelihood: "
+                          f"{', '.join(MODELS)}")  # fmt: skip
+    n_trials, starts = _int(special, "n_trials", 200), _int(special, "starts", 5)
     register_resolvers()
     with composer() as compose:
         cfg = compose(overrides)
-    initial = {k: OmegaConf.select(cfg, k) for k in PARAMS}
-    missing = [k for k in params if initial.get(k) is None]
-    if missing:
-        raise ConfigError(f"the composed agent has no {', '.join(missing)}; pick an agent that "
-                          f"has them (e.g. agent=dyna_q)")  # fmt: skip
+    model = special.get("model") or agent_model(cfg)
+    keys = MODELS[model].keys
+    raw = special.get("params", "").strip()
+    params = [p.strip() for p in raw.strip("[]").split(",") if p.strip()] or MODELS[
+        model
+    ].default_keys
+    unknown = [p for p in params if p not in keys]
+    if unknown:
+        raise ConfigError(f"cannot fit {', '.join(unknown)} with model {model}; fittable: "
+                          f"{', '.join(keys)}")  # fmt: skip
+    initial = {k: OmegaConf.select(cfg, k) for k in keys}
     env = instantiate("env", cfg.env)
-    n_actions = getattr(env.action_space, "n", None)
+    n_actions, n_states = task_sizes(env)
     data_path = Path(special["data"])
+    data = load_choices(data_path)
+    check_choices(data, None, n_states, str(data_path))
+    check_action_set(data, n_actions, str(cfg.task.get("name", "the task")), str(data_path))
     result = fit_choices(
-        load_choices(data_path),
+        data,
         params,
-        initial={k: float(v) for k, v in initial.items() if v is not None},
-        n_actions=None if n_actions is None else int(n_actions),
+        model=model,
+        features=task_features(env),
+        initial={k: float(v) for k, v in initial.items() if isinstance(v, int | float)},
+        n_actions=n_actions,
+        n_states=n_states,
         method=special.get("method", "scipy"),
         n_trials=n_trials,
+        n_starts=starts,
+        source=str(data_path),
     )
     return result, data_path
 
@@ -105,7 +147,18 @@ def register(app: typer.Typer) -> None:
             path.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
         except OSError as exc:
             fail(f"cannot write {path}: {exc.strerror}")
+        typer.echo(f"model {result.model}, {result.n_trials} trials, {result.starts} starts")
         for key, value in result.params.items():
-            typer.echo(f"{key} = {value:.4g}")
-        typer.echo(f"nll = {result.nll:.4f}  bic = {result.bic:.2f}  n = {result.n_trials}")
+            se, ci = result.se.get(key), result.ci.get(key)
+            extra = (
+                ""
+                if se is None or ci is None
+                else f" ± {se:.3g}  (95 % {ci[0]:.4g} .. {ci[1]:.4g})"
+            )
+            note = result.notes.get(key)
+            typer.echo(f"{key} = {value:.4g}{extra}" + (f"  [{note}]" if note else ""))
+        typer.echo(f"nll = {result.nll:.4f}  aic = {result.aic:.2f}  bic = {result.bic:.2f}")
+        if result.heldout:
+            h = result.heldout
+            typer.echo(f"held-out ll = {h['ll']:.3f} ({h['n_test']} trials, {h['split']})")
         typer.echo(str(path))

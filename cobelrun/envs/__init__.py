@@ -16,8 +16,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from cobelrun.envs.bandit import BanditEnv
 from cobelrun.envs.choice import TwoAFCEnv
 from cobelrun.envs.gridworld import DiscreteGridWorldEnv, GridWorldEnv
+from cobelrun.envs.sequence import SequenceEnv
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.envs.world import (
     World,
@@ -34,6 +36,8 @@ ENV_IDS: dict[str, str] = {
     "cobel/DiscreteGridWorld-v0": "cobelrun.envs.gridworld:DiscreteGridWorldEnv",
     "cobel/Topology-v0": "cobelrun.envs.topology_env:TopologyEnv",
     "cobel/TwoAFC-v0": "cobelrun.envs.choice:TwoAFCEnv",
+    "cobel/Bandit-v0": "cobelrun.envs.bandit:BanditEnv",
+    "cobel/Sequence-v0": "cobelrun.envs.sequence:SequenceEnv",
     "cobel/Continuous2D-v0": "cobelrun.envs.continuous:Continuous2DEnv",
 }
 
@@ -68,9 +72,11 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ENV_IDS",
+    "BanditEnv",
     "Continuous2DEnv",
     "DiscreteGridWorldEnv",
     "GridWorldEnv",
+    "SequenceEnv",
     "TopologyEnv",
     "TwoAFCEnv",
     "World",

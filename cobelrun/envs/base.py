@@ -51,6 +51,7 @@ __all__ = [
     "RendersAtPose",
     "StateObservations",
     "TabularModel",
+    "TrialScript",
     "capabilities",
     "check_action",
     "require",
@@ -134,6 +135,21 @@ class RendersAtPose(Protocol):
     def render_at_pose(self, x: float, y: float, heading: float) -> Any: ...
 
 
+@runtime_checkable
+class TrialScript(Protocol):
+    """Scripted conditioning trials (:class:`cobelrun.envs.sequence.SequenceEnv`): the cue names
+    (CSs first, then contexts), how many are CSs, whether the observation carries a complete
+    serial compound, and the cues and info of the current trial."""
+
+    cue_names: list[str]
+    n_cs: int
+    csc: bool
+
+    def trial_cues(self, trial_type: int | None = None) -> np.ndarray: ...
+
+    def trial_info(self) -> dict[str, Any]: ...
+
+
 #: Every contract by the name agents and monitors use in ``requires``.
 CONTRACTS: dict[str, type] = {
     "changeable": Changeable,
@@ -143,6 +159,7 @@ CONTRACTS: dict[str, type] = {
     "state_observations": StateObservations,
     "geometry": HasGeometry,
     "render_at_pose": RendersAtPose,
+    "trial_script": TrialScript,
 }
 
 

@@ -1,0 +1,102 @@
+"""Recovery benchmark (issue 36): speed and the acceptance numbers of ``cobel recover``.
+
+Run on demand (not a test)::
+
+    python benchmarks/bench_recover.py [--n 100] [--jobs 1 2] [--skip-acceptance]
+
+Prints and writes ``benchmarks/results/recover.json``:
+
+* speed: wall time of a 100-agent x 3-model recovery (q_learning, rescorla_wagner, wsls; every
+  model fitted to every agent: 900 fits plus 900 held-out fits) on the 200-trial
+  ``task=reversal_bandit``, in this process (compile time excluded by a warm-up), for each
+  ``--jobs``; and ``cobel recover`` end to end (process start, figures) with ``jobs=1``;
+* parameter recovery of Q-learning on ``task=two_afc`` with 200 trials (Pearson r, bias,
+  95 % interval coverage) and on the reversal bandit;
+* model recovery among q_learning, rescorla_wagner, dyna_q, wsls on the reversal bandit
+  (200 trials) and on ``protocol=reversal_blocks`` (8 blocks of 50 trials): the confusion
+  diagonal by AIC, BIC and held-out log-likelihood.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def _task(overrides: list[str]):
+    from cobelrun.config import register_resolvers
+    from cobelrun.hydra_app import composer
+    from cobelrun.recover import ChoiceTask
+
+    register_resolvers()
+    with composer() as compose:
+        return ChoiceTask.from_config(compose(overrides))
+
+
+def _summary(table) -> dict:
+    from cobelrun.recover import CRITERIA, confusion, parameter_recovery
+
+    params = parameter_recovery(table)
+    diag = {}
+    for c in CRITERIA:
+        m = confusion(table, c)
+        diag[c] = {g: round(float(m.loc[g, g]), 3) for g in m.index}
+    return {"parameters": params.round(4).to_dict(orient="records"), "confusion_diagonal": diag}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=100)
+    parser.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--skip-acceptance", action="store_true")
+    args = parser.parse_args()
+    from cobelrun.recover import recover
+
+    out: dict = {"host": platform.node(), "cpus": os.cpu_count(), "n": args.n,
+                 "load_before": os.getloadavg()}  # fmt: skip
+    reversal = _task(["task=reversal_bandit"])
+    three = ["q_learning", "rescorla_wagner", "wsls"]
+    recover(reversal, three, 2)  # warm-up: numba caches loaded or compiled
+    out["speed"] = {}
+    for jobs in args.jobs:
+        t = time.perf_counter()
+        recover(reversal, three, args.n, jobs=jobs)
+        out["speed"][f"jobs={jobs}"] = round(time.perf_counter() - t, 1)
+        print(f"{args.n} agents x 3 models x 3 fits, 200 trials, jobs={jobs}: "
+              f"{out['speed'][f'jobs={jobs}']} s", flush=True)  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "cobelrun.cli", "recover",
+                               "task=reversal_bandit", "models=[q_learning,rescorla_wagner,wsls]",
+                               f"n={args.n}", "jobs=1", "--out", str(Path(tmp) / "rec")],
+                              capture_output=True, text=True)  # fmt: skip
+        out["speed"]["cli_jobs=1"] = round(time.perf_counter() - t, 1)
+        if proc.returncode:
+            raise SystemExit(proc.stderr)
+        print(f"cobel recover end to end: {out['speed']['cli_jobs=1']} s", flush=True)
+    if not args.skip_acceptance:
+        two_afc = _task(["task=two_afc", "task.protocol.phases.0.trials=200"])
+        out["two_afc_q_learning"] = _summary(recover(two_afc, ["q_learning"], args.n))
+        print("two_afc:", json.dumps(out["two_afc_q_learning"]), flush=True)
+        four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
+        out["reversal_4_models"] = _summary(recover(reversal, four, args.n))
+        print("reversal:", json.dumps(out["reversal_4_models"]), flush=True)
+        blocks = _task(["task=reversal_bandit", "protocol=reversal_blocks"])
+        out["reversal_blocks_4_models"] = _summary(recover(blocks, four, args.n))
+        print("reversal_blocks:", json.dumps(out["reversal_blocks_4_models"]), flush=True)
+    out["load_after"] = os.getloadavg()
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "recover.json").write_text(json.dumps(out, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,260 @@
+"""Classical conditioning agents for :class:`cobelrun.envs.sequence.SequenceEnv`.
+
+:class:`RescorlaWagner` (Rescorla & Wagner 1972) learns once per trial from the summed
+prediction of the trial's cues::
+
+    V      = sum_i w_i x_i                    x_i = 1 if cue i is shown in the trial
+    delta  = asymptote * US - V               US: the trial's outcome
+    w_i   += salience_i * learning_rate * delta * x_i
+
+:class:`TDConditioning` is Sutton & Barto's (1990) TD model of conditioning: TD(lambda) over a
+complete serial compound (every cue's time since onset is its own feature, contexts are
+presence features)::
+
+    V_t    = w . x_t
+    delta  = r_t + gamma V_{t+1} - V_t        (V after the trial's last step = 0)
+    e      = gamma lambda e + x_t
+    w     += learning_rate * delta * e
+
+Both respond with the logistic response model ``P(respond) = 1 / (1 + exp(-response_beta
+(V - response_threshold)))`` on the current prediction, and keep the prediction a trial's cues
+evoke (:attr:`prediction`: ``V`` of the trial's cues for Rescorla-Wagner, ``V`` at the first
+cue's onset for TD) for :class:`cobelrun.monitors.conditioning.ConditioningMonitor`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.errors import ConfigError
+
+__all__ = ["RescorlaWagner", "TDConditioning"]
+
+
+def _number(name: str, value: Any, low: float, high: float | None = None) -> float:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < low or (high is not None and value > high):
+        bound = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise ConfigError(f"agent.{name} must be a number {bound}, got {value!r}")
+    return float(value)
+
+
+class _Conditioning(Agent):
+    """Shared parts: the sequence env, the logistic response, the recorded prediction."""
+
+    observation_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Box,)
+    action_spaces: ClassVar[tuple[type[gym.Space], ...]] = (gym.spaces.Discrete,)
+    requires: ClassVar[tuple[str, ...]] = ("trial_script",)
+
+    def __init__(self, env: gym.Env, *, response_beta: float, response_threshold: float,
+                 seed: SeedLike) -> None:  # fmt: skip
+        super().__init__(env, seed=seed)  # checks the trial_script contract (env=sequence)
+        self.seq = env.unwrapped
+        self.response_beta = _number("response_beta", response_beta, 0.0)
+        self.response_threshold = _number("response_threshold", response_threshold, -1e9)
+        self.prediction = 0.0
+
+    def respond(self, v: float) -> int:
+        """Logistic response on the prediction ``v``."""
+        z = self.response_beta * (v - self.response_threshold)
+        p = 1.0 / (1.0 + math.exp(-max(min(z, 700.0), -700.0)))
+        return int(self.rng.random() < p)
+
+
+class RescorlaWagner(_Conditioning):
+    """Rescorla-Wagner (1972): trial-level learning from the summed prediction of a compound.
+
+    Parameters
+    ----------
+    env
+        A :class:`~cobelrun.envs.sequence.SequenceEnv`.
+    learning_rate
+        ``beta`` of the rule (the US's learning-rate parameter), in [0, 1].
+    salience
+        ``alpha_i``: one number for every cue, or a mapping cue -> salience (others 1), in [0, 1].
+    asymptote
+        ``lambda`` per unit of outcome (the US supports ``asymptote * outcome``).
+    context_cues
+        Whether contexts enter the compound like cues (False: classic CS-only Rescorla-Wagner,
+        which cannot show ABA renewal; True: contexts summate with the CS).
+    response_beta, response_threshold
+        Logistic response model on ``V``.
+    seed
+        Seed of the response draws.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        learning_rate: float = 0.2,
+        salience: float | Mapping[str, float] = 1.0,
+        asymptote: float = 1.0,
+        context_cues: bool = False,
+        response_beta: float = 10.0,
+        response_threshold: float = 0.5,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, response_beta=response_beta,
+                         response_threshold=response_threshold, seed=seed)  # fmt: skip
+        self.learning_rate = _number("learning_rate", learning_rate, 0.0, 1.0)
+        self.asymptote = _number("asymptote", asymptote, 0.0)
+        self.context_cues = bool(context_cues)
+        names = self.seq.cue_names
+        self.alpha = np.ones(len(names))
+        if isinstance(salience, Mapping):
+            for cue, value in salience.items():
+                if cue not in names:
+                    raise ConfigError(f"agent.salience: unknown cue {cue!r}; cues: {names}")
+                self.alpha[names.index(cue)] = _number(f"salience.{cue}", value, 0.0, 1.0)
+        else:
+            self.alpha[:] = _number("salience", salience, 0.0, 1.0)
+        if not self.context_cues:
+            self.alpha[self.seq.n_cs :] = 0.0
+        self.w = np.zeros(len(names))
+        self._x = np.zeros(len(names))
+        self._us = 0.0
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return {"learning_rate": self.learning_rate, "asymptote": self.asymptote,
+                "context_cues": self.context_cues, "salience": self.alpha.tolist()}  # fmt: skip
+
+    def value(self, cues: np.ndarray) -> np.ndarray:
+        """``V`` of cue vectors (n, n_cues): the summed strengths of the cues in the compound."""
+        x = np.atleast_2d(np.asarray(cues, np.float64))[:, : len(self.w)]
+        if not self.context_cues:
+            x = x.copy()
+            x[:, self.seq.n_cs :] = 0.0
+        return x @ self.w
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """``[0, V]`` per observation (no-response and response preference)."""
+        v = self.value(observations)
+        return np.stack([np.zeros_like(v), v], axis=1)
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._x = self.seq.trial_cues().astype(np.float64)
+        if not self.context_cues:
+            self._x[self.seq.n_cs :] = 0.0
+        self.prediction = float(self._x @ self.w)
+        self._us = 0.0
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        return self.respond(self.prediction if np.any(obs[: self.seq.n_cs]) else 0.0)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        self._us += transition.reward
+
+    def end_trial(self, learn: bool) -> None:
+        if learn:
+            delta = self.asymptote * self._us - self.prediction
+            self.w += self.alpha * self.learning_rate * delta * self._x
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        return {"w": ArraySpec((len(self.w),))}
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"w": self.w.copy()}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        self.w[...] = arrays["w"]
+
+
+class TDConditioning(_Conditioning):
+    """TD(lambda) model of conditioning over a complete serial compound (Sutton & Barto 1990).
+
+    Parameters
+    ----------
+    env
+        A :class:`~cobelrun.envs.sequence.SequenceEnv` with ``csc: true``.
+    learning_rate
+        Step size ``alpha`` of the weights.
+    gamma
+        Discount per time step.
+    trace_decay
+        ``lambda`` of the eligibility traces.
+    response_beta, response_threshold
+        Logistic response model on ``V_t``.
+    seed
+        Seed of the response draws.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        learning_rate: float = 0.1,
+        gamma: float = 0.95,
+        trace_decay: float = 0.8,
+        response_beta: float = 10.0,
+        response_threshold: float = 0.5,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, response_beta=response_beta,
+                         response_threshold=response_threshold, seed=seed)  # fmt: skip
+        if not self.seq.csc:
+            raise ConfigError("agent TDConditioning needs the complete serial compound: "
+                              "env.csc=true")  # fmt: skip
+        self.learning_rate = _number("learning_rate", learning_rate, 0.0, 1.0)
+        self.gamma = _number("gamma", gamma, 0.0, 1.0)
+        self.trace_decay = _number("trace_decay", trace_decay, 0.0, 1.0)
+        n = int(env.observation_space.shape[0])  # type: ignore[index]
+        self.w = np.zeros(n)
+        self._e = np.zeros(n)
+        self._seen = False
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return {"learning_rate": self.learning_rate, "gamma": self.gamma,
+                "trace_decay": self.trace_decay}  # fmt: skip
+
+    def _features(self, obs: np.ndarray) -> np.ndarray:
+        x = np.asarray(obs, np.float64).copy()
+        x[: self.seq.n_cs] = 0.0  # cues enter through their serial compound, contexts as presence
+        return x
+
+    def value(self, observations: np.ndarray) -> np.ndarray:
+        """``V`` of observations (n, d)."""
+        x = np.atleast_2d(np.asarray(observations, np.float64)).copy()
+        x[:, : self.seq.n_cs] = 0.0
+        return x @ self.w
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """``[0, V]`` per observation."""
+        v = self.value(observations)
+        return np.stack([np.zeros_like(v), v], axis=1)
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._e[:] = 0.0
+        self._seen = False
+        self.prediction = 0.0
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        v = float(self._features(obs) @ self.w)
+        if not self._seen and np.any(obs[: self.seq.n_cs]):
+            self.prediction, self._seen = v, True
+        return self.respond(v if np.any(obs[: self.seq.n_cs]) else 0.0)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        if not learn:
+            return
+        x = self._features(transition.obs)
+        v2 = 0.0 if transition.terminated else float(self._features(transition.next_obs) @ self.w)
+        delta = transition.reward + self.gamma * v2 - float(x @ self.w)
+        self._e *= self.gamma * self.trace_decay
+        self._e += x
+        self.w += self.learning_rate * delta * self._e
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        return {"w": ArraySpec((len(self.w),))}
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"w": self.w.copy()}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        self.w[...] = arrays["w"]

@@ -61,10 +61,12 @@ ENV_VAR = "COBEL_ALLOW_TARGETS"
 
 _TD_CONTROL = ("Sarsa", "QLambda", "SarsaLambda", "MCControl", "TabularActorCritic",
                "DynaActorCritic")  # fmt: skip
-_ENVS = ("GridWorldEnv", "DiscreteGridWorldEnv", "TopologyEnv", "TwoAFCEnv", "Continuous2DEnv")
+_ENVS = ("GridWorldEnv", "DiscreteGridWorldEnv", "TopologyEnv", "TwoAFCEnv", "Continuous2DEnv",
+         "BanditEnv", "SequenceEnv")  # fmt: skip
 _WORLDS = ("from_layout", "open_field", "t_maze", "tmaze_paper", "blodgett")
 _AGENTS = ("DynaQ", "PMA", "SFMA", "SRMB", "SRTD", "SRDyna", "ValueIteration", "DQNAgent",
-           "DynaDQN", "DynaDSR", "MFEC", *_TD_CONTROL)  # fmt: skip
+           "DynaDQN", "DynaDSR", "MFEC", "RescorlaWagner", "TDConditioning",
+           *_TD_CONTROL)  # fmt: skip
 _MONITORS = ("RewardMonitor", "EscapeLatencyMonitor", "ResponseMonitor", "TrajectoryMonitor")
 
 #: cobel's own targets: the classes and functions its configs are meant to build (exact
@@ -78,6 +80,8 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.envs.topology_env.TopologyEnv",
     "cobelrun.envs.choice.TwoAFCEnv",
     "cobelrun.envs.continuous.Continuous2DEnv",
+    "cobelrun.envs.bandit.BanditEnv",
+    "cobelrun.envs.sequence.SequenceEnv",
     # worlds and topologies (env.world, env.topology)
     *(f"cobelrun.envs.{name}" for name in _WORLDS),
     *(f"cobelrun.envs.world.{name}" for name in _WORLDS),
@@ -118,6 +122,8 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.agents.dyna_dqn.DynaDQN",
     "cobelrun.agents.dyna_dsr.DynaDSR",
     "cobelrun.agents.mfec.MFEC",
+    "cobelrun.agents.conditioning.RescorlaWagner",
+    "cobelrun.agents.conditioning.TDConditioning",
     *(f"cobelrun.agents.td_control.{name}" for name in _TD_CONTROL),
     # monitors
     *(f"cobelrun.monitors.{name}" for name in _MONITORS),
@@ -126,6 +132,8 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.monitors.probe.GreedyProbeMonitor",
     "cobelrun.monitors.replay.ReplayMonitor",
     "cobelrun.monitors.watermaze.WaterMazeMonitor",
+    "cobelrun.monitors.choice.ChoiceMonitor",
+    "cobelrun.monitors.conditioning.ConditioningMonitor",
     # objectives (task.objective) and task jobs (task.job)
     "cobelrun.objectives.TrialMean",
     "cobelrun.objectives.ChoiceNLL",

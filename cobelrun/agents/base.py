@@ -478,8 +478,10 @@ class Agent(abc.ABC):
             raise
         except FileNotFoundError:
             raise fail("no such file") from None
-        except zipfile.BadZipFile:
-            raise fail("not an .npz archive (a zip of .npy arrays)") from None
+        except zipfile.BadZipFile as exc:
+            if _starts_with(path, b"\x93NUMPY"):
+                raise fail("not an .npz archive of arrays (a single .npy array)") from None
+            raise fail(f"not a readable .npz archive without pickle ({exc})") from None
         except Exception as exc:  # pickle refused, truncated, a bad header, ...
             raise fail(f"not a readable .npz archive without pickle ({exc})") from None
         if META_KEY not in raw:
@@ -632,3 +634,15 @@ def _check_saved_folder(agent: Agent, path: Path, runs: Sequence[int] | range) -
                 "(task.save_agents decides which runs are saved)"
             )
         agent._read_checked(legacy)
+
+
+def _starts_with(path: Path | BinaryIO, magic: bytes) -> bool:
+    """True if the file ``path`` (a path or an open binary file) starts with ``magic``."""
+    try:
+        if hasattr(path, "read"):
+            path.seek(0)  # type: ignore[union-attr]
+            return path.read(len(magic)) == magic  # type: ignore[union-attr]
+        with open(path, "rb") as f:
+            return f.read(len(magic)) == magic
+    except (OSError, ValueError):
+        return False

@@ -127,7 +127,7 @@ def test_agents_npz_bomb_is_refused_from_its_header(real_run, tmp_path):
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert time.perf_counter() - t0 < 5.0
+    assert time.perf_counter() - t0 < 30  # bounds a hang; the memory peak is the test
     assert peak < 64 << 20, f"peak {peak / 2**20:.0f} MiB"
 
 

@@ -23,7 +23,7 @@ import pyarrow as pa
 from cobelrun.agents.base import TrialCallback
 from cobelrun.envs.base import DiscreteStates, StateObservations
 from cobelrun.errors import ConfigError, suggest
-from cobelrun.monitors import Monitor, Table
+from cobelrun.monitors.base import Monitor, Table
 
 
 @runtime_checkable

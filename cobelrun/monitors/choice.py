@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from cobelrun.monitors import TrialColumnsMonitor
+from cobelrun.monitors.base import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
 
 

@@ -30,8 +30,8 @@ import pyarrow as pa
 
 from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, ProbeGrid, probe_grid
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import Table
 from cobelrun.monitors.activity import ActivityMonitor
+from cobelrun.monitors.base import Table
 from cobelrun.safety import check_allocation
 
 #: the run's log (``cobel.log``; warnings also on stderr)

@@ -26,7 +26,7 @@ import pyarrow as pa
 from cobelrun.agents.base import TrialCallback
 from cobelrun.envs.base import StateObservations
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import TrialColumnsMonitor
+from cobelrun.monitors.base import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.errors import ConfigError
-from cobelrun.monitors import BatchInfo, Monitor, ScenePath, Table
+from cobelrun.monitors.base import BatchInfo, Monitor, ScenePath, Table
 from cobelrun.records import TrialBatch
 
 WHEN_NAMES = np.array(["start", "end"], dtype=object)

@@ -9,7 +9,7 @@ import pyarrow as pa
 
 from cobelrun.analysis.watermaze import MEASURE_COLUMNS, split_trials, trial_measures
 from cobelrun.errors import ConfigError, allowed_list, suggest
-from cobelrun.monitors import TrialColumnsMonitor
+from cobelrun.monitors.base import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
 
 

@@ -127,6 +127,8 @@ BUILTIN: tuple[str, ...] = (
     *(f"cobelrun.agents.td_control.{name}" for name in _TD_CONTROL),
     # monitors
     *(f"cobelrun.monitors.{name}" for name in _MONITORS),
+    *(f"cobelrun.monitors.trials.{name}" for name in _MONITORS if name != "TrajectoryMonitor"),
+    "cobelrun.monitors.trajectory.TrajectoryMonitor",
     "cobelrun.monitors.activity.ActivityMonitor",
     "cobelrun.monitors.maps.ActivityMapMonitor",
     "cobelrun.monitors.probe.GreedyProbeMonitor",

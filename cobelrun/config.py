@@ -339,7 +339,7 @@ def instantiate(where: str, node: DictConfig | Mapping[str, Any], **kwargs: Any)
     from hydra.utils import instantiate as hydra_instantiate
 
     plain = _target_node(where, node)
-    check_config(plain, where)  # every nested _target_ too, before anything is imported
+    check_config(plain, where, resolve=True)  # every nested _target_, strings first
     validate_node(where, plain, provided=list(kwargs))
     try:
         return hydra_instantiate(plain, **kwargs, _convert_="all")

@@ -380,13 +380,31 @@ def _walk(node: Any, where: str) -> Iterator[tuple[str, Any, Any]]:
 _LOGGING_NODES = ("hydra.job_logging", "hydra.hydra_logging")
 
 
-def check_config(node: Any, where: str = "", environ: Mapping[str, str] | None = None) -> None:
+def check_config(
+    node: Any,
+    where: str = "",
+    environ: Mapping[str, str] | None = None,
+    *,
+    resolve: bool = False,
+) -> None:
     """Check every ``_target_`` anywhere in ``node`` (mappings and lists, ``hydra.launcher``,
     ``hydra.sweeper`` and ``hydra.callbacks`` included), and the classes of Hydra's logging
-    configs, before anything is built. The first refused one is a one-line ConfigError."""
+    configs, before anything is built. The first refused one is a one-line ConfigError.
+
+    ``resolve``: also import each allowed target and check where the object is defined
+    (:func:`check_object`), as just before Hydra builds the node: a wildcard pattern must not
+    reach, through a nested node, what its package merely imports."""
     for key_path, key, value in _walk(node, where):
         if key == "_target_":
             check_target(key_path, value, environ)  # an interpolation (${...}) is refused too
+            if resolve:
+                from hydra.utils import get_object
+
+                try:
+                    obj = get_object(value)
+                except Exception as exc:  # Hydra reports it as it builds: one line there
+                    raise ConfigError(f"{key_path} {value!r} cannot be imported: {exc}") from None
+                check_object(key_path, value, obj, environ)
         elif key_path.startswith(_LOGGING_NODES):
             if key in ("class", "()") and isinstance(value, str):
                 if value not in LOGGING and not is_allowed(value, environ):

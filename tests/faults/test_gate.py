@@ -151,6 +151,19 @@ def test_allow_extends_the_environment_for_child_processes(monkeypatch):
     assert os.environ[ENV_VAR] == "a.B,c.*"
 
 
+def test_a_wildcard_does_not_reach_imports_through_a_nested_node(monkeypatch, tmp_path):
+    """The same for a target Hydra builds itself (in a list inside a node): checked after the
+    import too, before Hydra calls it."""
+    from cobelrun.config import instantiate
+
+    monkeypatch.setenv(ENV_VAR, "pathlib.*")
+    node = {"_target_": "cobelrun.monitors.RewardMonitor",
+            "x": [{"_target_": "pathlib.urlquote_from_bytes", "_args_": [b"a"]}]}  # fmt: skip
+    with pytest.raises(ConfigError, match=r"x\[0\]\._target_ 'pathlib.urlquote_from_bytes' is "
+                       r"defined in urllib\.parse, not in pathlib"):  # fmt: skip
+        instantiate("task.monitors.m", node)
+
+
 def test_a_wildcard_does_not_reach_what_the_package_imports(monkeypatch):
     """``pathlib.*`` allows what pathlib defines, not ``pathlib.urlquote_from_bytes`` (defined in
     urllib.parse, which pathlib imports): the object's module is checked after the import."""

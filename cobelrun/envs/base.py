@@ -22,6 +22,8 @@ capability an environment declares by implementing its methods on ``env.unwrappe
     The maze, graph or arena as data (:class:`Geometry`), for plots, MCAP scenes and exports.
 :class:`RendersAtPose`
     The observation at an arbitrary pose, e.g. for activity maps between graph nodes.
+:class:`ObservesGrid`
+    A graph's layout and the observations at every pose of a grid over it (activity maps).
 
 :func:`capabilities` lists what an environment offers; :func:`require` turns a missing
 capability into a one-line :class:`~cobelrun.errors.ConfigError`.
@@ -47,6 +49,7 @@ __all__ = [
     "DiscreteStates",
     "Geometry",
     "HasGeometry",
+    "ObservesGrid",
     "Posed",
     "RendersAtPose",
     "StateObservations",
@@ -136,6 +139,23 @@ class RendersAtPose(Protocol):
 
 
 @runtime_checkable
+class ObservesGrid(RendersAtPose, Protocol):
+    """A graph's layout (``topology``: node positions, cells) and the observations at every pose
+    of a grid over it at once, e.g. for activity maps (:class:`~cobelrun.envs.TopologyEnv`)."""
+
+    topology: Any
+
+    def observe_grid(
+        self,
+        positions: np.ndarray,
+        headings_rad: np.ndarray,
+        rng: np.random.Generator | None = None,
+    ) -> Any:
+        """Observations at every ``positions (M, 2) x headings_rad (D,)`` pose: ``(M, D, ...)``."""
+        ...
+
+
+@runtime_checkable
 class TrialScript(Protocol):
     """Scripted conditioning trials (:class:`cobelrun.envs.sequence.SequenceEnv`): the cue names
     (CSs first, then contexts), how many are CSs, whether the observation carries a complete
@@ -159,6 +179,7 @@ CONTRACTS: dict[str, type] = {
     "state_observations": StateObservations,
     "geometry": HasGeometry,
     "render_at_pose": RendersAtPose,
+    "observe_grid": ObservesGrid,
     "trial_script": TrialScript,
 }
 

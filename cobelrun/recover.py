@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.choice_models import MODELS, ChoiceModel, ModelAgent
+from cobelrun.envs.base import Changeable, supports
 from cobelrun.errors import ConfigError
 
 __all__ = [
@@ -176,7 +177,7 @@ class ChoiceTask:
         n_states, n_actions = self.sizes
         agent = ModelAgent(model, theta, n_states, n_actions, np.random.default_rng(choice_seed))
         base = self.env.unwrapped
-        if hasattr(base, "reset_world"):
+        if supports(base, Changeable):
             base.reset_world()
         rows = np.zeros((self.n_trials, 3))
         t = 0

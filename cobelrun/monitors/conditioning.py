@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import pyarrow as pa
@@ -11,6 +11,14 @@ from cobelrun.agents.base import TrialCallback
 from cobelrun.errors import ConfigError
 from cobelrun.monitors.base import TrialColumnsMonitor
 from cobelrun.records import TrialBatch
+
+
+@runtime_checkable
+class HasPrediction(Protocol):
+    """Agents that keep the prediction a trial's cues evoked (``agent=rescorla_wagner``,
+    ``agent=td_conditioning``)."""
+
+    prediction: float
 
 
 class ConditioningMonitor(TrialColumnsMonitor, TrialCallback):
@@ -48,7 +56,7 @@ class ConditioningMonitor(TrialColumnsMonitor, TrialCallback):
                 pa.field("responded", pa.int64())]  # fmt: skip
 
     def _on_trial_end(self, agent: Any, trial: int, record: dict[str, Any]) -> None:
-        if not hasattr(agent, "prediction"):
+        if not isinstance(agent, HasPrediction):
             raise ConfigError(f"monitor ConditioningMonitor needs an agent with a prediction "
                               f"(rescorla_wagner, td_conditioning), got {type(agent).__name__}")  # fmt: skip
         info = self._env.trial_info()

@@ -29,8 +29,9 @@ import numpy as np
 import pyarrow as pa
 
 from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, ProbeGrid, probe_grid
+from cobelrun.envs.base import ObservesGrid, supports
 from cobelrun.errors import ConfigError
-from cobelrun.monitors.activity import ActivityMonitor
+from cobelrun.monitors.activity import ActivityMonitor, HasActivations
 from cobelrun.monitors.base import Table
 from cobelrun.safety import check_allocation
 
@@ -57,7 +58,7 @@ class ActivityMapMonitor(ActivityMonitor):
         Views per forward pass.
     """
 
-    requires = ("render_at_pose",)
+    requires = ("observe_grid",)
 
     def __init__(
         self,
@@ -109,17 +110,13 @@ class ActivityMapMonitor(ActivityMonitor):
     # -- wiring ------------------------------------------------------------------------------
     def setup(self, env: Any) -> None:
         base = env.unwrapped
-        topology = getattr(base, "topology", None)
-        if (
-            topology is None
-            or not hasattr(base, "observe_grid")
-            or not hasattr(base, "render_at_pose")
-        ):
+        if not supports(base, ObservesGrid) or base.topology is None:
             raise ConfigError(
                 f"activity maps need an environment that renders at any pose (a topology env); "
                 f"{type(base).__name__} does not"
             )
         self.env = base
+        topology = base.topology
         self.grid = probe_grid(
             topology.positions, cells=topology.cells is not None, nx=self.nx, ny=self.ny
         )
@@ -179,7 +176,7 @@ class ActivityMapMonitor(ActivityMonitor):
         if not self._grid_written:
             self._emit_grid()
             self._grid_written = True
-        if self.layers is None and hasattr(agent, "layer_names"):
+        if self.layers is None and isinstance(agent, HasActivations):
             names = list(agent.layer_names())
             if "analysis" not in names:
                 raise ConfigError(

@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -47,8 +47,18 @@ from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback, laye
 from cobelrun.agents.networks import set_torch_threads
 from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
 from cobelrun.agents.sb3 import TrialDQN, TrialRecorder
+from cobelrun.agents.schema import (
+    AgentArgs,
+    at_least,
+    finite_or_none,
+    interval,
+    one_of,
+    positive,
+    positive_or_none,
+    validate_args,
+)
 from cobelrun.agents.torch_init import INITS
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
 
@@ -184,6 +194,59 @@ def replay_bytes(space: gym.Space, capacity: int) -> int:
     return int(capacity) * (2 * per_obs + 8 + 4 + 4 + 4)
 
 
+class DQNArgs(AgentArgs):
+    """The ranges of :class:`DQNAgent`'s arguments (checked in this order)."""
+
+    #: exploration rate while training (epsilon-greedy)
+    epsilon: Annotated[Any, interval(0.0, 1.0)]
+    #: exploration rate in test trials
+    test_epsilon: Annotated[Any, interval(0.0, 1.0)]
+    #: discount factor
+    gamma: Annotated[Any, interval(0.0, 1.0)]
+    #: soft update coefficient of the target network (1: hard copy)
+    tau: Annotated[Any, interval(0.0, 1.0)]
+    #: prioritized replay: priority exponent
+    per_alpha: Annotated[Any, interval(0.0, 1.0)]
+    #: prioritized replay: initial importance-sampling exponent
+    per_beta: Annotated[Any, interval(0.0, 1.0)]
+    #: dropout after the convolutional features
+    dropout: Annotated[Any, interval(0.0, 0.99)]
+    #: transitions per gradient step
+    batch_size: Annotated[Any, at_least(1)]
+    #: replay memory size (transitions)
+    buffer_size: Annotated[Any, at_least(1)]
+    #: steps before learning starts
+    learning_starts: Annotated[Any, at_least(0)]
+    #: steps between updates
+    train_freq: Annotated[Any, at_least(1)]
+    #: gradient steps per update
+    gradient_steps: Annotated[Any, at_least(1)]
+    #: extra gradient steps at each trial's end
+    trial_end_updates: Annotated[Any, at_least(0)]
+    #: gradient steps between target network updates
+    target_update_interval: Annotated[Any, at_least(1)]
+    #: gradient steps over which the importance-sampling exponent anneals to 1
+    per_beta_steps: Annotated[Any, at_least(1)]
+    #: initial bias of the output layer (null: the init's)
+    q_init: Annotated[Any, finite_or_none()]
+    #: Adam's learning rate
+    learning_rate: Annotated[Any, positive()]
+    #: padding of the convolutions
+    conv_padding: Annotated[Any, one_of(("valid", "same"), hint=False)]
+    #: gradient norm clip (null: none)
+    max_grad_norm: Annotated[Any, positive_or_none()]
+    #: weight initialisation
+    init: Annotated[Any, one_of(INITS)]
+    #: TD loss
+    loss: Annotated[Any, one_of(LOSSES)]
+    #: hidden layers' activation
+    activation: Annotated[Any, one_of(ACTIVATIONS)]
+    #: SB3 policy (auto: from the observation space)
+    policy: Annotated[Any, one_of(POLICIES)]
+    #: size of the convolutional features
+    features_dim: Annotated[Any, at_least(1)]
+
+
 class DQNAgent(Agent):
     """DQN (Mnih et al. 2015) through stable-baselines3, trained in trials.
 
@@ -302,63 +365,7 @@ class DQNAgent(Agent):
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
-        for name, value, lo, hi in (
-            ("epsilon", epsilon, 0.0, 1.0),
-            ("test_epsilon", test_epsilon, 0.0, 1.0),
-            ("gamma", gamma, 0.0, 1.0),
-            ("tau", tau, 0.0, 1.0),
-            ("per_alpha", per_alpha, 0.0, 1.0),
-            ("per_beta", per_beta, 0.0, 1.0),
-            ("dropout", dropout, 0.0, 0.99),
-        ):
-            if not lo <= value <= hi:
-                raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
-        for name, value, lo in (
-            ("batch_size", batch_size, 1),
-            ("buffer_size", buffer_size, 1),
-            ("learning_starts", learning_starts, 0),
-            ("train_freq", train_freq, 1),
-            ("gradient_steps", gradient_steps, 1),
-            ("trial_end_updates", trial_end_updates, 0),
-            ("target_update_interval", target_update_interval, 1),
-            ("per_beta_steps", per_beta_steps, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, int) or value < lo:
-                raise ConfigError(f"agent.{name} must be an integer >= {lo}, got {value!r}")
-        if q_init is not None and (
-            isinstance(q_init, bool)
-            or not isinstance(q_init, int | float)
-            or not np.isfinite(q_init)
-        ):
-            raise ConfigError(f"agent.q_init must be a finite number or null, got {q_init!r}")
-        if learning_rate <= 0:
-            raise ConfigError(f"agent.learning_rate must be > 0, got {learning_rate}")
-        if conv_padding not in ("valid", "same"):
-            raise ConfigError(
-                f"agent.conv_padding {conv_padding!r} is not known; allowed: 'valid', 'same'"
-            )
-        if max_grad_norm is not None and not max_grad_norm > 0:
-            raise ConfigError(f"agent.max_grad_norm must be > 0 or null, got {max_grad_norm}")
-        if init not in INITS:
-            raise ConfigError(
-                f"agent.init {init!r} is not known{suggest(str(init), list(INITS))}; "
-                f"allowed: {allowed_list(list(INITS))}"
-            )
-        if loss not in LOSSES:
-            raise ConfigError(
-                f"agent.loss {loss!r} is not known{suggest(loss, list(LOSSES))}; "
-                f"allowed: {allowed_list(list(LOSSES))}"
-            )
-        if activation not in ACTIVATIONS:
-            raise ConfigError(
-                f"agent.activation {activation!r} is not known{suggest(activation, list(ACTIVATIONS))}; "
-                f"allowed: {allowed_list(list(ACTIVATIONS))}"
-            )
-        if policy not in POLICIES:
-            raise ConfigError(
-                f"agent.policy {policy!r} is not known{suggest(policy, POLICIES)}; "
-                f"allowed: {allowed_list(POLICIES)}"
-            )
+        validate_args(DQNArgs, locals())
         set_torch_threads(torch_threads)
         self.epsilon, self.test_epsilon = float(epsilon), float(test_epsilon)
         self.prioritized = bool(prioritized)
@@ -382,8 +389,6 @@ class DQNAgent(Agent):
             raise ConfigError("agent.prioritized replay does not support Dict observations")
         if net_arch is None:
             net_arch = [] if policy == "CnnPolicy" else [64, 64, 64, 64]
-        if isinstance(features_dim, bool) or not isinstance(features_dim, int) or features_dim < 1:
-            raise ConfigError(f"agent.features_dim must be an integer >= 1, got {features_dim!r}")
         check_allocation("agent.buffer_size", replay_bytes(obs_space, buffer_size),
                          f"a replay memory of {buffer_size:,} transitions of {obs_space}",
                          "lower agent.buffer_size")  # fmt: skip

@@ -138,7 +138,10 @@ def test_sweep_job_with_a_damaged_manifest_is_failed_not_done(real_sweep, tmp_pa
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
     assert "1 done, 1 failed" in out
-    assert "manifest.json" in out
+    from cobelrun.sweep import job_rows
+
+    row = job_rows(sweep, write=False)[1]  # the table folds long errors: read the row
+    assert row["status"] == "failed" and "manifest.json" in row["error"]
 
 
 def test_sweep_job_folder_linking_outside_is_not_followed(real_sweep, tmp_path):
@@ -154,7 +157,11 @@ def test_sweep_job_folder_linking_outside_is_not_followed(real_sweep, tmp_path):
     before = {p: p.stat().st_mtime_ns for p in outside.rglob("*")}
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
-    assert "not a folder of the sweep" in out
+    assert "1 done, 1 failed" in out
+    from cobelrun.sweep import job_rows
+
+    row = job_rows(sweep, write=False)[1]  # the table folds long errors: read the row
+    assert row["status"] == "failed" and "not a folder of the sweep" in row["error"]
     assert {p: p.stat().st_mtime_ns for p in outside.rglob("*")} == before
 
 
@@ -240,7 +247,11 @@ def test_sweep_job_with_a_truncated_table_is_not_done(real_sweep, tmp_path):
     truncate("trials.parquet")(sweep / "0")
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
-    assert "1 done, 1 failed" in out and "trials.parquet" in out
+    assert "1 done, 1 failed" in out
+    from cobelrun.sweep import job_rows
+
+    row = job_rows(sweep, write=False)[0]
+    assert row["status"] == "failed" and "trials.parquet is not a readable" in row["error"]
 
 
 @pytest.mark.parametrize(

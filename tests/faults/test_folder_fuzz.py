@@ -105,7 +105,6 @@ def mutate(data: Any, path: Path, box: Path, canary: Path) -> str:
     """Change the file (or folder) ``path`` in one drawn way; returns what was done."""
     kinds = ["truncate", "flip", "empty", "garbage", "delete", "link-outside", "link-root",
              "link-dev-zero", "link-dangling", "fifo"]  # fmt: skip
-    text_kind = path.suffix in (".json", ".yaml", ".csv") or path.name == ".done"
     if path.suffix == ".json":
         kinds += ["json-value"] * 4 + ["json-target"] * 2
     if path.suffix == ".yaml":
@@ -186,7 +185,6 @@ def mutate(data: Any, path: Path, box: Path, canary: Path) -> str:
         with zipfile.ZipFile(path, "w") as zout:
             for n, v in members.items():
                 zout.writestr(n, v)
-    del text_kind
     return kind
 
 

@@ -40,9 +40,9 @@ KNOWN_UP: dict[tuple[str, str], str] = {
     ("cobelrun.io.nwb", "cobelrun.sweep"): "read_json of job.json lives in sweep.py",
     ("cobelrun.results", "cobelrun.sweep"): "the sweep folder format lives in sweep.py",
 }
-#: modules below orchestration that still import the package root (for ``__version__``)
+#: modules below orchestration that still import the package root (none: the version is in
+#: ``cobelrun._version``)
 KNOWN_ROOT: dict[str, str] = {
-    "cobelrun.io.manifest": "__version__ for the manifest",
     "cobelrun.runner": "__version__ for the manifest",
 }
 

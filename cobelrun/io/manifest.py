@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import cobelrun
+from cobelrun._version import __version__
 
 __all__ = [
     "MANIFEST_NAME",
@@ -115,7 +115,7 @@ def package_versions() -> dict[str, str]:
 
 @functools.cache
 def _package_versions() -> dict[str, str]:
-    versions = {"python": platform.python_version(), "cobelrun": cobelrun.__version__}
+    versions = {"python": platform.python_version(), "cobelrun": __version__}
     for name in _PACKAGES:
         try:
             versions[name] = importlib.metadata.version(name)
@@ -260,13 +260,13 @@ class Manifest:
         started = _now()
         self._t0 = time.monotonic()
         cwd = Path.cwd()
-        src = Path(cobelrun.__file__).resolve().parent
+        src = Path(__file__).resolve().parents[1]  # the cobelrun package
         data: dict[str, Any] = {
             "status": "running",
             "task": task,
             "seed": int(seed),
             "config_hash": config_hash(config),
-            "cobelrun_version": cobelrun.__version__,
+            "cobelrun_version": __version__,
             "versions": package_versions(),
             "git": {"cwd": git_info(cwd), "cobelrun": git_info(src)},
             "hostname": socket.gethostname(),

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-import cobelrun
+from cobelrun._version import __version__
 from cobelrun.config import factory, instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
@@ -518,7 +518,7 @@ def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task
         manifest.start(config=dict(resolved), seed=task.seed, task=task.name, extra=extra)
     except OSError as exc:
         raise CobelError(disk_error(exc, run_dir)) from None
-    metadata = {"cobel.version": cobelrun.__version__, "cobel.seed": str(task.seed),
+    metadata = {"cobel.version": __version__, "cobel.seed": str(task.seed),
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
     guard = SignalGuard()

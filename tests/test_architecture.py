@@ -42,9 +42,7 @@ KNOWN_UP: dict[tuple[str, str], str] = {
 }
 #: modules below orchestration that still import the package root (none: the version is in
 #: ``cobelrun._version``)
-KNOWN_ROOT: dict[str, str] = {
-    "cobelrun.runner": "__version__ for the manifest",
-}
+KNOWN_ROOT: dict[str, str] = {}
 
 
 def layer(module: str) -> int:

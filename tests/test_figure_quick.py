@@ -1,0 +1,104 @@
+"""The ``--quick`` path of the figures not covered elsewhere (fig8, pma, revaluation,
+conditioning), built in-process as ``cobel figure NAME --quick`` builds them: the spec's quick
+overrides plus a few that make the runs tiny, run planning, the runs, the drawing and the
+PNG/PDF/CSV files. (fig4, fig6a, fig6b, fig7, fig9 and morris: test_frame_times.py,
+test_fig6a.py, test_figures.py, test_water_maze.py.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cobelrun.figures import registry
+
+#: extra overrides (after the spec's own quick ones) that make each figure's runs tiny
+TINY: dict[str, list[str]] = {
+    "fig8": [
+        "seed=range(0,1)",
+        "task.protocol.phases.0.trials=4",
+        "task.protocol.max_steps=6",
+        "agent.learning_starts=4",
+        "task.monitors.maps.every=2",
+        "task.monitors.maps.grid=[6,5]",
+    ],
+    "pma": [],  # its quick runs: 3 runs x 8 trials per agent
+    "revaluation": ["task.job.runs=2", "task.job.training_trials=20"],
+    "conditioning": ["task.runs=1"],
+}
+NEEDS = {"fig8": ("stable_baselines3", "pybullet")}
+
+
+def build_quick(name: str, root: Path) -> tuple[registry.Figure, dict[str, Path]]:
+    for module in NEEDS.get(name, ()):
+        pytest.importorskip(module)
+    figure = registry.figures()[name]
+    quick = {label: list(extra) for label, extra in figure.quick.items()}
+    quick["*"] = [*quick.get("*", []), *TINY[name]]
+    figure = dataclasses.replace(figure, quick=quick)
+    files = registry.build(figure, quick=True, root=root, out_dir=root / "figures", jobs=1)
+    for suffix in ("png", "pdf", "csv"):
+        assert files[suffix] == root / "figures" / f"{name}_quick.{suffix}"
+        assert files[suffix].stat().st_size > 0
+    assert files["pdf"].read_bytes().startswith(b"%PDF")
+    assert files["png"].read_bytes().startswith(b"\x89PNG")
+    return figure, files
+
+
+def run_dirs(figure: registry.Figure, root: Path) -> dict[str, list[Path]]:
+    """The run folders of each label, as the build planned them."""
+    out: dict[str, list[Path]] = {}
+    for planned in registry.plan_runs(figure, quick=True, root=root):
+        out.setdefault(planned.label, []).append(planned.run_dir)
+    return out
+
+
+def test_fig8_quick(tmp_path):
+    _, files = build_quick("fig8", tmp_path)
+    table = pd.read_csv(files["csv"])
+    # one job, snapshots before training and every 2 of its 4 trials, 50 analysis units
+    assert table["job"].tolist() == [0, 0, 0] and table["trial"].tolist() == [0, 2, 4]
+    assert (table["units"] == 50).all()
+    assert table["place_cell_fraction"].between(0, 1).all()
+    assert (table["place_cells"] == table["place_cell_fraction"] * table["units"]).all()
+
+
+def test_pma_quick_medians_are_the_runs(tmp_path):
+    figure, files = build_quick("pma", tmp_path)
+    table = pd.read_csv(files["csv"])
+    assert table["trial"].tolist() == list(range(1, 9))
+    for label, dirs in run_dirs(figure, tmp_path).items():
+        trials = pd.concat(pd.read_parquet(d / "trials.parquet") for d in dirs)
+        assert trials["run"].nunique() == 3
+        median = trials.groupby("trial")["steps"].median()
+        np.testing.assert_allclose(table[f"{label}_median_steps"], median.to_numpy())
+    for column in ("forward_per_trial_start", "reverse_per_trial_end"):
+        assert (table[column] >= 0).all()
+
+
+def test_revaluation_quick_scores_every_design_maze_and_budget(tmp_path):
+    figure, files = build_quick("revaluation", tmp_path)
+    table = pd.read_csv(files["csv"])
+    assert set(table["design"]) == {"reward", "transition", "policy"}
+    assert set(table["maze"]) == {"graph", "grid"}
+    assert (table["runs"] == 2).all()
+    np.testing.assert_allclose(table["score"], table["after"] - table["before"])
+    dirs = run_dirs(figure, tmp_path)
+    assert set(dirs) == {*table["design"], *(f"{d}_grid" for d in table["design"])}
+
+
+def test_conditioning_quick_predictions_per_paradigm_and_model(tmp_path):
+    _, files = build_quick("conditioning", tmp_path)
+    table = pd.read_csv(files["csv"])
+    assert set(table["task"]) == {"acquisition_extinction", "blocking", "overshadowing",
+                                  "conditioned_inhibition", "second_order", "renewal"}  # fmt: skip
+    assert {"rescorla_wagner", "td_conditioning"} <= set(table["model"])
+    assert np.isfinite(table["V"]).all()
+    acq = table[(table["task"] == "acquisition_extinction") & (table["model"] == "rescorla_wagner")]
+    # Rescorla-Wagner: V near the asymptote after acquisition, near 0 after extinction
+    v = acq.set_index("probe")["V"]
+    assert v["acquisition"] > 0.9 and v["extinction"] < 0.1

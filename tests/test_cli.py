@@ -1,4 +1,5 @@
-"""The installed CLI end to end (subprocess): runs, listing, plotting, bad input, interruption."""
+"""The CLI end to end: runs, listing, plotting, bad input (in-process, through typer's runner),
+start-up, exit codes of a real process and interruption by signals (subprocess)."""
 
 from __future__ import annotations
 
@@ -18,13 +19,36 @@ from tests.test_mcap import read as read_mcap
 TINY = ["task.runs=3", "task.protocol.phases.0.trials=10", "task.protocol.phases.1.trials=10"]
 
 
+@pytest.fixture
+def cli(tmp_path, monkeypatch):
+    """``cobel ARGS`` in this process (typer's CliRunner) in a temporary working directory,
+    results under ``tmp_path/results``: a CompletedProcess (returncode, stdout, stderr)."""
+    from typer.testing import CliRunner
+
+    from cobelrun.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("COBEL_RESULTS", str(tmp_path / "results"))
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+
+    def _run(*args: str) -> subprocess.CompletedProcess:
+        result = CliRunner().invoke(app, list(args))
+        if result.exception is not None and not isinstance(result.exception, SystemExit):
+            raise result.exception
+        return subprocess.CompletedProcess(
+            ["cobel", *args], result.exit_code, result.stdout, result.stderr
+        )
+
+    return _run
+
+
 def run_dir_of(proc: subprocess.CompletedProcess) -> Path:
     assert proc.returncode == 0, proc.stderr
     return Path(proc.stdout.strip().splitlines()[-1])
 
 
-def test_run_tmaze_extinction_writes_a_complete_run_folder(cobel, tmp_path):
-    proc = cobel("run", "task=tmaze_extinction", *TINY)
+def test_run_tmaze_extinction_writes_a_complete_run_folder(cli, tmp_path):
+    proc = cli("run", "task=tmaze_extinction", *TINY)
     run = run_dir_of(proc)
     assert run.parent.parent == tmp_path / "results" / "tmaze_extinction"
     for name in (
@@ -83,22 +107,22 @@ def test_run_tmaze_extinction_writes_a_complete_run_folder(cobel, tmp_path):
     start = json.loads((run / "manifest.json").read_text())["started_at"]
     assert min(m[2] for m in messages) > 1_700_000_000 * 10**9, start  # real time, not 1970
 
-    plot = cobel("plot", str(run))
+    plot = cli("plot", str(run))
     assert plot.returncode == 0, plot.stderr
     assert (run / "plot.png").stat().st_size > 10_000
 
 
-def test_same_seed_gives_identical_trials_table(cobel):
-    a = run_dir_of(cobel("run", "task=tmaze_extinction", "seed=7", *TINY))
-    b = run_dir_of(cobel("run", "task=tmaze_extinction", "seed=7", *TINY))
-    c = run_dir_of(cobel("run", "task=tmaze_extinction", "seed=8", *TINY))
+def test_same_seed_gives_identical_trials_table(cli):
+    a = run_dir_of(cli("run", "task=tmaze_extinction", "seed=7", *TINY))
+    b = run_dir_of(cli("run", "task=tmaze_extinction", "seed=7", *TINY))
+    c = run_dir_of(cli("run", "task=tmaze_extinction", "seed=8", *TINY))
     assert a != b
     ta, tb, tc = (pd.read_parquet(p / "trials.parquet") for p in (a, b, c))
     pd.testing.assert_frame_equal(ta, tb)
     assert not ta.equals(tc)
 
 
-def test_user_conf_folder_is_searched_first(cobel, tmp_path):
+def test_user_conf_folder_is_searched_first(cli, tmp_path):
     (tmp_path / "conf" / "task").mkdir(parents=True)
     (tmp_path / "conf" / "task" / "my_tmaze.yaml").write_text(
         "# @package _global_\n"
@@ -107,20 +131,20 @@ def test_user_conf_folder_is_searched_first(cobel, tmp_path):
         "task:\n  name: my_tmaze\n  runs: 2\n"
         "agent:\n  epsilon: 0.2\n"
     )
-    listing = cobel("list", "task")
+    listing = cli("list", "task")
     assert (
         listing.returncode == 0
         and "my_tmaze" in listing.stdout
         and "tmaze_extinction" in listing.stdout
     )
-    run = run_dir_of(cobel("run", "task=my_tmaze", "task.protocol.phases.0.trials=5"))
+    run = run_dir_of(cli("run", "task=my_tmaze", "task.protocol.phases.0.trials=5"))
     assert "my_tmaze" in str(run)
     cfg = (run / "config.yaml").read_text()
     assert "epsilon: 0.2" in cfg
 
 
-def test_list_shows_descriptions(cobel):
-    out = cobel("list")
+def test_list_shows_descriptions(cli):
+    out = cli("list")
     assert out.returncode == 0
     assert "tmaze_extinction" in out.stdout and "Fig. 6B" in out.stdout
     assert "dyna_q" in out.stdout and "tmaze_paper" in out.stdout
@@ -183,8 +207,8 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         ),
     ],
 )
-def test_bad_input_one_clear_line(cobel, tmp_path, args, message):
-    proc = cobel("run", "task=tmaze_extinction", *args)
+def test_bad_input_one_clear_line(cli, tmp_path, args, message):
+    proc = cli("run", "task=tmaze_extinction", *args)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     lines = [line for line in proc.stderr.strip().splitlines() if line]
     assert len(lines) == 1, proc.stderr
@@ -194,9 +218,9 @@ def test_bad_input_one_clear_line(cobel, tmp_path, args, message):
     assert not (tmp_path / "results").exists()  # nothing was written
 
 
-def test_unwritable_output_folder(cobel, tmp_path):
+def test_unwritable_output_folder(cli, tmp_path):
     (tmp_path / "blocker").write_text("a file, not a folder")
-    proc = cobel("run", "task=tmaze_extinction", f"hydra.run.dir={tmp_path}/blocker/run")
+    proc = cli("run", "task=tmaze_extinction", f"hydra.run.dir={tmp_path}/blocker/run")
     assert proc.returncode == 2
     assert "is not a folder" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert (tmp_path / "blocker").read_text() == "a file, not a folder"
@@ -207,8 +231,8 @@ def test_debug_shows_traceback(cobel):
     assert proc.returncode != 0 and "Traceback" in proc.stderr
 
 
-def test_plot_bad_folder(cobel, tmp_path):
-    proc = cobel("plot", str(tmp_path / "nope"))
+def test_plot_bad_folder(cli, tmp_path):
+    proc = cli("plot", str(tmp_path / "nope"))
     assert proc.returncode == 2 and "does not exist" in proc.stderr
 
 

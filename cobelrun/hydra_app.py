@@ -134,9 +134,9 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
     import traceback
 
     import cobelrun.sweep as sweep
+    from cobelrun.io.sweep_folder import clear_outputs, is_complete, job_config_hash, one_line
+    from cobelrun.io.sweep_folder import write_job_status as status
     from cobelrun.runner import run
-    from cobelrun.sweep import clear_outputs, is_complete, job_config_hash, one_line
-    from cobelrun.sweep import write_job_status as status
     from cobelrun.targets import check_config
 
     try:
@@ -209,7 +209,7 @@ def sweep_folder(overrides: list[str], cfg: DictConfig, jobs: list[dict]) -> tup
     ``<id>`` hashes the jobs' overrides (``cobelrun.sweep.sweep_id``), so the same sweep
     command always uses the same folder and resumes it.
     """
-    from cobelrun.sweep import sweep_id
+    from cobelrun.sweep_plan import sweep_id
 
     keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     if "hydra.sweep.dir" in keys:
@@ -273,7 +273,8 @@ def names_run_dir(config_dir: Path, config_name: str) -> bool:
 
 def report_sweep(sweep_dir: Path) -> int:
     """Print the sweep's outcome; return the exit code (1 when a job failed or is missing)."""
-    from cobelrun.sweep import job_rows, read_json, summary
+    from cobelrun.io.sweep_folder import job_rows, summary
+    from cobelrun.io.validate import read_json_or_none as read_json
 
     try:
         rows = job_rows(sweep_dir, write=False)  # the sweeper has just written jobs.csv
@@ -386,16 +387,9 @@ def launch(args: list[str], *, quiet: bool = False) -> int:
             # one writer per folder, from before Hydra writes anything into it (.hydra/,
             # cobel.log) until the run ends; a folder that holds a run is never replaced
             check_new_run(run_dir)
-            try:
-                lock = RunLock(run_dir)
-                lock.__enter__()
-            except OSError as exc:
-                raise CobelError(f"cannot write the run folder {run_dir}: {exc.strerror}") from None
-            try:
+            with RunLock(run_dir):
                 check_new_run(run_dir)
                 return run_composed(cfg, extra, user_dir, config_name, built.get("task"))
-            finally:
-                lock.__exit__(None, None, None)
     if sweep_dir is None:
         run_hydra(parsed, config_dir, config_name)
         return 0
@@ -697,7 +691,9 @@ class SweepStopper:
 
     def report(self) -> int:
         """Mark jobs that never started, rebuild the index, print one line; exit code 130."""
-        from cobelrun.sweep import clear_stop, job_rows, mark_not_started, read_json, summary
+        from cobelrun.io.sweep_folder import job_rows, summary
+        from cobelrun.io.validate import read_json_or_none as read_json
+        from cobelrun.sweep import clear_stop, mark_not_started
 
         mark_not_started(self.sweep_dir, self.jobs, "the sweep was stopped before this job started")
         clear_stop(self.sweep_dir)

@@ -483,17 +483,10 @@ def run(
         task = build_task(cfg)  # everything is checked before the folder is touched
     if not replace:
         _check_new(run_dir)
-    try:
-        lock = RunLock(run_dir)
-        lock.__enter__()
-    except OSError as exc:
-        raise CobelError(disk_error(exc, run_dir)) from None
-    try:
+    with RunLock(run_dir):
         if not replace:
             _check_new(run_dir)  # again, now that no one else can write it
         return _run(cfg, run_dir, resolved, task, progress, background_writes)
-    finally:
-        lock.__exit__(None, None, None)
 
 
 def _check_new(run_dir: Path) -> None:

@@ -94,7 +94,7 @@ def refuse_existing(folder: Path, what: str, *, hydra: bool = True) -> None:
 
 class RunLock:
     """Hold ``folder`` (created if missing) for writing; a CobelError if another process holds
-    it. Use as a context manager.
+    it (or the folder cannot be written). Use as a context manager.
 
     Parameters
     ----------
@@ -110,6 +110,14 @@ class RunLock:
         self._key = ""
 
     def __enter__(self) -> RunLock:
+        try:
+            return self._acquire()
+        except OSError as exc:  # a full disk, a read-only folder, a file in the way
+            from cobelrun.io.atomic import disk_error
+
+            raise CobelError(disk_error(exc, self.folder)) from None
+
+    def _acquire(self) -> RunLock:
         self.folder.mkdir(parents=True, exist_ok=True)
         self._key = str(self.folder.resolve())
         held = _HELD.get(self._key)

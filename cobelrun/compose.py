@@ -595,7 +595,7 @@ def check_yaml_size(path: Path, limit: int | None = None) -> None:
         return
     try:
         with open(path, encoding="utf-8") as f:
-            docs = list(yaml.compose_all(f, Loader=yaml.SafeLoader))
+            docs = list(yaml.compose_all(f, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)))
     except (yaml.YAMLError, OSError, UnicodeDecodeError, RecursionError):
         return  # reported by the loader that reads it
     sizes: dict[int, int] = {}

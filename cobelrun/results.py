@@ -77,7 +77,7 @@ def load_run(path: str | Path, table: str = "trials") -> pd.DataFrame:
 
 def load_jobs(sweep_dir: str | Path) -> pd.DataFrame:
     """The job index of a sweep folder: job, swept params, status, error, config hash, run dir."""
-    from cobelrun.sweep import index
+    from cobelrun.io.sweep_folder import index
 
     return index(sweep_dir, write=False)
 
@@ -91,7 +91,8 @@ def load_sweep(sweep_dir: str | Path, table: str = "trials") -> pd.DataFrame:
     ``columns`` / ``filters``.
     """
     from cobelrun.io.manifest import DONE_MARKER
-    from cobelrun.sweep import COLLECTED_DIR, collect, index
+    from cobelrun.io.sweep_collect import collect
+    from cobelrun.io.sweep_folder import COLLECTED_DIR, index
 
     sweep_dir = Path(sweep_dir)
     jobs = index(sweep_dir, write=False)
@@ -123,7 +124,7 @@ def load_collected(
     """A table written by ``cobel collect``: ``path`` is the sweep folder, its ``collected/``
     folder or the Parquet file. ``columns`` and ``filters`` (pyarrow syntax, e.g.
     ``[("seed", "==", 3)]``) read only what is needed."""
-    from cobelrun.sweep import COLLECTED_DIR
+    from cobelrun.io.sweep_folder import COLLECTED_DIR
 
     p = Path(path)
     if p.is_dir() and (p / COLLECTED_DIR).is_dir():

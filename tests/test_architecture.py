@@ -34,12 +34,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
 NAMES = {3: "orchestration", 2: "compose", 1: "runner", 0: "library"}
 
 #: upward edges still in the code: (importer, imported) -> why it is there for now
-KNOWN_UP: dict[tuple[str, str], str] = {
-    ("cobelrun.compose", "cobelrun.sweep"): "a sweep's jobs are planned by sweep.plan (to split)",
-    ("cobelrun.figures.runs", "cobelrun.sweep"): "the sweep folder format lives in sweep.py",
-    ("cobelrun.io.nwb", "cobelrun.sweep"): "read_json of job.json lives in sweep.py",
-    ("cobelrun.results", "cobelrun.sweep"): "the sweep folder format lives in sweep.py",
-}
+KNOWN_UP: dict[tuple[str, str], str] = {}
 #: modules below orchestration that still import the package root (none: the version is in
 #: ``cobelrun._version``)
 KNOWN_ROOT: dict[str, str] = {}

@@ -6,7 +6,7 @@ import importlib.util
 
 import pytest
 
-from cobelrun.sweep import job_rows
+from cobelrun.io.sweep_folder import job_rows
 
 
 @pytest.mark.slow

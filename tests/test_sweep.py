@@ -1,5 +1,6 @@
-"""Sweeps end to end (subprocess): joblib and submitit_local launchers, resume, failures,
-``cobel status`` and ``cobel collect``."""
+"""Sweeps end to end: joblib and submitit_local launchers, resume, failures (``cobel run -m``
+in a subprocess: the launchers start processes), ``cobel status`` and ``cobel collect``
+(in-process)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from cobelrun.results import load_collected, load_jobs, load_sweep
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process
 
 TINY = ["task.runs=2", "task.protocol.phases.0.trials=8", "task.protocol.phases.1.trials=8"]
 
@@ -25,7 +29,7 @@ def mtimes(sweep: Path) -> dict[int, float]:
     return {int(d.name): (d / "trials.parquet").stat().st_mtime_ns for d in sweep.glob("[0-9]*")}
 
 
-def test_joblib_sweep_resumes_and_collects(cobel, tmp_path):
+def test_joblib_sweep_resumes_and_collects(cobel, cli, tmp_path):
     args = ["run", "-m", "task=tmaze_extinction", "seed=1,2,3", *TINY, "hydra.launcher.n_jobs=2"]
     proc = cobel(*args)
     sweep = sweep_dir_of(proc)
@@ -48,16 +52,16 @@ def test_joblib_sweep_resumes_and_collects(cobel, tmp_path):
 
     # an unfinished job (no done marker) is run again, the others are not
     (sweep / "1" / ".done").unlink()
-    status = cobel("status", str(sweep))
+    status = cli("status", str(sweep))
     assert status.returncode == 1 and "running" in status.stdout
     third = cobel(*args)
     assert sweep_dir_of(third) == sweep
     after = mtimes(sweep)
     assert after[0] == before[0] and after[2] == before[2] and after[1] != before[1]
-    assert cobel("status", str(sweep)).returncode == 0
+    assert cli("status", str(sweep)).returncode == 0
 
     # collect: one file per table, job + swept params first, all rows of all jobs
-    out = cobel("collect", str(sweep))
+    out = cli("collect", str(sweep))
     assert out.returncode == 0, out.stderr
     trials_file = sweep / "collected" / "trials.parquet"
     assert trials_file.is_file() and (sweep / "collected" / "steps.parquet").is_file()
@@ -77,7 +81,7 @@ def test_joblib_sweep_resumes_and_collects(cobel, tmp_path):
     assert list(load_jobs(sweep)["status"]) == ["done"] * 3
 
 
-def test_failing_job_is_recorded_and_the_others_complete(cobel, tmp_path):
+def test_failing_job_is_recorded_and_the_others_complete(cobel, cli, tmp_path):
     # 'greedy' passes composition (validate builds only the first combination) but the
     # agent's constructor refuses it in job 1
     proc = cobel(
@@ -94,7 +98,7 @@ def test_failing_job_is_recorded_and_the_others_complete(cobel, tmp_path):
     index = pd.read_csv(sweep / "jobs.csv")
     assert list(index["status"]) == ["done", "failed", "done"]
     assert "not known" in index.loc[1, "error"]
-    status = cobel("status", str(sweep))
+    status = cli("status", str(sweep))
     assert status.returncode == 1
     assert "failed" in status.stdout and "greedy" in status.stdout and "2 done" in status.stdout
     # the rerun only tries the failed job again (and it fails again)
@@ -119,7 +123,7 @@ def test_submitit_local_sweep(cobel, tmp_path):
     assert len(a) == 2 * 16
 
 
-def test_slurm_launcher_against_stand_in_slurm_commands(cobel, tmp_path):
+def test_slurm_launcher_against_stand_in_slurm_commands(cobel, cli, tmp_path):
     """hydra/launcher=slurm end to end with stand-ins for sbatch, srun and sacct
     (tests/fake_slurm): submitit writes one array script from conf/hydra/launcher/slurm.yaml,
     each task runs cobel's job with the environment SLURM gives it, and the sweep ends done and
@@ -154,27 +158,27 @@ def test_slurm_launcher_against_stand_in_slurm_commands(cobel, tmp_path):
     while {p.read_text() for p in state.glob("state_*")} != {"COMPLETED"}:
         assert time.monotonic() < deadline, {p.name: p.read_text() for p in state.glob("state_*")}
         time.sleep(0.2)
-    single = cobel("run", "task=tmaze_extinction", "seed=4", *TINY, "--quiet",
+    single = cli("run", "task=tmaze_extinction", "seed=4", *TINY, "--quiet",
                    f"hydra.run.dir={tmp_path / 'single'}")  # fmt: skip
     assert single.returncode == 0, single.stderr
     pd.testing.assert_frame_equal(pd.read_parquet(sweep / "0" / "trials.parquet"),
                                   pd.read_parquet(tmp_path / "single" / "trials.parquet"))  # fmt: skip
 
 
-def test_status_of_a_folder_that_is_no_sweep(cobel, tmp_path):
-    proc = cobel("status", str(tmp_path))
+def test_status_of_a_folder_that_is_no_sweep(cli, tmp_path):
+    proc = cli("status", str(tmp_path))
     assert proc.returncode == 2
     assert proc.stderr.strip() == (
         f"cobel: error: {tmp_path} is neither a run folder (no manifest.json; made by `cobel "
         "run`) nor a sweep folder (no sweep.json; made by `cobel run -m`)"
     )
-    missing = cobel("status", str(tmp_path / "nowhere"))
+    missing = cli("status", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
 @pytest.mark.parametrize("order", [["seed=1,2", "task.runs=2"], ["task.runs=2", "seed=1,2"]])
 def test_sweep_id_ignores_order_of_fixed_overrides_and_launcher(order):
-    from cobelrun.sweep import plan, sweep_id
+    from cobelrun.sweep_plan import plan, sweep_id
 
     _, jobs = plan(["task=tmaze_extinction", *order])
     _, ref = plan(["task=tmaze_extinction", "seed=1,2", "task.runs=2", "hydra/launcher=joblib"])
@@ -198,7 +202,7 @@ def test_jobs_come_in_hydras_basic_sweeper_order(overrides):
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from cobelrun.sweep import cartesian, plan
+    from cobelrun.sweep_plan import cartesian, plan
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     (hydra_jobs,) = BasicSweeper.split_arguments(parsed, None)
@@ -207,8 +211,8 @@ def test_jobs_come_in_hydras_basic_sweeper_order(overrides):
     assert [j["overrides"] for j in jobs] == hydra_jobs and len(jobs) > 1
 
 
-def test_an_interval_sweep_is_refused_in_one_line(cobel, tmp_path):
-    proc = cobel("run", "-m", "task=tmaze_extinction", "agent.epsilon=interval(0.1,0.5)")
+def test_an_interval_sweep_is_refused_in_one_line(cli, tmp_path):
+    proc = cli("run", "-m", "task=tmaze_extinction", "agent.epsilon=interval(0.1,0.5)")
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "interval needs a sampling sweeper" in lines[0], proc.stderr

@@ -110,7 +110,7 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
     from rich.table import Table
 
     from cobelrun.commands.common import STATUS_STYLE
-    from cobelrun.sweep import job_rows, read_sweep
+    from cobelrun.io.sweep_folder import job_rows, read_sweep
 
     sweep_dir = Path(sweep_dir)
     sweep = read_sweep(sweep_dir)

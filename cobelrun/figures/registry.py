@@ -236,7 +236,8 @@ class _Planned:
 
 def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) -> list[_Planned]:
     """Compose every run of ``figure``; each gets a run folder keyed by its config hash."""
-    from cobelrun.sweep import job_config_hash, plan
+    from cobelrun.io.sweep_folder import job_config_hash
+    from cobelrun.sweep_plan import plan
 
     root = root or results_root()
     planned = []
@@ -256,7 +257,8 @@ def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) 
 def finished_runs(folders: Sequence[Path]) -> dict[str, Path]:
     """Completed run folders under ``folders`` (each a run folder or holding run folders, two
     levels deep at most), by config hash; a one-line CobelError for a folder that is missing."""
-    from cobelrun.sweep import is_complete, read_json
+    from cobelrun.io.sweep_folder import is_complete
+    from cobelrun.io.validate import read_json_or_none as read_json
 
     found: dict[str, Path] = {}
     for folder in folders:
@@ -329,7 +331,8 @@ def run_parallel(
     import os
     import signal
 
-    from cobelrun.sweep import LAUNCHER_ENV, clear_outputs, worker_init
+    from cobelrun.io.sweep_folder import clear_outputs
+    from cobelrun.sweep import LAUNCHER_ENV, worker_init
 
     say = log or (lambda m: None)
     workers = min(jobs, len(todo))
@@ -450,9 +453,9 @@ def build(
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
     from cobelrun.figures.style import paper_style
+    from cobelrun.io.sweep_folder import clear_outputs, is_complete
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
-    from cobelrun.sweep import clear_outputs, is_complete
 
     if jobs is not None and jobs < 1:
         raise CobelError(f"--jobs {jobs}: give 1 or more (runs at once, one process each)")

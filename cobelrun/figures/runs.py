@@ -130,8 +130,8 @@ def plot_sweep_file(
     import matplotlib.pyplot as plt
 
     from cobelrun.figures import save_figure
+    from cobelrun.io.sweep_folder import read_sweep
     from cobelrun.results import load_sweep
-    from cobelrun.sweep import read_sweep
 
     sweep_dir = Path(sweep_dir)
     swept = read_sweep(sweep_dir)["swept"]

@@ -136,7 +136,7 @@ def _overrides(run_dir: Path, manifest: dict[str, Any]) -> list[str]:
     """The overrides the run was made with: a sweep job's own (``job.json``), else those of
     the ``cobel run`` command in the manifest (Hydra's ``hydra.*`` settings left out)."""
     from cobelrun.io.run_folder import RunFolder
-    from cobelrun.sweep import read_json
+    from cobelrun.io.validate import read_json_or_none as read_json
 
     found = (read_json(RunFolder(run_dir).job) or {}).get("overrides")
     if isinstance(found, list):

@@ -147,6 +147,17 @@ def read_json_object(path: str | os.PathLike[str], what: str = "") -> dict[str, 
     return data
 
 
+def read_json_or_none(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """A JSON object file's content, or None when it is missing, unreadable or not an object
+    (:func:`read_json_object`: size bounded, nesting bounded). Callers that must tell a damaged
+    file from a missing one use :func:`read_json_object` or the file's own reader."""
+    p = Path(path)
+    try:
+        return read_json_object(p) if p.is_file() else None
+    except CobelError:
+        return None
+
+
 def _json_kind(value: Any) -> str:
     return {list: "a list", str: "a string", int: "a number", float: "a number",
             bool: "a boolean", type(None): "null"}.get(type(value), type(value).__name__)  # fmt: skip
@@ -209,7 +220,7 @@ class ManifestFile(_File):
 
 
 class JobFile(_File):
-    """A sweep job's ``job.json`` (:func:`cobelrun.sweep.write_job_status`)."""
+    """A sweep job's ``job.json`` (:func:`cobelrun.io.sweep_folder.write_job_status`)."""
 
     status: Literal["queued", "running", "completed", "failed", "interrupted"]
     job: int | None = Field(default=None, ge=0)
@@ -235,7 +246,7 @@ class SweepJob(_File):
 
 
 class SweepFile(_File):
-    """A sweep folder's ``sweep.json`` (:func:`cobelrun.sweep.write_sweep`)."""
+    """A sweep folder's ``sweep.json`` (:func:`cobelrun.io.sweep_folder.write_sweep`)."""
 
     command: str = ""
     swept: list[str]

@@ -42,7 +42,7 @@ class CobelSweeper(Sweeper):
 
     Built on Hydra's public ``Sweeper`` plugin interface (Hydra's ``BasicSweeper`` lives in a
     private module); the jobs and their order are the basic sweeper's
-    (:func:`cobelrun.sweep.cartesian`).
+    (:func:`cobelrun.sweep_plan.cartesian`).
 
     Parameters
     ----------
@@ -88,7 +88,7 @@ class CobelSweeper(Sweeper):
         from hydra.core.utils import JobStatus
 
         from cobelrun.config import register_resolvers
-        from cobelrun.sweep import (
+        from cobelrun.io.sweep_folder import (
             DONE_MARKER,
             check_job_dir,
             clear_outputs,
@@ -97,11 +97,11 @@ class CobelSweeper(Sweeper):
             job_dir,
             job_rows,
             one_line,
-            plan,
-            stop_requested,
             write_job_status,
             write_sweep,
         )
+        from cobelrun.sweep import stop_requested
+        from cobelrun.sweep_plan import plan
 
         assert self.config is not None and self.launcher is not None
         assert self.hydra_context is not None
@@ -192,7 +192,7 @@ class CobelSweeper(Sweeper):
         composing every job (as Hydra's BasicSweeper does) costs ~0.1-0.2 s per job. Returns
         job number -> error for every job with a value that does not compose.
         """
-        from cobelrun.sweep import one_line
+        from cobelrun.io.sweep_folder import one_line
 
         assert self.hydra_context is not None and self.config is not None
         from cobelrun.config import GROUPS  # a swept choice may change the config's keys
@@ -221,7 +221,7 @@ def _error(r: Any) -> str:
     it, after writing a line of its own to stderr, which is dropped)."""
     import io
 
-    from cobelrun.sweep import one_line
+    from cobelrun.io.sweep_folder import one_line
 
     try:
         with contextlib.redirect_stderr(io.StringIO()):
@@ -261,7 +261,8 @@ def release_joblib_workers() -> None:
 
 
 def _fail_unfinished(sweep_dir: Path, nums: list[int], error: str, status: str = "failed") -> None:
-    from cobelrun.sweep import JOB_FILE, job_dir, read_json, write_job_status
+    from cobelrun.io.sweep_folder import JOB_FILE, job_dir, write_job_status
+    from cobelrun.io.validate import read_json_or_none as read_json
 
     for n in nums:
         d = job_dir(sweep_dir, n)
@@ -318,8 +319,9 @@ class _Watcher:
             self._thread.join(timeout=5)
 
     def _run(self) -> None:
+        from cobelrun.io.sweep_folder import JOB_FILE
+        from cobelrun.io.validate import read_json_or_none as read_json
         from cobelrun.progress import counter_progress
-        from cobelrun.sweep import JOB_FILE, read_json
 
         with counter_progress("jobs", total=self.total, unit="jobs") as update:
             while True:

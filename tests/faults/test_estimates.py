@@ -174,7 +174,7 @@ def test_sweep_limit_counts_every_swept_key(monkeypatch):
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from cobelrun.errors import CobelError
-    from cobelrun.sweep import check_job_count
+    from cobelrun.sweep_plan import check_job_count
 
     parsed = OverridesParser.create().parse_overrides(
         ["seed=range(0,100)", "agent.gamma=0.9,0.95", "agent.epsilon=choice(0.1,0.2,0.3)"]

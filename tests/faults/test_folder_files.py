@@ -138,7 +138,7 @@ def test_sweep_job_with_a_damaged_manifest_is_failed_not_done(real_sweep, tmp_pa
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
     assert "1 done, 1 failed" in out
-    from cobelrun.sweep import job_rows
+    from cobelrun.io.sweep_folder import job_rows
 
     row = job_rows(sweep, write=False)[1]  # the table folds long errors: read the row
     assert row["status"] == "failed" and "manifest.json" in row["error"]
@@ -158,7 +158,7 @@ def test_sweep_job_folder_linking_outside_is_not_followed(real_sweep, tmp_path):
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
     assert "1 done, 1 failed" in out
-    from cobelrun.sweep import job_rows
+    from cobelrun.io.sweep_folder import job_rows
 
     row = job_rows(sweep, write=False)[1]  # the table folds long errors: read the row
     assert row["status"] == "failed" and "not a folder of the sweep" in row["error"]
@@ -248,7 +248,7 @@ def test_sweep_job_with_a_truncated_table_is_not_done(real_sweep, tmp_path):
     code, out, exc = invoke("status", str(sweep))
     assert exc is None and code == 1, out
     assert "1 done, 1 failed" in out
-    from cobelrun.sweep import job_rows
+    from cobelrun.io.sweep_folder import job_rows
 
     row = job_rows(sweep, write=False)[0]
     assert row["status"] == "failed" and "trials.parquet is not a readable" in row["error"]

@@ -109,7 +109,7 @@ DANGEROUS = [
     "importlib.import_module", "pathlib.Path.write_text",
     "cobelrun.io.atomic.atomic_write_text", "cobelrun.io.atomic.atomic_path",
     "cobelrun.io.manifest.Manifest", "cobelrun.runner.run", "cobelrun.api.run",
-    "cobelrun.api.rerun", "cobelrun.sweep.collect", "cobelrun.hydra_app.launch",
+    "cobelrun.api.rerun", "cobelrun.io.sweep_collect.collect", "cobelrun.hydra_app.launch",
     "cobelrun.envs.world.np.save", "cobelrun.envs.GridWorldEnv.__init__",
 ]  # fmt: skip
 

@@ -239,7 +239,7 @@ def _dead_pid() -> int:
 def test_queued_job_of_a_dead_launcher_is_reported_not_started(tmp_path, launcher):
     """A job still ``queued`` when its launcher was SIGKILLed never starts: ``cobel status``
     says ``interrupted`` (not started) once the launcher is gone, ``queued`` while it lives."""
-    from cobelrun import sweep
+    from cobelrun.io import sweep_folder as sweep
 
     d = tmp_path / "sweep"
     sweep.write_sweep(d, command="cobel run -m seed=1,2", swept=["seed"],
@@ -273,7 +273,7 @@ def test_job_running_in_a_dead_process_is_interrupted(tmp_path, finished):
     """A job killed before it wrote a manifest (its job.json says ``running``) is not reported
     ``running`` forever; one killed after its last file but before its job.json said so is
     ``completed`` (a SIGKILLed sweep of seed 1000 left one marked interrupted)."""
-    from cobelrun import sweep
+    from cobelrun.io import sweep_folder as sweep
 
     d = tmp_path / "sweep"
     sweep.write_sweep(d, command="cobel run -m seed=1,2", swept=["seed"],

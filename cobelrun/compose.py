@@ -446,7 +446,7 @@ def validate(
     again.
     """
     from cobelrun.runner import build_task
-    from cobelrun.sweep import plan
+    from cobelrun.sweep_plan import plan
 
     first, jobs = overrides, []
     if multirun:  # a swept _target_: every value through the gate, not only the first job's

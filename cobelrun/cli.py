@@ -295,7 +295,7 @@ def status_cmd(
     from rich.table import Table
 
     from cobelrun.io.run_folder import RunFolder
-    from cobelrun.sweep import SWEEP_FILE, job_rows, read_sweep, summary
+    from cobelrun.io.sweep_folder import SWEEP_FILE, job_rows, read_sweep, summary
 
     folder = RunFolder(sweep_dir)
     if folder.manifest.is_file():  # a single run folder
@@ -363,8 +363,9 @@ def collect_cmd(
     with `job` and one column per swept key; load with pandas.read_parquet or
     cobelrun.results.load_collected.
     """
+    from cobelrun.io.sweep_collect import collect
+    from cobelrun.io.sweep_folder import job_rows, summary
     from cobelrun.progress import counter_progress
-    from cobelrun.sweep import collect, job_rows, summary
 
     try:
         with counter_progress("collect", total=0, unit="files") as update:

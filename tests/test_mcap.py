@@ -22,7 +22,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from cobelrun.envs.base import Geometry
 from cobelrun.envs.gridworld import GridWorldEnv
 from cobelrun.envs.world import from_layout
-from cobelrun.io.mcap import McapRecorder, repair_mcap
+from cobelrun.io.mcap import McapRecorder
+from cobelrun.io.mcap_repair import repair_mcap
 
 START = 1_763_900_000_123_456_789  # 2025-11-23, a run's wall-clock start
 

@@ -7,7 +7,8 @@ them (also from ``with`` on an exception or Ctrl-C) leaves complete, readable fi
 from __future__ import annotations
 
 from cobelrun.io.manifest import Manifest, config_hash
-from cobelrun.io.mcap import McapRecorder, repair_mcap
+from cobelrun.io.mcap import McapRecorder
+from cobelrun.io.mcap_repair import repair_mcap
 from cobelrun.io.parquet import ParquetStreamWriter
 
 __all__ = [

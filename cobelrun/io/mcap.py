@@ -26,25 +26,21 @@ Log times are nanoseconds since the Unix epoch, starting at the run's real wall-
 (``start_ns``), so Foxglove shows the date the run was made. The file is chunked (zstd, chunk
 CRCs on); :meth:`McapRecorder.flush` closes the chunk in progress so that everything written so
 far is on disk. A file left without its summary (the process was killed) is made readable again
-by :func:`repair_mcap`.
+by :func:`cobelrun.io.mcap_repair.repair_mcap`.
 
 Only public APIs are used: ``foxglove.open_mcap`` with a private ``foxglove.Context`` per file
 (two recorders in one process never share channels), typed channels from ``foxglove.channels``,
-messages from ``foxglove.messages``, and for :func:`repair_mcap` the ``mcap`` package's reader
-records and ``mcap.writer.Writer``.
+messages from ``foxglove.messages``. The maze's scene is built by
+:mod:`cobelrun.render.foxglove_scene`.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import os
-import struct
-import tempfile
 import time
-from collections.abc import Iterator, Mapping
-from io import BytesIO
+from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
@@ -54,9 +50,6 @@ import numpy as np
 from foxglove.channels import PoseInFrameChannel, RawImageChannel, SceneUpdateChannel
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import (
-    Color,
-    CubePrimitive,
-    CylinderPrimitive,
     Duration,
     KeyValuePair,
     LinePrimitive,
@@ -69,9 +62,16 @@ from foxglove.messages import (
     SceneEntity,
     SceneUpdate,
     SpherePrimitive,
-    TextPrimitive,
     Timestamp,
     Vector3,
+)
+
+from cobelrun.render.foxglove_scene import (
+    FRAME_ID,
+    PATH_COLORS,
+    PATH_HEIGHT,
+    scene_entities,
+    scene_pose,
 )
 
 
@@ -110,12 +110,9 @@ __all__ = [
     "TRIAL_TABLE_PROTO",
     "McapRecorder",
     "heading_to_quaternion",
-    "repair_mcap",
 ]
 
 _NS_PER_S = 1_000_000_000
-#: frame of every pose, scene entity and label
-FRAME_ID = "maze"
 
 #: JSON schema of ``cobel.TrialEvent`` on ``/trial``.
 TRIAL_EVENT_SCHEMA: dict[str, Any] = {
@@ -221,13 +218,6 @@ def heading_to_quaternion(heading_rad: np.ndarray) -> tuple[np.ndarray, np.ndarr
 def _timestamp(t_ns: int) -> Timestamp:
     sec, nsec = divmod(int(t_ns), _NS_PER_S)
     return Timestamp(sec, nsec)
-
-
-def _pose(x: float, y: float, z: float = 0.0, heading: float = 0.0) -> Pose:
-    return Pose(
-        position=Vector3(x=x, y=y, z=z),
-        orientation=Quaternion(x=0.0, y=0.0, z=math.sin(heading / 2), w=math.cos(heading / 2)),
-    )
 
 
 def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
@@ -556,12 +546,12 @@ class McapRecorder:
                 xy = np.asarray(seg, np.float64).reshape(-1, 2)
                 if not np.isfinite(xy).all():
                     raise ValueError("write_paths: points must be finite")
-                color = _PATH_COLORS[kind]
+                color = PATH_COLORS[kind]
                 pts = [Point3(x=x, y=y, z=PATH_HEIGHT) for x, y in xy.tolist()]
                 lines.append(LinePrimitive(type=LinePrimitiveLineType.LineStrip,
-                                           pose=_pose(0.0, 0.0), thickness=0.12,
+                                           pose=scene_pose(0.0, 0.0), thickness=0.12,
                                            points=pts, color=color))  # fmt: skip
-                spheres.append(SpherePrimitive(pose=_pose(xy[0, 0], xy[0, 1], PATH_HEIGHT),
+                spheres.append(SpherePrimitive(pose=scene_pose(xy[0, 0], xy[0, 1], PATH_HEIGHT),
                                                size=Vector3(x=0.25, y=0.25, z=0.25),
                                                color=color))  # fmt: skip
             meta = [KeyValuePair(key=str(k), value=str(v)) for k, v in path.metadata.items()]
@@ -665,337 +655,3 @@ class McapRecorder:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"McapRecorder({str(self.path)!r}, start_ns={self.start_ns}, {state})"
-
-
-# ---------------------------------------------------------------------------- scene
-_WALL = Color(r=0.35, g=0.35, b=0.4, a=1.0)
-_FLOOR = Color(r=0.88, g=0.88, b=0.85, a=1.0)
-_GRAPH = Color(r=0.3, g=0.45, b=0.7, a=1.0)
-_LABEL = Color(r=0.1, g=0.1, b=0.1, a=1.0)
-# regions get colours in turn; their names are written next to them
-_REGION_COLORS = [
-    Color(r=0.2, g=0.7, b=0.3, a=0.8),
-    Color(r=0.2, g=0.4, b=0.9, a=0.8),
-    Color(r=0.9, g=0.55, b=0.1, a=0.8),
-    Color(r=0.7, g=0.2, b=0.7, a=0.8),
-    Color(r=0.9, g=0.2, b=0.2, a=0.8),
-]
-#: colours of monitors' paths (replay events) by kind: highlighted against the maze
-_PATH_COLORS = {
-    "forward": Color(r=1.0, g=0.5, b=0.0, a=1.0),
-    "reverse": Color(r=0.9, g=0.1, b=0.6, a=1.0),
-    "mixed": Color(r=0.6, g=0.2, b=0.9, a=1.0),
-    "none": Color(r=1.0, g=0.8, b=0.1, a=1.0),
-}
-PATH_HEIGHT = 0.3  # world units above the floor
-WALL_HEIGHT = 0.5  # in cell sizes
-WALL_THICKNESS = 0.06  # in cell sizes
-
-
-def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> list[SceneEntity]:
-    """The maze as ``foxglove.SceneEntity`` objects (frame ``maze``).
-
-    Entities: ``floor`` (free grid cells as flat cubes, or the arena outline as a closed line),
-    ``walls`` (one thin cube per wall segment, ``WALL_HEIGHT`` cells high), ``graph`` (nodes as
-    spheres, edges as a line list) and ``regions`` (a flat cylinder per point or circle region,
-    a closed line per polygon, each with its name as a text label).
-    """
-    g = geometry
-    s = g.cell_size if g.cell_size > 0 else 1.0
-    ts = timestamp if timestamp is not None else Timestamp(0, 0)
-
-    def entity(name: str, **prims: Any) -> SceneEntity:
-        return SceneEntity(
-            timestamp=ts,
-            frame_id=FRAME_ID,
-            id=name,
-            metadata=[KeyValuePair(key="kind", value=g.kind)],
-            **prims,
-        )
-
-    out: list[SceneEntity] = []
-    floor_cubes = [
-        CubePrimitive(
-            pose=_pose(x, y, -0.01 * s),
-            size=Vector3(x=s * 0.96, y=s * 0.96, z=0.02 * s),
-            color=_FLOOR,
-        )
-        for x, y in g.cells.tolist()
-    ]
-    floor_lines = []
-    if len(g.outline):
-        floor_lines.append(
-            LinePrimitive(
-                type=LinePrimitiveLineType.LineLoop,
-                pose=_pose(0.0, 0.0),
-                thickness=0.05 * s,
-                points=[Point3(x=x, y=y, z=0.0) for x, y in g.outline.tolist()],
-                color=_WALL,
-            )
-        )
-    if floor_cubes or floor_lines:
-        out.append(entity("floor", cubes=floor_cubes, lines=floor_lines))
-    if len(g.walls):
-        walls = []
-        for x0, y0, x1, y1 in g.walls.tolist():
-            length = math.hypot(x1 - x0, y1 - y0)
-            angle = math.atan2(y1 - y0, x1 - x0)
-            walls.append(
-                CubePrimitive(
-                    pose=_pose((x0 + x1) / 2, (y0 + y1) / 2, WALL_HEIGHT * s / 2, angle),
-                    size=Vector3(
-                        x=length + WALL_THICKNESS * s, y=WALL_THICKNESS * s, z=WALL_HEIGHT * s
-                    ),
-                    color=_WALL,
-                )
-            )
-        out.append(entity("walls", cubes=walls))
-    if len(g.nodes) and len(g.edges):  # a graph (a grid's nodes are its cells: drawn as floor)
-        nodes = [
-            SpherePrimitive(
-                pose=_pose(x, y, 0.05 * s),
-                size=Vector3(x=0.1 * s, y=0.1 * s, z=0.1 * s),
-                color=_GRAPH,
-            )
-            for x, y in g.nodes.tolist()
-        ]
-        pts = [Point3(x=x, y=y, z=0.05 * s) for x, y in g.nodes[g.edges.reshape(-1)].tolist()]
-        edges = LinePrimitive(type=LinePrimitiveLineType.LineList, pose=_pose(0.0, 0.0),
-                              thickness=0.02 * s, points=pts, color=_GRAPH)  # fmt: skip
-        out.append(entity("graph", spheres=nodes, lines=[edges]))
-    if g.regions:
-        cylinders, lines, texts = [], [], []
-        labels_at: dict[tuple[float, float], int] = {}  # regions at one spot: labels stacked
-        for i, (name, reg) in enumerate(sorted(g.regions.items())):
-            color = _REGION_COLORS[i % len(_REGION_COLORS)]
-            shape = reg.get("shape", "point")
-            if shape == "polygon":
-                pts2 = np.asarray(reg["points"], np.float64).reshape(-1, 2)
-                lines.append(LinePrimitive(
-                    type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0),
-                    thickness=0.04 * s, color=color,
-                    points=[Point3(x=x, y=y, z=0.02 * s) for x, y in pts2.tolist()],
-                ))  # fmt: skip
-                x, y = pts2.mean(axis=0).tolist()
-            else:
-                x, y = float(reg["x"]), float(reg["y"])
-                d = 2.0 * float(reg["radius"]) if shape == "circle" else 0.6 * s
-                cylinders.append(CylinderPrimitive(
-                    pose=_pose(x, y, 0.02 * s), size=Vector3(x=d, y=d, z=0.04 * s),
-                    bottom_scale=1.0, top_scale=1.0, color=color,
-                ))  # fmt: skip
-            above = labels_at[(x, y)] = labels_at.get((x, y), -1) + 1
-            texts.append(TextPrimitive(pose=_pose(x, y, (0.3 + 0.25 * above) * s), billboard=True,
-                                       font_size=12.0,
-                                       scale_invariant=True, color=_LABEL, text=name))  # fmt: skip
-        out.append(entity("regions", cylinders=cylinders, lines=lines, texts=texts))
-    return out
-
-
-# ---------------------------------------------------------------------------- repair
-_MAGIC = b"\x89MCAP0\r\n"
-
-
-def repair_mcap(path: str | os.PathLike[str]) -> bool:
-    """Make an MCAP left unfinished (the writer was killed) readable by the indexed reader.
-
-    The file is read record by record up to where it breaks off; every message of a complete
-    chunk is kept, and so is every complete message at the start of a chunk that was being
-    written (its compressed stream is decoded as far as it goes). Schemas, channels, metadata
-    and attachments are kept. The result is written to a temporary file next to ``path`` and
-    renamed over it, so ``path`` is never half-rewritten.
-
-    Parameters
-    ----------
-    path : path-like
-        The MCAP file.
-
-    Returns
-    -------
-    bool
-        True if the file was rewritten, False if it was complete already.
-
-    Raises
-    ------
-    ValueError
-        If the file does not start with the MCAP magic.
-    """
-    from mcap.reader import make_reader
-
-    path = Path(path)
-    with open(path, "rb") as f:
-        if f.read(len(_MAGIC)) != _MAGIC:
-            raise ValueError(f"{path} is not an MCAP file (bad magic)")
-        f.seek(0, os.SEEK_END)
-        if f.tell() >= 2 * len(_MAGIC):
-            f.seek(-len(_MAGIC), os.SEEK_END)
-            if f.read(len(_MAGIC)) == _MAGIC:
-                f.seek(0)
-                try:
-                    make_reader(f).get_summary()
-                    return False
-                except Exception:  # any parse error means: rebuild
-                    pass
-    data = path.read_bytes()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".repair", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            _rewrite(data, out)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return True
-
-
-def _rewrite(data: bytes, out: Any) -> None:
-    """Copy what is complete in ``data`` (an unfinished MCAP) into a new MCAP on ``out``."""
-    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-    from mcap.writer import CompressionType, Writer
-
-    header: Header | None = None
-    writer = Writer(out, compression=CompressionType.ZSTD)
-    schema_ids: dict[int, int] = {0: 0}
-    channel_ids: dict[int, int] = {}
-    started = False
-
-    def start() -> None:
-        nonlocal started
-        if not started:
-            h = header or Header(profile="", library="")
-            writer.start(profile=h.profile, library=h.library)
-            started = True
-
-    for rec in _complete_records(data):
-        if isinstance(rec, Header):
-            header = rec
-            continue
-        start()
-        if isinstance(rec, Schema):
-            if rec.id not in schema_ids:
-                schema_ids[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
-        elif isinstance(rec, Channel):
-            if rec.id not in channel_ids and rec.schema_id in schema_ids:
-                channel_ids[rec.id] = writer.register_channel(
-                    rec.topic, rec.message_encoding, schema_ids[rec.schema_id], dict(rec.metadata)
-                )
-        elif isinstance(rec, Message):
-            cid = channel_ids.get(rec.channel_id)
-            if cid is not None:
-                writer.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
-        elif isinstance(rec, Metadata):
-            writer.add_metadata(rec.name, dict(rec.metadata))
-        elif isinstance(rec, Attachment):
-            writer.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
-    start()
-    writer.finish()
-
-
-def _complete_records(data: bytes) -> Iterator[Any]:
-    """Records of an MCAP's data section, stopping where the file breaks off.
-
-    Chunks are opened (CRC checked) and yield their schemas, channels and messages; a chunk
-    cut off mid-way yields the complete records its partial zstd/lz4-free stream decodes to.
-    """
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Chunk
-    from mcap.stream_reader import breakup_chunk
-
-    readers = _record_readers()
-    pos, end = len(_MAGIC), len(data)
-    while pos + 9 <= end:
-        opcode = data[pos]
-        (length,) = struct.unpack_from("<Q", data, pos + 1)
-        body_start = pos + 9
-        if opcode == Opcode.CHUNK and body_start + length > end:
-            yield from _partial_chunk(data, body_start)
-            return
-        if body_start + length > end:
-            return  # the last record was cut off
-        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            return
-        body = ReadDataStream(BytesIO(data[body_start : body_start + length]))
-        if opcode == Opcode.CHUNK:
-            try:
-                chunk = Chunk.read(body)
-                records = breakup_chunk(chunk, validate_crc=True)
-            except Exception:  # a damaged chunk ends what can be trusted
-                return
-            yield from records
-        elif opcode in readers:
-            try:
-                yield readers[opcode](body, length)
-            except Exception:
-                return
-        pos = body_start + length
-
-
-def _record_readers() -> dict[int, Any]:
-    from mcap.opcode import Opcode
-    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-
-    return {
-        Opcode.HEADER: lambda s, n: Header.read(s),
-        Opcode.SCHEMA: lambda s, n: Schema.read(s),
-        Opcode.CHANNEL: lambda s, n: Channel.read(s),
-        Opcode.MESSAGE: lambda s, n: Message.read(s, n),
-        Opcode.METADATA: lambda s, n: Metadata.read(s),
-        Opcode.ATTACHMENT: lambda s, n: Attachment.read(s),
-    }
-
-
-def _partial_chunk(data: bytes, body_start: int) -> Iterator[Any]:
-    """Complete records at the start of a chunk whose writing was interrupted.
-
-    The chunk header's lengths are placeholders then (the writer fills them in when the chunk
-    ends), so the compressed stream runs to the end of the file; it is decoded as far as it
-    goes and cut after the last complete record.
-    """
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-
-    p = body_start + 8 + 8 + 8 + 4  # start time, end time, uncompressed size, crc
-    if p + 4 > len(data):
-        return
-    (clen,) = struct.unpack_from("<I", data, p)
-    if p + 4 + clen + 8 > len(data):
-        return
-    compression = data[p + 4 : p + 4 + clen].decode("utf-8", "replace")
-    payload = data[p + 4 + clen + 8 :]
-    if compression == "zstd":
-        import zstandard
-
-        try:
-            raw = zstandard.ZstdDecompressor().decompressobj().decompress(payload)
-        except zstandard.ZstdError:
-            return
-    elif compression == "":
-        raw = payload
-    else:  # lz4 frames cannot be decoded partially here; drop the partial chunk
-        return
-    q, n = 0, len(raw)
-    while q + 9 <= n:
-        opcode = raw[q]
-        (length,) = struct.unpack_from("<Q", raw, q + 1)
-        if q + 9 + length > n:
-            return
-        body = ReadDataStream(BytesIO(raw[q + 9 : q + 9 + length]))
-        try:
-            if opcode == Opcode.MESSAGE:
-                yield Message.read(body, length)
-            elif opcode == Opcode.CHANNEL:
-                yield Channel.read(body)
-            elif opcode == Opcode.SCHEMA:
-                yield Schema.read(body)
-            else:
-                return
-        except Exception:
-            return
-        q += 9 + length
-
-
-# ---------------------------------------------------------------------------- transitional

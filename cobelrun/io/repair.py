@@ -80,7 +80,7 @@ def repair_run(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
 
         done["agents"] = merge_agent_parts(folder.agent_parts, folder.agents_archive)
     if folder.mcap.is_file() and manifest.get("status") != "completed":
-        from cobelrun.io.mcap import repair_mcap
+        from cobelrun.io.mcap_repair import repair_mcap
 
         try:  # a completed run closed its MCAP: a damaged one is reported, not rewritten
             if repair_mcap(folder.mcap):

@@ -1,1 +1,2 @@
-"""Rendering: pybullet scenes from maze specs (online) and the offline render cache."""
+"""Rendering: pybullet scenes from maze specs (online), the offline render cache, and the maze as
+a Foxglove scene for `run.mcap` (:mod:`cobelrun.render.foxglove_scene`)."""

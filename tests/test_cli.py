@@ -13,33 +13,13 @@ import pandas as pd
 import pytest
 from mcap.reader import make_reader
 
+from tests import inprocess
 from tests.conftest import cobel_exe
 from tests.test_mcap import read as read_mcap
 
+cli = inprocess.cli  # fixture: cobel in this process
+
 TINY = ["task.runs=3", "task.protocol.phases.0.trials=10", "task.protocol.phases.1.trials=10"]
-
-
-@pytest.fixture
-def cli(tmp_path, monkeypatch):
-    """``cobel ARGS`` in this process (typer's CliRunner) in a temporary working directory,
-    results under ``tmp_path/results``: a CompletedProcess (returncode, stdout, stderr)."""
-    from typer.testing import CliRunner
-
-    from cobelrun.cli import app
-
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setenv("COBEL_RESULTS", str(tmp_path / "results"))
-    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
-
-    def _run(*args: str) -> subprocess.CompletedProcess:
-        result = CliRunner().invoke(app, list(args))
-        if result.exception is not None and not isinstance(result.exception, SystemExit):
-            raise result.exception
-        return subprocess.CompletedProcess(
-            ["cobel", *args], result.exit_code, result.stdout, result.stderr
-        )
-
-    return _run
 
 
 def run_dir_of(proc: subprocess.CompletedProcess) -> Path:

@@ -1,0 +1,32 @@
+"""``cobel`` in the test's own process (typer's CliRunner), for CLI tests that need no separate
+process: no interpreter start-up, no imports paid again. Tests of signals, start-up and a real
+process's exit codes keep the ``cobel`` fixture (tests/conftest.py), which starts one."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+
+@pytest.fixture
+def cli(tmp_path, monkeypatch):
+    """``cobel ARGS`` in this process in a temporary working directory, results under
+    ``tmp_path/results``: a CompletedProcess (returncode, stdout, stderr) like ``cobel``'s."""
+    from typer.testing import CliRunner
+
+    from cobelrun.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("COBEL_RESULTS", str(tmp_path / "results"))
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+
+    def _run(*args: str) -> subprocess.CompletedProcess:
+        result = CliRunner().invoke(app, list(args))
+        if result.exception is not None and not isinstance(result.exception, SystemExit):
+            raise result.exception
+        return subprocess.CompletedProcess(
+            ["cobel", *args], result.exit_code, result.stdout, result.stderr
+        )
+
+    return _run

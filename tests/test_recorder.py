@@ -366,12 +366,12 @@ def test_step_writer_process_reports_its_error_and_ends(tmp_path, monkeypatch):
 def test_step_writer_process_only_when_asked(tmp_path, monkeypatch):
     """record.step_writer: the thread by default; the process when asked, and then the
     manifest's CPU times name it."""
-    from cobelrun import recorder as rec
+    from cobelrun import step_writer
     from cobelrun.api import compose
     from cobelrun.runner import build_task, execute
 
     started = []
-    monkeypatch.setattr(rec._StepProcess, "__init__", _record_start(started))
+    monkeypatch.setattr(step_writer.StepWriterProcess, "__init__", _record_start(started))
     for writer, expect in (("thread", []), ("process", [True])):
         started.clear()
         task = build_task(
@@ -387,9 +387,9 @@ def test_step_writer_process_only_when_asked(tmp_path, monkeypatch):
 
 
 def _record_start(started):
-    from cobelrun import recorder as rec
+    from cobelrun.step_writer import StepWriterProcess
 
-    init = rec._StepProcess.__init__
+    init = StepWriterProcess.__init__
 
     def wrapped(self, *args, **kwargs):
         started.append(True)

@@ -5,6 +5,7 @@ process's exit codes keep the ``cobel`` fixture (tests/conftest.py), which start
 from __future__ import annotations
 
 import subprocess
+import sys
 
 import pytest
 
@@ -22,6 +23,8 @@ def cli(tmp_path, monkeypatch):
     monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
 
     def _run(*args: str) -> subprocess.CompletedProcess:
+        # the command line a run's manifest records (and NWB export reads back)
+        monkeypatch.setattr(sys, "argv", ["cobel", *args])
         result = CliRunner().invoke(app, list(args))
         if result.exception is not None and not isinstance(result.exception, SystemExit):
             raise result.exception

@@ -1,5 +1,6 @@
 """Fig. 8 pieces: the CNN's input check, dqn_fig8, rendering at arbitrary poses, the activity-map
-monitor (online and from the render cache), and NWB export checked by nwbinspector."""
+monitor (online and from the render cache), and NWB export checked by nwbinspector. The CLI
+runs in-process (``cli``) except in the slow offline-vs-online test."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from cobelrun.envs import topology as topo
 from cobelrun.envs.observations import ImageObservation
 from cobelrun.envs.topology_env import TopologyEnv
 from cobelrun.errors import CobelError, ConfigError
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process
 
 pytest.importorskip("pybullet")
 
@@ -22,8 +26,8 @@ def hex_env(**kw) -> TopologyEnv:
                        observation=ImageObservation(**obs))  # fmt: skip
 
 
-def test_small_image_is_one_line_config_error(cobel):
-    out = cobel("run", "task=gridworld", "env=hex_3d", "agent=dqn", "task.runs=1")
+def test_small_image_is_one_line_config_error(cli):
+    out = cli("run", "task=gridworld", "env=hex_3d", "agent=dqn", "task.runs=1")
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1, out.stderr
@@ -192,11 +196,11 @@ TINY = ["task=place_cells", "task.runs=1", "task.protocol.phases.0.trials=3",
         "task.monitors.maps.grid=[6,5]"]  # fmt: skip
 
 
-def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
+def test_place_cells_task_maps_and_nwb(cli, tmp_path):
     pytest.importorskip("stable_baselines3")
     pytest.importorskip("pynwb")
     nwbinspector = pytest.importorskip("nwbinspector")
-    out = cobel("run", *TINY)
+    out = cli("run", *TINY)
     assert out.returncode == 0, out.stderr
     run_dir = out.stdout.strip().splitlines()[-1]
     df, grid = load_activity_maps(run_dir)
@@ -208,7 +212,7 @@ def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
     maps, explored, _, _ = maps_array(df[df["trial"] == 3], grid)
     assert maps.shape == (50, 6, 5, 6) and explored.all()
 
-    exported = cobel("export", "nwb", run_dir)
+    exported = cli("export", "nwb", run_dir)
     assert exported.returncode == 0, exported.stderr
     path = exported.stdout.strip().splitlines()[-1]
     bad = [m for m in nwbinspector.inspect_nwbfile(path)
@@ -232,7 +236,7 @@ def test_place_cells_task_maps_and_nwb(cobel, tmp_path):
         assert "task.monitors.maps.every=2" in f.session_description
 
     # cobel plot (the run summary's first hint) draws the run's place-cell panels
-    plotted = cobel("plot", run_dir)
+    plotted = cli("plot", run_dir)
     assert plotted.returncode == 0, plotted.stderr
     assert plotted.stdout.strip().splitlines()[-1].endswith("plot.png")
     from cobelrun.figures.place_cells import plot_run
@@ -257,14 +261,14 @@ def test_place_cells_task_offline_equals_online(cobel, tmp_path):
     pd.testing.assert_frame_equal(df_on, df_off)
 
 
-def test_nwb_export_of_a_tabular_run(cobel, tmp_path):
+def test_nwb_export_of_a_tabular_run(cli, tmp_path):
     pytest.importorskip("pynwb")
     nwbinspector = pytest.importorskip("nwbinspector")
-    out = cobel("run", "task=tmaze_extinction", "task.runs=2",
+    out = cli("run", "task=tmaze_extinction", "task.runs=2",
                 "task.protocol.phases.0.trials=5", "task.protocol.phases.1.trials=5")  # fmt: skip
     assert out.returncode == 0, out.stderr
     run_dir = out.stdout.strip().splitlines()[-1]
-    exported = cobel("export", "nwb", run_dir, "--out", str(tmp_path / "nwb"))
+    exported = cli("export", "nwb", run_dir, "--out", str(tmp_path / "nwb"))
     assert exported.returncode == 0, exported.stderr
     files = exported.stdout.strip().splitlines()
     assert [f.rsplit("/", 1)[-1] for f in files] == ["run_0000.nwb", "run_0001.nwb"]
@@ -279,7 +283,7 @@ def test_nwb_export_of_a_tabular_run(cobel, tmp_path):
         trials = f.trials.to_dataframe()
         assert len(trials) == 10 and set(trials["phase"]) == {"acquisition", "extinction"}
         assert "network" not in f.processing
-    missing = cobel("export", "nwb", str(tmp_path / "nope"))
+    missing = cli("export", "nwb", str(tmp_path / "nope"))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
@@ -337,9 +341,9 @@ def test_maps_monitor_grid_must_be_two_integers(grid):
         ActivityMapMonitor(grid=grid)
 
 
-def test_unknown_layer_fails_before_the_run_folder_is_made(cobel, tmp_path):
+def test_unknown_layer_fails_before_the_run_folder_is_made(cli, tmp_path):
     out = tmp_path / "run"
-    proc = cobel("run", *TINY, "task.monitors.maps.layers=[analysys]", f"hydra.run.dir={out}")
+    proc = cli("run", *TINY, "task.monitors.maps.layers=[analysys]", f"hydra.run.dir={out}")
     assert proc.returncode == 2
     err = proc.stderr.strip().splitlines()[-1]
     assert (

@@ -17,6 +17,7 @@ from gymnasium import spaces
 
 from cobelrun.io.agents_archive import runs_in
 from cobelrun.io.run_folder import RunFolder
+from tests import inprocess
 
 pytest.importorskip("torch")
 pytest.importorskip("stable_baselines3")
@@ -33,6 +34,7 @@ from cobelrun.envs import (
 )
 from cobelrun.errors import ConfigError
 
+cli = inprocess.cli  # fixture: cobel in this process (the CLI tests at the end)
 SMALL = {"learning_starts": 10, "buffer_size": 500}
 # agent name -> (class, constructor kwargs, environment class it runs on)
 AGENTS = {
@@ -511,22 +513,22 @@ def test_latent_learning_group_is_faster_after_reward() -> None:
 # -- runner and CLI ----------------------------------------------------------------------------------
 
 
-def test_cli_two_afc_and_plot(cobel, tmp_path: Path) -> None:
-    res = cobel("run", "task=two_afc", "task.runs=2")
+def test_cli_two_afc_and_plot(cli, tmp_path: Path) -> None:
+    res = cli("run", "task=two_afc", "task.runs=2")
     assert res.returncode == 0, res.stderr
     run_dir = Path(res.stdout.strip().splitlines()[-1])
     trials = pd.read_parquet(run_dir / "trials.parquet")
     assert len(trials) == 100 and set(trials["reward"]) <= {0.0, 1.0}
     assert runs_in(RunFolder(run_dir).agents_archive) == [0, 1]
-    plot = cobel("plot", str(run_dir))
+    plot = cli("plot", str(run_dir))
     assert plot.returncode == 0, plot.stderr
 
 
-def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -> None:
+def test_cli_latent_learning_activity_save_and_continue(cli, tmp_path: Path) -> None:
     tiny = ["task=latent_learning", "task.runs=1", "task.protocol.max_steps=20",
             "task.protocol.phases.0.trials=3", "task.protocol.phases.1.trials=2",
             "task.monitors.activity.every=2", "agent.replay_batch=8"]  # fmt: skip
-    res = cobel("run", *tiny)
+    res = cli("run", *tiny)
     assert res.returncode == 0, res.stderr
     run_dir = Path(res.stdout.strip().splitlines()[-1])
     trials = pd.read_parquet(run_dir / "trials.parquet")
@@ -536,11 +538,11 @@ def test_cli_latent_learning_activity_save_and_continue(cobel, tmp_path: Path) -
     assert set(activity["layer"]) == {"sr/output"}
     assert len(activity) == 4 * 40 * 160  # snapshots x probes x units
     assert 0 in runs_in(RunFolder(run_dir).agents_archive)
-    assert cobel("plot", str(run_dir)).returncode == 0
+    assert cli("plot", str(run_dir)).returncode == 0
     # continue from the saved agent; the direct protocol is one rewarded phase
-    more = cobel("run", "task=latent_learning", "protocol=direct", "task.runs=1",
+    more = cli("run", "task=latent_learning", "protocol=direct", "task.runs=1",
                  "task.protocol.max_steps=20", "task.protocol.phases.0.trials=2",
                  "agent.replay_batch=8", f"+agent.load_from={run_dir}")  # fmt: skip
     assert more.returncode == 0, more.stderr
-    bad = cobel("run", "task=two_afc", "task.runs=1", f"+agent.load_from={tmp_path}/nope.pt")
+    bad = cli("run", "task=two_afc", "task.runs=1", f"+agent.load_from={tmp_path}/nope.pt")
     assert bad.returncode != 0 and "agent.load_from" in bad.stderr

@@ -251,6 +251,10 @@ from cobelrun.commands.fit import register as _register_fit  # noqa: E402
 
 _register_fit(app)
 
+from cobelrun.commands.serve import register as _register_serve  # noqa: E402
+
+_register_serve(app)
+
 
 @app.command("status")
 def status_cmd(

@@ -52,6 +52,16 @@ def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
     shutil.copy(folder.world, live / "world.json")
     manifest = (folder.manifest).read_text().replace('"status": "completed"', '"status": "running"')
     (live / "manifest.json").write_text(manifest)
+    # a real two-job sweep (agent.epsilon swept), through the CLI as a user starts one
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    sweep = subprocess.run(
+        [sys.executable, "-c", "from cobelrun.cli import main; main()", "run", "-m",
+         "hydra/launcher=basic", "task=tmaze_extinction", "agent.epsilon=0.1,0.5",
+         "task.runs=2", "task.protocol.phases.0.trials=10", "task.protocol.phases.1.trials=10",
+         f"hydra.sweep.dir={root / 'sweep'}"],
+        env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert sweep.returncode == 0, sweep.stderr[-2000:]
     return root
 
 
@@ -66,7 +76,9 @@ def _live_writer(root: Path) -> tuple[PartedTableWriter, pd.DataFrame]:
 # -- data layer (no browser) ------------------------------------------------------------------
 def test_scan_lists_runs_with_status_task_seed_overrides(results: Path) -> None:
     rows = {f.rel: f for f in data.scan(results)}
-    assert set(rows) == {"tmaze/done", "tmaze/live"}
+    assert set(rows) == {"tmaze/done", "tmaze/live", "sweep"}
+    assert rows["sweep"].kind == "sweep" and rows["sweep"].swept == ["agent.epsilon"]
+    assert rows["sweep"].jobs == 2
     done = rows["tmaze/done"]
     assert (done.kind, done.status, done.task, done.seed) == (
         "run",
@@ -274,3 +286,40 @@ def _chart_points(driver) -> int:
             return int(n)
         time.sleep(0.2)
     return int(n)
+
+
+def test_sweep_curves_by_a_hue_chosen_in_the_page(server: str, browser) -> None:
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/sweep?p=sweep")
+    img = _wait(browser, ".cobel-sweep-figure img[src^='data:image/png']", timeout=60)
+    first = img.get_attribute("src")
+    assert browser.execute_script("return arguments[0].naturalWidth", img) > 200
+    assert "agent.epsilon" in browser.find_element(By.CSS_SELECTOR, ".cobel-hue").text
+    _shot(browser, "serve-sweep.png")
+    browser.find_element(By.CSS_SELECTOR, ".cobel-hue").click()  # the --hue menu
+    option = next(o for o in _wait_all(browser, ".q-menu .q-item") if o.text == "(none)")
+    option.click()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:  # redrawn: one curve over both values
+        img = browser.find_element(By.CSS_SELECTOR, ".cobel-sweep-figure img")
+        if (
+            img.get_attribute("src") not in ("", first)
+            and "(none)" in browser.find_element(By.CSS_SELECTOR, ".cobel-hue").text
+        ):
+            break
+        time.sleep(0.2)
+    else:
+        raise AssertionError("the sweep figure was not redrawn after choosing --hue (none)")
+
+
+def _wait_all(driver, css: str, timeout: float = 10.0):
+    from selenium.webdriver.common.by import By
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        els = driver.find_elements(By.CSS_SELECTOR, css)
+        if els:
+            return els
+        time.sleep(0.1)
+    raise AssertionError(f"nothing matches {css}")

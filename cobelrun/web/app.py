@@ -178,7 +178,7 @@ def build(root: Path) -> None:
                     ui.label(name).classes("font-bold")
                     url, err = await run.io_bound(_figure, draw)
                     if url:
-                        ui.image(url).classes("w-96")
+                        ui.image(url).classes("w-96").props("no-transition no-spinner")
                     else:
                         ui.label(err).classes("text-negative cobel-error")
 
@@ -200,7 +200,7 @@ def build(root: Path) -> None:
                             "(none)", label="--hue").classes("w-64 cobel-hue")  # fmt: skip
             y = ui.select(["latency", "reward", "response"], value="reward", label="--y")
             y.classes("w-48 cobel-y")
-        img = ui.image().classes("w-[40rem] cobel-sweep-figure")
+        img = ui.image().classes("w-[40rem] cobel-sweep-figure").props("no-transition")
         err = ui.label().classes("text-negative cobel-error")
 
         async def redraw() -> None:

@@ -50,7 +50,11 @@ def curve_stats(trials: pd.DataFrame, column: str, units: Sequence[str] = ("run"
     out = pd.DataFrame({"mean": g.mean(), "n": g.count(), "sem": g.sem(ddof=1)})
     t = stats.t.ppf(0.975, np.maximum(out["n"] - 1, 1))
     half = np.where(out["n"] > 1, t * out["sem"].fillna(0.0), 0.0)
-    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
+    # a band never leaves the range the measure took (at small n the t interval reaches
+    # negative latencies or more responses than trials)
+    lo_bound, hi_bound = per_unit[column].min(), per_unit[column].max()
+    out["lo"] = np.clip(out["mean"] - half, lo_bound, hi_bound)
+    out["hi"] = np.clip(out["mean"] + half, lo_bound, hi_bound)
     return out.drop(columns="sem")
 
 
@@ -98,7 +102,7 @@ def plot_curves(
         n = int(s["n"].max())
         name = label or column if hue is None else f"{hue}={value}"
         color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
-        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n})")
+        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, 95% CI)")
         ax.fill_between(s.index, s["lo"], s["hi"], color=color, alpha=0.25, lw=0)
         drawn.append((str(name), n))
     if "phase" in trials:
@@ -134,7 +138,10 @@ def plot_sweep_file(
     from cobelrun.sweep import read_sweep
 
     sweep_dir = Path(sweep_dir)
-    swept = read_sweep(sweep_dir)["swept"]
+    info = read_sweep(sweep_dir)
+    swept = info["swept"]
+    tasks = [a.split("=", 1)[1] for a in str(info.get("command") or "").split()
+             if a.startswith("task=")]  # fmt: skip
     if hue is not None and hue not in swept:
         from cobelrun.errors import allowed_list, suggest
 
@@ -144,9 +151,11 @@ def plot_sweep_file(
     column, ylabel = _curve_column(trials, y)
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue=hue, units=("job", "run"), ylabel=ylabel)
-    ax.set_title(f"{sweep_dir.name}" + (f" by {hue}" if hue else ""))
+    ax.set_title(f"{tasks[0] if tasks else sweep_dir.name}: swept {', '.join(swept) or 'nothing'}"
+                 + (f", by {hue}" if hue else ""), fontsize=9)  # fmt: skip
     fig.tight_layout()
-    return save_figure(fig, Path(out) if out else sweep_dir / "plot.png")
+    default = sweep_dir / ("plot.png" if y is None else f"plot_{y}.png")  # --y names its file
+    return save_figure(fig, Path(out) if out else default)
 
 
 def compare_file(

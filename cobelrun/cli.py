@@ -268,6 +268,10 @@ from cobelrun.commands.serve import register as _register_serve  # noqa: E402
 
 _register_serve(app)
 
+from cobelrun.commands.replay import register as _register_replay  # noqa: E402
+
+_register_replay(app)
+
 
 @app.command("status")
 def status_cmd(

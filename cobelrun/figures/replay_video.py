@@ -22,6 +22,10 @@ from cobelrun.errors import CobelError
 FORMATS = (".gif", ".mp4")
 #: frame size in pixels (both divisible by 16, as H.264 wants)
 SIZE = (640, 480)
+#: a GIF gets one palette of the frames' own colours (small files, no dithering noise)
+GIF_PALETTE = (
+    "split[a][b];[a]palettegen=max_colors=64:stats_mode=diff[p];[b][p]paletteuse=dither=none"
+)
 #: the most frames one video gets (a longer selection is refused, naming --trials)
 MAX_FRAMES = 20_000
 
@@ -70,8 +74,13 @@ def frames(
         (path_line,) = ax.plot([], [], color="tab:blue", lw=1.5, alpha=0.6, zorder=4)
         (dot,) = ax.plot([], [], "o", color="tab:red", ms=9, zorder=5)
         (tick,) = ax.plot([], [], color="tab:red", lw=2, zorder=5)
-        label = ax.set_title("")
+        label = ax.set_title(" ")
         fig.tight_layout()
+        moving = (path_line, dot, tick, label)
+        for artist in moving:
+            artist.set_animated(True)  # drawn per frame over the maze drawn once (blitting)
+        fig.canvas.draw()
+        background = fig.canvas.copy_from_bbox(fig.bbox)
         size = (
             geometry.cell_size
             if geometry.kind == "grid"
@@ -93,7 +102,9 @@ def frames(
             hx, hy = np.cos(heading[i]) * 0.45 * size, np.sin(heading[i]) * 0.45 * size
             tick.set_data([x[i], x[i] + hx], [y[i], y[i] + hy])
             label.set_text(f"{title}trial {trial[i]}, step {step[i]}")
-            fig.canvas.draw()
+            fig.canvas.restore_region(background)
+            for artist in moving:
+                ax.draw_artist(artist)
             rgba = np.asarray(fig.canvas.buffer_rgba())
             yield np.ascontiguousarray(rgba[:h, :w, :3])
     finally:
@@ -119,8 +130,9 @@ def write_video(frames_iter: Iterator[np.ndarray], out: Path, fps: float) -> int
         with atomic_path(out) as tmp:
             writer = imageio_ffmpeg.write_frames(
                 str(tmp), SIZE, fps=fps, codec="gif" if gif else "libx264",
-                pix_fmt_out="rgb8" if gif else "yuv420p", macro_block_size=1 if gif else 16,
-                output_params=["-f", "gif" if gif else "mp4"],
+                pix_fmt_out="pal8" if gif else "yuv420p", macro_block_size=1 if gif else 16,
+                ffmpeg_log_level="error",
+                output_params=(["-vf", GIF_PALETTE, "-f", "gif"] if gif else ["-f", "mp4"]),
             )  # fmt: skip
             writer.send(None)
             try:

@@ -258,8 +258,9 @@ def plot_occupancy(steps: pd.DataFrame, geometry: Any, ax: Any) -> None:
     share = np.ma.masked_equal(counts / max(1.0, counts.sum()), 0.0)
     draw_geometry(geometry, ax, labels=True)
     mesh = ax.pcolormesh(xe, ye, share.T, cmap="magma_r", alpha=0.85, zorder=2)
-    ax.figure.colorbar(mesh, ax=ax, label="share of steps")
+    ax.figure.colorbar(mesh, ax=ax, label="share of recorded steps")
     ax.set_title("occupancy")
+    _axis_units(geometry, ax)
 
 
 def plot_trajectories(
@@ -282,6 +283,14 @@ def plot_trajectories(
                 lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")  # fmt: skip
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.set_title(f"trajectories, run {run}")
+    _axis_units(geometry, ax)
+
+
+def _axis_units(geometry: Any, ax: Any) -> None:
+    """x/y labels with the layout's unit: grid cells, or world units (m) of arenas/graphs."""
+    unit = "cells" if geometry.kind == "grid" else "m"
+    ax.set_xlabel(f"x [{unit}]")
+    ax.set_ylabel(f"y [{unit}]")
 
 
 def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> Path:

@@ -172,11 +172,13 @@ def build(root: Path) -> None:
                 ("trajectories", lambda out: plot_kind(folder, "trajectories", out)),
                 ("occupancy", lambda out: plot_kind(folder, "occupancy", out)),
             ]
+        await ui.context.client.connected(timeout=60)  # page sent first; figures follow
         with ui.row().classes("w-full"):
             for name, draw in figures:
                 with ui.card().classes(f"cobel-figure cobel-figure-{name.replace(' ', '-')}"):
                     ui.label(name).classes("font-bold")
-                    url, err = await run.io_bound(_figure, draw)
+                    got = await run.io_bound(_figure, draw)
+                    url, err = got if got is not None else (None, "")
                     if url:
                         ui.image(url).classes("w-96").props("no-transition no-spinner")
                     else:
@@ -209,12 +211,14 @@ def build(root: Path) -> None:
             def draw(out: Path) -> Path:
                 return plot_sweep_file(path, h, y.value, out)
 
-            url, msg = await run.io_bound(_figure, draw)
+            got = await run.io_bound(_figure, draw)
+            url, msg = got if got is not None else (None, "")  # None: the page was closed
             img.set_source(url or "")
             err.text = msg
 
         hue.on_value_change(redraw)
         y.on_value_change(redraw)
+        await ui.context.client.connected(timeout=60)  # page sent first; figures follow
         await redraw()
 
 

@@ -243,8 +243,9 @@ def test_folder_list_and_opening_a_run(server: str, browser) -> None:
     link.click()
     _wait(browser, ".cobel-figure-task-figure img", timeout=60)
     _wait(browser, ".cobel-figure-occupancy img", timeout=60)
+    _wait(browser, ".cobel-figure-policy img", timeout=60)  # what the agent learned
     imgs = browser.find_elements(By.CSS_SELECTOR, ".cobel-figure img")
-    assert len(imgs) == 3
+    assert len(imgs) == 5  # task figure, trajectories, occupancy, value, policy
     for img in imgs:  # decoded PNGs with real pixels
         assert browser.execute_script("return arguments[0].naturalWidth", img) > 200
     assert _wait_text(browser, ".cobel-live-count", r"200 trials \(2 runs\)")

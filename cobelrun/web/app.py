@@ -172,6 +172,16 @@ def build(root: Path) -> None:
                 ("trajectories", lambda out: plot_kind(folder, "trajectories", out)),
                 ("occupancy", lambda out: plot_kind(folder, "occupancy", out)),
             ]
+        from cobelrun.figures import learned
+
+        try:  # what the agent learned, where the run saved it
+            figures += [
+                (k, lambda out, k=k: learned.plot_learned(folder, k, out))
+                for k in learned.available(folder)
+                if k in ("value", "policy", "rate")
+            ]
+        except CobelError:
+            pass
         await ui.context.client.connected(timeout=60)  # page sent first; figures follow
         with ui.row().classes("w-full"):
             for name, draw in figures:

@@ -57,3 +57,20 @@ def test_gif_default_name_and_one_line_errors(run_dir: Path, tmp_path: Path) -> 
     with pytest.raises(CobelError, match=r"has recorded steps for trials 1\.\.6"):
         replay_file(run_dir, tmp_path / "b.gif", trials="50:60")
     assert not (tmp_path / "b.gif").exists()
+
+
+def test_greedy_replay_runs_the_saved_agent(run_dir: Path, tmp_path: Path) -> None:
+    from cobelrun.figures.replay_video import greedy_steps
+
+    steps = cobelrun.load(run_dir).steps
+    a = greedy_steps(run_dir, 1)
+    b = greedy_steps(run_dir, 1)
+    assert a.equals(b)  # greedy and seeded: the same path twice
+    first = steps[(steps["run"] == 1)].sort_values(["trial", "step"]).iloc[0]
+    assert (a["x"].iloc[0], a["y"].iloc[0]) == (first["x"], first["y"])  # the start pose
+    moves = np.hypot(np.diff(a["x"]), np.diff(a["y"]))
+    assert (moves <= 1.0 + 1e-9).all() and len(a) <= 36  # one cell a step, max_steps 35
+    _, n = replay_file(run_dir, tmp_path / "g.gif", run=1, greedy=True)
+    assert n == len(a)
+    with pytest.raises(CobelError, match=r"no saved agent for run 9"):
+        greedy_steps(run_dir, 9)

@@ -32,10 +32,16 @@ MAX_SCORES_BYTES = 4 << 20
 WATERMAZE_COLUMNS = {"escape_latency_s", "path_length", "target_quadrant_fraction"}
 
 
+def overrides_of(command: list[str] | None) -> list[str]:
+    """The ``key=value`` overrides of a ``cobel run`` command line (``hydra.*`` left out)."""
+    if not command:
+        return []
+    return [a for a in command[1:] if "=" in a and not a.lstrip("+~").startswith("hydra.")]
+
+
 def _title(run_dir: Path) -> str:
     """``task (swept/overridden keys)`` for a figure title."""
     from cobelrun.io.validate import read_manifest
-    from cobelrun.web.data import overrides_of
 
     folder = RunFolder(run_dir)
     if not folder.manifest.is_file():

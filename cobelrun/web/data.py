@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures.tasks import overrides_of
 from cobelrun.io.run_folder import RunFolder
 
 __all__ = [
@@ -76,13 +77,6 @@ class Folder:
             "started": self.started_at[:19].replace("T", " "),
             "error": self.error,
         }
-
-
-def overrides_of(command: list[str] | None) -> list[str]:
-    """The ``key=value`` overrides of a ``cobel run`` command line (``hydra.*`` left out)."""
-    if not command:
-        return []
-    return [a for a in command[1:] if "=" in a and not a.lstrip("+~").startswith("hydra.")]
 
 
 def _is_run(path: Path) -> bool:

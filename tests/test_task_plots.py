@@ -13,9 +13,8 @@ import cobelrun
 from cobelrun.config import group_options
 from cobelrun.errors import CobelError
 from cobelrun.figures import plot_run
+from cobelrun.figures.kinds import available_kinds, plot_kind, plot_selection
 from cobelrun.figures.learned import action_vectors, q_table
-from cobelrun.figures.runs import plot_kind
-from cobelrun.figures.tasks import available_kinds, plot_selection
 from cobelrun.runner import run as run_cfg
 from tests.test_env_conformance import HEAVY_TASKS, tiny
 

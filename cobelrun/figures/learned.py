@@ -172,11 +172,9 @@ def plot_learned(
     if kind not in KINDS:
         raise CobelError(f"unknown kind {kind!r}; these come from saved agents: {', '.join(KINDS)}")
     have = available(run_dir)
-    if kind not in have:
-        from cobelrun.figures.tasks import available_kinds
-
-        raise CobelError(f"{run_dir} has nothing for --kind {kind}; this run offers: "
-                         f"{', '.join(available_kinds(run_dir)) or 'none'}")  # fmt: skip
+    if kind not in have:  # cobel plot names every kind the run offers (figures.kinds)
+        raise CobelError(f"{run_dir} has nothing for --kind {kind}; of the saved-agent kinds "
+                         f"it offers: {', '.join(have) or 'none'}")  # fmt: skip
     if kind == "rate":
         fig = _rate(run_dir, run, trials)
     else:

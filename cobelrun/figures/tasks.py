@@ -11,8 +11,8 @@
 - a revaluation job (``revaluation_scores.csv``): the score of each agent;
 - otherwise: steps per trial and reward per trial (95 % CI over runs).
 
-:func:`available_kinds` lists what ``--kind`` can draw for a run, so an unavailable kind is
-refused with the run's alternatives. Functions read folders only through the validated readers.
+:mod:`cobelrun.figures.kinds` lists what ``--kind`` can draw for a run. Functions read folders
+only through the validated readers.
 """
 
 from __future__ import annotations
@@ -84,32 +84,6 @@ def trials_columns(run_dir: Path) -> set[str]:
         return set()
     check_table(p)
     return set(pq.read_schema(p).names)
-
-
-def available_kinds(run_dir: str | Path) -> list[str]:
-    """What ``cobel plot RUN --kind`` can draw for this run."""
-    from cobelrun.figures import learned
-
-    run_dir = Path(run_dir)
-    folder = RunFolder(run_dir)
-    cols = trials_columns(run_dir)
-    kinds = []
-    if folder.world.is_file() and folder.table("steps").is_file():
-        kinds += ["occupancy", "trajectories"]
-    kinds += [k for k, c in (("latency", "steps"), ("response", "cumulative_response"),
-                             ("reward", "reward")) if c in cols]  # fmt: skip
-    kinds += learned.available(run_dir)
-    return kinds
-
-
-def check_kind(run_dir: str | Path, kind: str) -> None:
-    """A one-line CobelError when this run cannot draw ``kind``, naming what it can."""
-    have = available_kinds(run_dir)
-    if kind not in have:
-        raise CobelError(
-            f"{Path(run_dir)} has nothing for --kind {kind}; this run offers: "
-            f"{', '.join(have) or 'no --kind (draw its task figure without --kind)'}"
-        )
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
@@ -228,58 +202,3 @@ def _revaluation(run_dir: Path) -> Any:
         plt.close(fig)
         raise
     return fig
-
-
-def plot_selection(
-    run_dir: str | Path,
-    kind: str,
-    out: str | Path | None = None,
-    *,
-    run: int | None = None,
-    trials: str | None = None,
-    state: int | None = None,
-) -> Path:
-    """``cobel plot RUN --kind KIND`` with ``--run``, ``--trials`` (``A:B``) or ``--state``:
-    trajectories of a chosen run and trial range, or a saved agent's kind for a chosen run."""
-    import matplotlib.pyplot as plt
-
-    from cobelrun.figures import learned, save_figure
-    from cobelrun.figures.runs import load_geometry, plot_trajectories
-
-    run_dir = Path(run_dir)
-    if kind in learned.KINDS:
-        return learned.plot_learned(run_dir, kind, out, run=run or 0, trials=trials, state=state)
-    if kind != "trajectories":
-        raise CobelError(f"--run/--trials/--state go with --kind trajectories or "
-                         f"{', '.join(learned.KINDS)}, not {kind}")  # fmt: skip
-    if state is not None:
-        raise CobelError("--state goes with --kind sr")
-    check_kind(run_dir, kind)
-    from cobelrun.results import load_steps
-
-    steps = load_steps(run_dir)
-    r = 0 if run is None else int(run)
-    runs = sorted(steps["run"].unique())
-    if r not in runs:
-        raise CobelError(f"run {r} has no recorded steps; recorded runs: "
-                         f"{', '.join(map(str, runs[:20]))}")  # fmt: skip
-    first, last = learned.parse_trials(trials)
-    part = steps[steps["run"] == r]
-    if first is not None:
-        part = part[part["trial"] >= first]
-    if last is not None:
-        part = part[part["trial"] <= last]
-    if part.empty:
-        have = sorted(steps.loc[steps["run"] == r, "trial"].unique())
-        raise CobelError(f"--trials {trials}: run {r} has recorded steps for trials "
-                         f"{have[0]}..{have[-1]}")  # fmt: skip
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    try:
-        plot_trajectories(part, load_geometry(run_dir), ax, run=r)
-        ax.set_title(f"{_title(run_dir)}: trajectories, run {r}" + (f", trials {trials}" if trials
-                                                                      else ""), fontsize=9)  # fmt: skip
-        fig.tight_layout()
-    except BaseException:
-        plt.close(fig)
-        raise
-    return save_figure(fig, Path(out) if out else run_dir / "plot_trajectories.png")

@@ -161,7 +161,7 @@ def build(root: Path) -> None:
         ui.timer(REFRESH_S, update)
 
         from cobelrun.figures import plot_run
-        from cobelrun.figures.runs import plot_kind
+        from cobelrun.figures.kinds import plot_kind
 
         folder = path
         has_world = (folder / "world.json").is_file()

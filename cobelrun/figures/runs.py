@@ -298,17 +298,13 @@ def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> 
     import matplotlib.pyplot as plt
 
     from cobelrun.errors import allowed_list, suggest
-    from cobelrun.figures import learned, save_figure, tasks
+    from cobelrun.figures import save_figure
     from cobelrun.results import load_steps, load_trials
 
-    if kind in learned.KINDS:
-        return learned.plot_learned(run_dir, kind, out)
     if kind not in KINDS:
-        allowed = (*KINDS, *learned.KINDS)
-        raise CobelError(f"unknown plot kind {kind!r}{suggest(kind, allowed)}; allowed: "
-                         f"{allowed_list(allowed)}")  # fmt: skip
+        raise CobelError(f"unknown plot kind {kind!r}{suggest(kind, KINDS)}; allowed: "
+                         f"{allowed_list(KINDS)}")  # fmt: skip
     run_dir = Path(run_dir)
-    tasks.check_kind(run_dir, kind)  # only what this run has, naming the alternatives
     fig, ax = plt.subplots(figsize=(5.5, 4.0))
     try:
         if kind in CURVES:

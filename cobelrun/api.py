@@ -137,7 +137,7 @@ class Run:
             from cobelrun.figures import plot_run
 
             return plot_run(self.path, out)
-        from cobelrun.figures.runs import plot_kind
+        from cobelrun.figures.kinds import plot_kind
 
         return plot_kind(self.path, kind, out)
 

@@ -200,12 +200,12 @@ def plot_cmd(
         elif hue is not None:
             fail(f"--hue needs a sweep folder (cobel run -m); {first} is not one")
         elif kind is not None:
-            from cobelrun.figures.runs import plot_kind
+            from cobelrun.figures.kinds import plot_kind
 
             if len(run_dirs) > 1:
                 fail("--kind draws one run; use `cobel compare` for several")
             if run is not None or trials is not None or state is not None:
-                from cobelrun.figures.tasks import plot_selection
+                from cobelrun.figures.kinds import plot_selection
 
                 path = plot_selection(first, kind, out, run=run, trials=trials, state=state)
             else:

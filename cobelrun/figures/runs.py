@@ -50,11 +50,7 @@ def curve_stats(trials: pd.DataFrame, column: str, units: Sequence[str] = ("run"
     out = pd.DataFrame({"mean": g.mean(), "n": g.count(), "sem": g.sem(ddof=1)})
     t = stats.t.ppf(0.975, np.maximum(out["n"] - 1, 1))
     half = np.where(out["n"] > 1, t * out["sem"].fillna(0.0), 0.0)
-    # a band never leaves the range the measure took (at small n the t interval reaches
-    # negative latencies or more responses than trials)
-    lo_bound, hi_bound = per_unit[column].min(), per_unit[column].max()
-    out["lo"] = np.clip(out["mean"] - half, lo_bound, hi_bound)
-    out["hi"] = np.clip(out["mean"] + half, lo_bound, hi_bound)
+    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
     return out.drop(columns="sem")
 
 
@@ -103,7 +99,11 @@ def plot_curves(
         name = label or column if hue is None else f"{hue}={value}"
         color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
         ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, 95% CI)")
-        ax.fill_between(s.index, s["lo"], s["hi"], color=color, alpha=0.25, lw=0)
+        # the band drawn stays inside the range the measure took (at small n the t interval
+        # reaches negative latencies or more responses than trials)
+        lo, hi = part[column].min(), part[column].max()
+        ax.fill_between(s.index, s["lo"].clip(lo, hi), s["hi"].clip(lo, hi), color=color,
+                        alpha=0.25, lw=0)  # fmt: skip
         drawn.append((str(name), n))
     if "phase" in trials:
         _mark_phases(ax, trials)

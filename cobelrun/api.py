@@ -102,6 +102,21 @@ class Run:
         value = self.manifest.get("objective")
         return None if value is None else float(value)
 
+    def agent(self, run: int = 0) -> dict[str, Any]:
+        """Run ``run``'s saved agent as arrays in their real shapes, read from ``agents.npz``
+        with every header checked first (e.g. Dyna-Q: ``Q`` (states, actions); SR agents:
+        ``M`` (states, actions, states) and ``w`` (states,); deep agents: their parameters
+        by name). A run without a saved agent is a one-line CobelError naming the saved runs.
+
+        Examples
+        --------
+        >>> q = cobelrun.load(RUN_DIR).agent(0)["Q"]  # doctest: +SKIP
+        >>> q.max(axis=1)  # state values  # doctest: +SKIP
+        """
+        from cobelrun.figures.learned import load_agent
+
+        return load_agent(self.path, run)
+
     def summary(self) -> pd.DataFrame:
         """Per phase: runs, trials, and the means of the phase's last trials (see :func:`summary`)."""
         return summary(self.trials)
@@ -115,13 +130,14 @@ class Run:
             The PNG to write (default ``RUN_DIR/plot.png``).
         kind
             ``None`` for the task's own figure, or one of ``occupancy``, ``trajectories``,
-            ``latency``, ``response`` (see ``cobel plot --kind``).
+            ``latency``, ``response``, ``reward``, ``value``, ``policy``, ``q``, ``sr``,
+            ``rate`` (see ``cobel plot --kind``; a run offers only what it recorded).
         """
         if kind is None:
             from cobelrun.figures import plot_run
 
             return plot_run(self.path, out)
-        from cobelrun.figures.runs import plot_kind
+        from cobelrun.figures.kinds import plot_kind
 
         return plot_kind(self.path, kind, out)
 

@@ -178,7 +178,8 @@ def plot_cmd(
             "--kind",
             "-k",
             help="occupancy, trajectories (on the saved world.json), latency, response or "
-            "reward (curves with a 95% band) instead of the task's figure.",
+            "reward (curves with a 95% band), value, policy, q, sr (saved agents) or rate "
+            "(recorded units) instead of the task's figure; a run offers only what it has.",
         ),
     ] = None,
     hue: Annotated[
@@ -189,6 +190,13 @@ def plot_cmd(
         str | None,
         typer.Option("--y", help="Sweeps: latency, response, reward or a trials column."),
     ] = None,
+    run: Annotated[
+        int | None, typer.Option("--run", help="--kind trajectories/value/policy/q/sr/rate: run.")
+    ] = None,
+    trials: Annotated[
+        str | None, typer.Option("--trials", help="--kind trajectories/rate: trials A:B.")
+    ] = None,
+    state: Annotated[int | None, typer.Option("--state", help="--kind sr: the state.")] = None,
 ) -> None:
     """Plot a run: the task's own figure (Fig. 7, Fig. 9) or Fig. 6B-style response/latency.
 
@@ -210,11 +218,16 @@ def plot_cmd(
         elif hue is not None:
             fail(f"--hue needs a sweep folder (cobel run -m); {first} is not one")
         elif kind is not None:
-            from cobelrun.figures.runs import plot_kind
+            from cobelrun.figures.kinds import plot_kind
 
             if len(run_dirs) > 1:
                 fail("--kind draws one run; use `cobel compare` for several")
-            path = plot_kind(first, kind, out)
+            if run is not None or trials is not None or state is not None:
+                from cobelrun.figures.kinds import plot_selection
+
+                path = plot_selection(first, kind, out, run=run, trials=trials, state=state)
+            else:
+                path = plot_kind(first, kind, out)
         else:
             path = plot_run(first, out, *run_dirs[1:])
     except CobelError as exc:
@@ -272,6 +285,14 @@ _register_fit(app)
 from cobelrun.commands.recover import register as _register_recover  # noqa: E402
 
 _register_recover(app)
+
+from cobelrun.commands.serve import register as _register_serve  # noqa: E402
+
+_register_serve(app)
+
+from cobelrun.commands.replay import register as _register_replay  # noqa: E402
+
+_register_replay(app)
 
 
 @app.command("status")

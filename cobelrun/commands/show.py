@@ -37,6 +37,14 @@ def register(app: typer.Typer) -> None:
         no_png: Annotated[
             bool, typer.Option("--no-png", help="Only the terminal drawing.")
         ] = False,
+        labels: Annotated[
+            bool | None,
+            typer.Option(
+                "--labels/--no-labels",
+                help=f"Name the places in the PNG (default: when at most {MAX_LABELS}).",
+                show_default=False,
+            ),
+        ] = None,
         allow_target: Annotated[
             list[str] | None,
             typer.Option(
@@ -49,7 +57,7 @@ def register(app: typer.Typer) -> None:
         from cobelrun.errors import CobelError
 
         try:
-            path, text = show(list(ctx.args), None if no_png else (out or True))
+            path, text = show(list(ctx.args), None if no_png else (out or True), labels=labels)
         except CobelError as exc:
             fail(str(exc))
         typer.echo(text)
@@ -57,11 +65,19 @@ def register(app: typer.Typer) -> None:
             typer.echo(str(path))
 
 
-def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, str]:
+#: places named in the PNG by default (more overlap: ``env=hex_3d`` has 77)
+MAX_LABELS = 20
+
+
+def show(
+    overrides: list[str], out: Path | bool | None, *, labels: bool | None = None
+) -> tuple[Path | None, str]:
     """Compose ``overrides`` as ``cobel run`` does, build the env only, draw its geometry.
 
-    ``out``: a PNG path, ``True`` for ``./show_<env>.png`` or ``None`` for no PNG. Returns the
-    PNG written (or ``None``) and the ASCII drawing.
+    ``out``: a PNG path, ``True`` for ``./show_<env>.png`` or ``None`` for no PNG. ``labels``:
+    name the places (``None``: when there are at most :data:`MAX_LABELS`; asked for with more,
+    the figure grows with their number). Returns the PNG written (or ``None``) and the ASCII
+    drawing.
     """
     import matplotlib.pyplot as plt
 
@@ -88,7 +104,13 @@ def show(overrides: list[str], out: Path | bool | None) -> tuple[Path | None, st
     if out is None:
         return None, text
     path = Path(f"show_{name}.png") if out is True else Path(out)
-    fig, ax = plt.subplots(figsize=(4.5, 4.5))
-    draw_geometry(geometry, ax)
-    ax.set_title(name)
+    n = len(geometry.regions)
+    named = n <= MAX_LABELS if labels is None else labels
+    side = 4.5 if not named or n <= MAX_LABELS else min(16.0, 4.5 * (n / MAX_LABELS) ** 0.5)
+    fig, ax = plt.subplots(figsize=(side, side))
+    draw_geometry(geometry, ax, labels=named)
+    unit = "cells" if geometry.kind == "grid" else "m"
+    ax.set_xlabel(f"x [{unit}]")
+    ax.set_ylabel(f"y [{unit}]")
+    ax.set_title(name + ("" if named or not n else f" ({n} places; --labels names them)"))
     return save_figure(fig, path), text

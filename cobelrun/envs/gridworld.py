@@ -66,13 +66,15 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         The env works on a copy; ``base_world`` keeps the state at construction.
     max_steps : int, optional
         Steps per episode before truncation (None: no limit).
-    render_mode : {"ansi", None}
-        ``"ansi"`` renders the grid as text.
+    render_mode : {"ansi", "rgb_array", None}
+        ``"ansi"`` renders the grid as text, ``"rgb_array"`` as a top-down image.
 
     ``info`` (from ``reset`` and ``step``) holds ``state``, ``x`` and ``y``.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi"], "render_fps": 4}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
+    #: pixels per grid cell of ``render_mode="rgb_array"``
+    RENDER_CELL_PX = 16
 
     def __init__(
         self,
@@ -152,9 +154,14 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         truncated = self.max_steps is not None and self._steps >= self.max_steps
         return self._observe(s2), reward, terminated, truncated, self._info(s2)
 
-    def render(self) -> str | None:
-        """Return the grid as text (``render_mode="ansi"``): ``A`` agent, ``#`` wall,
-        ``G`` rewarded terminal, ``E`` other terminal, ``+`` rewarded state."""
+    def render(self) -> str | np.ndarray | None:
+        """``render_mode="ansi"``: the grid as text (``A`` agent, ``#`` wall, ``G`` rewarded
+        terminal, ``E`` other terminal, ``+`` rewarded state). ``render_mode="rgb_array"``: a
+        top-down image (height x 16, width x 16, 3) uint8 in the same colours as ``cobel show``
+        (walls dark, rewarded terminal gold, other terminal pink, rewarded state green, agent
+        a blue disc), row 0 at the top as in the text."""
+        if self.render_mode == "rgb_array":
+            return self._render_rgb()
         if self.render_mode != "ansi":
             return None
         w = self._world
@@ -173,6 +180,23 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             chars.append(ch)
         rows = ["".join(chars[r * w.width : (r + 1) * w.width]) for r in range(w.height)]
         return "\n".join(rows) + "\n"
+
+    def _render_rgb(self) -> np.ndarray:
+        w = self._world
+        px = self.RENDER_CELL_PX
+        colour = np.full((w.n_states, 3), 242, np.uint8)
+        colour[(w.rewards != 0) & ~w.terminal] = (200, 235, 200)
+        colour[w.terminal & (w.rewards != 0)] = (250, 200, 60)
+        colour[w.terminal & (w.rewards == 0)] = (240, 190, 190)
+        colour[w.blocked] = (40, 40, 40)
+        img = np.repeat(np.repeat(colour.reshape(w.height, w.width, 3), px, 0), px, 1)
+        img[::px, :] = img[:, ::px] = 200  # cell borders
+        img[w.blocked.reshape(w.height, w.width).repeat(px, 0).repeat(px, 1)] = 40
+        r, c = divmod(int(self._state), w.width)
+        yy, xx = np.mgrid[0:px, 0:px]
+        disc = (yy - (px - 1) / 2) ** 2 + (xx - (px - 1) / 2) ** 2 <= (0.35 * px) ** 2
+        img[r * px : (r + 1) * px, c * px : (c + 1) * px][disc] = (30, 90, 200)
+        return img
 
     # ------------------------------------------------------------------ contracts
     def agent_pose(self) -> np.ndarray:
@@ -258,7 +282,7 @@ class DiscreteGridWorldEnv(GridWorldEnv):
         The world (default: the paper's 7 x 7 T-maze).
     max_steps : int, optional
         Steps per episode before truncation.
-    render_mode : {"ansi", None}
+    render_mode : {"ansi", "rgb_array", None}
         Text rendering.
     observations : (S, d) array, "onehot" or "coords", optional
         Observation of each state. Default ``"onehot"`` (identity, ``d = S``); ``"coords"`` gives

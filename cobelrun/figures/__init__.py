@@ -14,14 +14,14 @@ from cobelrun.io.run_folder import RunFolder
 #: plot modules by task name (``cobel plot`` picks one from the run's manifest); each has
 #: ``plot_run(run_dir, out=None) -> Path`` (``plot_run(run_dir, out=None, *others)``
 #: where the figure compares several run folders, e.g. Fig. 7's latent and direct groups).
-#: Tasks not listed get the Fig. 6B extinction plot.
+#: Tasks not listed get a figure chosen from what the run recorded (:mod:`cobelrun.figures.tasks`).
 PLOTS_BY_TASK: dict[str, str] = {
     "latent_learning": "cobelrun.figures.latent",
     "two_afc": "cobelrun.figures.choice",
     "place_cells": "cobelrun.figures.place_cells",
     "place_cells_original": "cobelrun.figures.place_cells",
 }
-DEFAULT_PLOT = "cobelrun.figures.extinction"
+DEFAULT_PLOT = "cobelrun.figures.tasks"
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | Path) -> Path:
@@ -30,13 +30,15 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, *others: str | 
     ``others`` (more run folders, e.g. Fig. 7's direct group) go to figures that compare runs;
     other figures refuse them. Returns the file written (default ``RUN_DIR/plot.png``).
     """
-    from cobelrun.results import load_manifest
+    from cobelrun.io.validate import read_manifest
 
     run_dir = Path(run_dir)
-    if run_dir.is_dir() and not RunFolder(run_dir).manifest.is_file():
+    if not run_dir.is_dir():
+        raise CobelError(f"run folder {run_dir} does not exist")
+    if not RunFolder(run_dir).manifest.is_file():
         task = ""  # a run folder without manifest: draw the default plot
-    else:  # a damaged manifest is one line naming it
-        task = str(load_manifest(run_dir).get("task") or "")
+    else:  # a damaged manifest is one line naming it (a job's folder may have no trials table)
+        task = str(read_manifest(RunFolder(run_dir).manifest).get("task") or "")
     draw = importlib.import_module(PLOTS_BY_TASK.get(task, DEFAULT_PLOT)).plot_run
     takes_more = any(
         p.kind is inspect.Parameter.VAR_POSITIONAL

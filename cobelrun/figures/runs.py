@@ -98,8 +98,12 @@ def plot_curves(
         n = int(s["n"].max())
         name = label or column if hue is None else f"{hue}={value}"
         color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
-        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n})")
-        ax.fill_between(s.index, s["lo"], s["hi"], color=color, alpha=0.25, lw=0)
+        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, 95% CI)")
+        # the band drawn stays inside the range the measure took (at small n the t interval
+        # reaches negative latencies or more responses than trials)
+        lo, hi = part[column].min(), part[column].max()
+        ax.fill_between(s.index, s["lo"].clip(lo, hi), s["hi"].clip(lo, hi), color=color,
+                        alpha=0.25, lw=0)  # fmt: skip
         drawn.append((str(name), n))
     if "phase" in trials:
         _mark_phases(ax, trials)
@@ -134,7 +138,10 @@ def plot_sweep_file(
     from cobelrun.results import load_sweep
 
     sweep_dir = Path(sweep_dir)
-    swept = read_sweep(sweep_dir)["swept"]
+    info = read_sweep(sweep_dir)
+    swept = info["swept"]
+    tasks = [a.split("=", 1)[1] for a in str(info.get("command") or "").split()
+             if a.startswith("task=")]  # fmt: skip
     if hue is not None and hue not in swept:
         from cobelrun.errors import allowed_list, suggest
 
@@ -144,9 +151,11 @@ def plot_sweep_file(
     column, ylabel = _curve_column(trials, y)
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue=hue, units=("job", "run"), ylabel=ylabel)
-    ax.set_title(f"{sweep_dir.name}" + (f" by {hue}" if hue else ""))
+    ax.set_title(f"{tasks[0] if tasks else sweep_dir.name}: swept {', '.join(swept) or 'nothing'}"
+                 + (f", by {hue}" if hue else ""), fontsize=9)  # fmt: skip
     fig.tight_layout()
-    return save_figure(fig, Path(out) if out else sweep_dir / "plot.png")
+    default = sweep_dir / ("plot.png" if y is None else f"plot_{y}.png")  # --y names its file
+    return save_figure(fig, Path(out) if out else default)
 
 
 def compare_file(
@@ -249,8 +258,9 @@ def plot_occupancy(steps: pd.DataFrame, geometry: Any, ax: Any) -> None:
     share = np.ma.masked_equal(counts / max(1.0, counts.sum()), 0.0)
     draw_geometry(geometry, ax, labels=True)
     mesh = ax.pcolormesh(xe, ye, share.T, cmap="magma_r", alpha=0.85, zorder=2)
-    ax.figure.colorbar(mesh, ax=ax, label="share of steps")
+    ax.figure.colorbar(mesh, ax=ax, label="share of recorded steps")
     ax.set_title("occupancy")
+    _axis_units(geometry, ax)
 
 
 def plot_trajectories(
@@ -273,6 +283,14 @@ def plot_trajectories(
                 lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")  # fmt: skip
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.set_title(f"trajectories, run {run}")
+    _axis_units(geometry, ax)
+
+
+def _axis_units(geometry: Any, ax: Any) -> None:
+    """x/y labels with the layout's unit: grid cells, or world units (m) of arenas/graphs."""
+    unit = "cells" if geometry.kind == "grid" else "m"
+    ax.set_xlabel(f"x [{unit}]")
+    ax.set_ylabel(f"y [{unit}]")
 
 
 def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> Path:

@@ -27,6 +27,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "cobelrun.render.benchmark",
         "cobelrun.api",
         "cobelrun.recover",
+        "cobelrun.web",
     ),
     2: ("cobelrun.compose",),
     1: ("cobelrun.runner", "cobelrun.batched", "cobelrun.revaluation"),

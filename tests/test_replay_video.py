@@ -60,7 +60,7 @@ def test_gif_default_name_and_one_line_errors(run_dir: Path, tmp_path: Path) -> 
 
 
 def test_greedy_replay_runs_the_saved_agent(run_dir: Path, tmp_path: Path) -> None:
-    from cobelrun.figures.replay_video import greedy_steps
+    from cobelrun.commands.replay import greedy_steps
 
     steps = cobelrun.load(run_dir).steps
     a = greedy_steps(run_dir, 1)
@@ -70,7 +70,7 @@ def test_greedy_replay_runs_the_saved_agent(run_dir: Path, tmp_path: Path) -> No
     assert (a["x"].iloc[0], a["y"].iloc[0]) == (first["x"], first["y"])  # the start pose
     moves = np.hypot(np.diff(a["x"]), np.diff(a["y"]))
     assert (moves <= 1.0 + 1e-9).all() and len(a) <= 36  # one cell a step, max_steps 35
-    _, n = replay_file(run_dir, tmp_path / "g.gif", run=1, greedy=True)
+    _, n = replay_file(run_dir, tmp_path / "g.gif", run=1, greedy_steps=greedy_steps(run_dir, 1))
     assert n == len(a)
     with pytest.raises(CobelError, match=r"no saved agent for run 9"):
         greedy_steps(run_dir, 9)

@@ -148,49 +148,6 @@ def write_video(frames_iter: Iterator[np.ndarray], out: Path, fps: float) -> int
     return n
 
 
-def greedy_steps(run_dir: str | Path, run: int, episodes: int = 1) -> pd.DataFrame:
-    """Poses of ``episodes`` greedy episodes of run ``run``'s saved agent (argmax of its
-    action values, no learning), in the env as the run's config builds it (its first phase).
-
-    Unlike the rest of this module this builds the env and the agent from the folder's
-    ``config.yaml`` (:func:`cobelrun.api.rerun_config`: the same validation and instantiation
-    gate as ``cobel rerun``), then loads the saved agent (checked against its schema).
-    """
-    from cobelrun.api import rerun_config
-    from cobelrun.envs.base import Posed
-    from cobelrun.runner import build_task, load_saved_agent
-
-    run_dir = Path(run_dir)
-    cfg = rerun_config(run_dir)
-    task = build_task(cfg)
-    if task.job is not None or task.make_agent is None:
-        raise CobelError(f"{run_dir}: a custom job ({cfg.task.name}) has no agent to replay")
-    env = task.env
-    try:
-        if not isinstance(env.unwrapped, Posed):
-            raise CobelError(f"env {type(env.unwrapped).__name__} has no pose to draw")
-        agent = task.make_agent(seed=int(cfg.seed) + run)
-        load_saved_agent(agent, str(run_dir), run)
-        max_steps = int(cfg.task.protocol.get("max_steps") or 1000)
-        rows = []
-        for ep in range(episodes):
-            obs, _ = env.reset(seed=int(cfg.seed) * 1000 + run * 100 + ep)
-            for step in range(max_steps + 1):
-                x, y, heading = (float(v) for v in env.unwrapped.agent_pose())
-                rows.append((run, ep + 1, step, x, y, heading))
-                if step == max_steps:
-                    break
-                q = np.asarray(agent.predict(np.asarray(obs)[None]))[0]
-                obs, _, terminated, truncated, _ = env.step(int(np.argmax(q)))
-                if terminated or truncated:
-                    x, y, heading = (float(v) for v in env.unwrapped.agent_pose())
-                    rows.append((run, ep + 1, step + 1, x, y, heading))  # the arrival
-                    break
-    finally:
-        env.close()
-    return pd.DataFrame(rows, columns=["run", "trial", "step", "x", "y", "heading"])
-
-
 def replay_file(
     run_dir: str | Path,
     out: str | Path | None = None,
@@ -198,11 +155,11 @@ def replay_file(
     run: int = 0,
     trials: str | None = None,
     fps: float = 10.0,
-    greedy: bool = False,
+    greedy_steps: pd.DataFrame | None = None,
 ) -> tuple[Path, int]:
-    """``cobel replay RUN``: write the video; returns (file, frames). ``greedy``: run the
-    saved agent greedily (:func:`greedy_steps`, one episode per ``--trials`` count) instead
-    of drawing the recorded steps."""
+    """``cobel replay RUN``: write the video; returns (file, frames). ``greedy_steps``: poses
+    of the saved agent run greedily (``cobel replay --greedy`` makes them,
+    :func:`cobelrun.commands.replay.greedy_steps`) drawn instead of the recorded steps."""
     from cobelrun.figures.runs import load_geometry
     from cobelrun.figures.tasks import _title
     from cobelrun.results import load_steps
@@ -214,12 +171,8 @@ def replay_file(
     if target.suffix.lower() not in FORMATS:
         raise CobelError(f"--video {target}: the file must end in {' or '.join(FORMATS)}")
     geometry = load_geometry(run_dir)
-    if greedy:
-        from cobelrun.figures.learned import parse_trials
-
-        first, last = parse_trials(trials)
-        episodes = 1 if first is None or last is None else max(1, last - first + 1)
-        part = greedy_steps(run_dir, run, episodes)
+    if greedy_steps is not None:
+        part = greedy_steps
         title = f"{_title(run_dir)}, run {run}, greedy: "
     else:
         part = select_steps(load_steps(run_dir), run, trials)

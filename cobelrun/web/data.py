@@ -153,7 +153,7 @@ def _run_row(path: Path, rel: str) -> Folder:
 
 
 def _sweep_row(path: Path, rel: str) -> Folder:
-    from cobelrun.sweep import read_sweep
+    from cobelrun.io.sweep_folder import read_sweep
 
     row = Folder(path=path, kind="sweep", rel=rel)
     try:

@@ -12,7 +12,7 @@ from cobelrun.envs import DiscreteGridWorldEnv, GridWorldEnv, from_layout, tmaze
 from cobelrun.errors import ConfigError, LayoutError
 
 COBEL_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("cobel/"))
-NON_SPATIAL = {"cobel/TwoAFC-v0"}
+NON_SPATIAL = {"cobel/TwoAFC-v0", "cobel/Bandit-v0", "cobel/Sequence-v0"}
 #: envs that take no gridworld ``world``: built with their defaults in the seeded-rollout test
 NO_WORLD = NON_SPATIAL | {"cobel/Continuous2D-v0"}
 
@@ -47,6 +47,10 @@ def test_same_seed_same_rollout(env_id: str, slip: float) -> None:
     world = from_layout("S...\n.#..\nS..G", slip=slip)
     # envs without a gridworld are built with their defaults
     kwargs = {} if env_id in NO_WORLD else {"world": world, "max_steps": 15}
+    if env_id == "cobel/Sequence-v0":  # its default is one scripted trial: nothing random
+        kwargs = {"cues": ["A", "B"], "length": 4, "trial_types": {
+            "A+": {"cues": {"A": [0, 4]}, "outcome": 1.0},
+            "B-": {"cues": {"B": [0, 4]}, "outcome": 0.0}}}  # fmt: skip
     a = gym.make(env_id, **kwargs)
     b = gym.make(env_id, **kwargs)
     assert rollout(a, 7) == rollout(b, 7)

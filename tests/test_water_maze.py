@@ -15,6 +15,9 @@ from cobelrun.analysis.watermaze import QUADRANTS, add_days
 from cobelrun.config import builtin_conf_dir, instantiate, register_resolvers
 from cobelrun.errors import ConfigError
 from cobelrun.runner import run
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process
 
 
 def _compose(*overrides: str):
@@ -106,10 +109,10 @@ def test_actor_critic_rejects_bad_parameters(pool_env):
         ActorCritic(pool_env, beta=-1)
 
 
-def test_figure_morris_quick_and_bad_input_through_the_cli(cobel, tmp_path):
+def test_figure_morris_quick_and_bad_input_through_the_cli(cli, tmp_path):
     """``cobel figure morris --quick`` runs the task through the CLI (2 runs, 2 days, probe,
     1 reversal day) and draws every panel; a platform outside the pool is one line."""
-    proc = cobel("figure", "morris", "--quick")
+    proc = cli("figure", "morris", "--quick")
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "results" / "figures"
     assert (out / "morris_quick.png").stat().st_size > 10_000
@@ -120,7 +123,7 @@ def test_figure_morris_quick_and_bad_input_through_the_cli(cobel, tmp_path):
     probe = table[table["table"] == "probe"]
     assert list(probe["quadrant"]) == list(QUADRANTS)
     assert probe["fraction_mean"].sum() == pytest.approx(1.0, abs=1e-6)
-    bad = cobel("run", "task=morris_water_maze", "env.goals.platform.x=1.2")
+    bad = cli("run", "task=morris_water_maze", "env.goals.platform.x=1.2")
     assert bad.returncode != 0
     assert "goal 'platform' lies (partly) outside the arena" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1

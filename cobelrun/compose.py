@@ -467,6 +467,8 @@ def validate(
     with composer(config_dir, config_name) as compose:
         cfg = compose(first, return_hydra_config=True)
     _check_hydra_paths(cfg)
+    if multirun:
+        announce_setup(cfg)
     if not multirun:
         try:
             out = OmegaConf.select(cfg, "hydra.run.dir")
@@ -661,6 +663,22 @@ def shadows(user: Path) -> list[tuple[Path, Path]]:
         if mine.is_file() and mine.resolve() != path.resolve():
             found.append((mine, path))
     return found
+
+
+def announce_setup(cfg: DictConfig) -> None:
+    """One line on stderr naming the shell lines a launcher puts into every job's batch script
+    (``hydra.launcher.setup`` of submitit's SLURM launcher): they are code by design, so a
+    sweep says which lines it will run before it submits anything."""
+    import sys
+
+    try:
+        setup = OmegaConf.select(cfg, "hydra.launcher.setup", default=None)
+    except Exception:  # an unresolvable line: the launcher reports it
+        return
+    if setup:
+        lines = "; ".join(repr(str(line)) for line in setup)
+        print(f"cobel: note: hydra.launcher.setup runs these shell lines in every job: {lines}",
+              file=sys.stderr)  # fmt: skip
 
 
 def announce_shadows(user: Path) -> None:

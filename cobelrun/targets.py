@@ -379,6 +379,15 @@ def _walk(node: Any, where: str) -> Iterator[tuple[str, Any, Any]]:
 #: where Hydra's logging configs live (given to logging.config.dictConfig)
 _LOGGING_NODES = ("hydra.job_logging", "hydra.hydra_logging")
 
+#: environment variables a config may not set through ``hydra.job.env_set``: they decide which
+#: code a process loads (Python's search path and start-up file, the dynamic linker's preloads
+#: and library path, the shell's start-up file, the command search path) or widen this gate
+ENV_SET_REFUSED = frozenset({
+    "PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP", "PYTHONUSERBASE", "PYTHONEXECUTABLE",
+    "PYTHONINSPECT", "PYTHONBREAKPOINT", "LD_PRELOAD", "LD_LIBRARY_PATH", "LD_AUDIT",
+    "BASH_ENV", "ENV", "PATH", ENV_VAR,
+})  # fmt: skip
+
 
 def check_config(
     node: Any,
@@ -405,6 +414,12 @@ def check_config(
                 except Exception as exc:  # Hydra reports it as it builds: one line there
                     raise ConfigError(f"{key_path} {value!r} cannot be imported: {exc}") from None
                 check_object(key_path, value, obj, environ)
+        elif key_path.startswith("hydra.job.env_set.") and key_path.count(".") == 3:
+            if str(key).upper() in ENV_SET_REFUSED or str(key).upper().startswith("LD_"):
+                raise ConfigError(
+                    f"{key_path}: a config may not set {key} (it decides which code the job "
+                    "loads); set it in your shell before cobel if you mean it"
+                )
         elif key_path.startswith(_LOGGING_NODES):
             if key in ("class", "()") and isinstance(value, str):
                 if value not in LOGGING and not is_allowed(value, environ):

@@ -438,3 +438,30 @@ def test_cli_allow_target_option_and_environment(cobel, tmp_path):
     assert proc.returncode == 0, proc.stderr
     bad = cobel(*args, "--allow-target", "cobelplug.*.x")
     assert "is not a target pattern" in one_line_error(bad)
+
+
+# -- values that are code by another route ---------------------------------------------------
+@pytest.mark.parametrize("name", ["PYTHONPATH", "LD_PRELOAD", "PATH", "COBEL_ALLOW_TARGETS",
+                                  "BASH_ENV", "ld_audit"])  # fmt: skip
+def test_env_set_may_not_choose_the_code_a_job_loads(name):
+    """``hydra.job.env_set`` is applied in each job: a config (a ``-cd`` folder, ``./conf``)
+    must not point Python or the dynamic linker at other code, nor widen the gate."""
+    with composer() as compose, pytest.raises(ConfigError, match=rf"may not set {name}"):
+        compose([*TINY, f"+hydra.job.env_set.{name}=/tmp/elsewhere"], return_hydra_config=True)
+
+
+def test_env_set_of_ordinary_variables_is_kept():
+    with composer() as compose:
+        cfg = compose([*TINY, "+hydra.job.env_set.OMP_NUM_THREADS=1"], return_hydra_config=True)
+    assert cfg.hydra.job.env_set.OMP_NUM_THREADS == "1"
+
+
+def test_a_sweep_names_the_shell_lines_its_launcher_runs(capsys):
+    """submitit's ``setup`` lines are shell code by design: a sweep says which it will run."""
+    validate([*TINY, "seed=0,1", "hydra/launcher=slurm",
+              "hydra.launcher.setup=[module load python,echo ready]"], multirun=True)  # fmt: skip
+    err = capsys.readouterr().err
+    assert (
+        "hydra.launcher.setup runs these shell lines in every job: 'module load python'; 'echo ready'"
+        in err
+    )

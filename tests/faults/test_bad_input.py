@@ -250,8 +250,10 @@ def test_full_disk_cli(cobel, small_disk):
     # where the disk fills depends on timing: on a loaded machine the trials table can be
     # complete already and only the last files (the MCAP, the agents) were cut short
     trials_complete = (out / "trials.parquet").is_file()
+    left_in_parts = [p for p in (out / ".parts").rglob("*") if p.is_file()]
     status = cobel("status", str(out))
-    assert "repaired" in status.stdout, status.stdout + status.stderr
+    if left_in_parts:  # (when the disk filled only after both tables were whole: nothing to merge)
+        assert "repaired" in status.stdout, status.stdout + status.stderr
     if not trials_complete:
         assert "repaired trials.parquet" in status.stdout, status.stdout + status.stderr
     trials = pd.read_parquet(out / "trials.parquet")

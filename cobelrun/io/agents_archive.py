@@ -280,7 +280,6 @@ def read_agent(
     Raises ValueError if the archive's layout is broken (the caller names the file), a
     ConfigError when an array does not fit the schema or the memory.
     """
-    from cobelrun.io.validate import read_npy_header
     from cobelrun.safety import check_allocation
 
     with zipfile.ZipFile(path) as zf:
@@ -295,24 +294,8 @@ def read_agent(
         meta = json.loads(str(metas[i]))
         if not isinstance(meta, dict):
             raise ValueError(f"{META} of run {run} is not a JSON object")
-        keys = [n[: -len(".npy")] for n in zf.namelist() if n.endswith(".npy")]
         plan: dict[str, tuple[int, int, tuple[int, ...], np.dtype]] = {}
-        for key in keys:
-            if key in (RUNS, META) or key.endswith(SHAPE):
-                continue
-            shapes = _small(zf, key + SHAPE, "iu", 2)
-            if shapes.shape[0] != runs.shape[0]:
-                raise ValueError(f"{key}{SHAPE} has {shapes.shape[0]} rows for {runs.size} runs")
-            rows = [tuple(int(n) for n in r) for r in shapes.tolist()]
-            if any(n < 0 for r in rows for n in r):
-                raise ValueError(f"{key}{SHAPE} holds a negative size")
-            sizes = [math.prod(r) for r in rows]
-            with zf.open(f"{key}.npy") as fh:
-                flat_shape, dtype = read_npy_header(fh)
-            if len(flat_shape) != 1 or flat_shape[0] != sum(sizes):
-                raise ValueError(f"{key} holds {flat_shape} values, its shapes say {sum(sizes)}")
-            if dtype.kind not in "biuf":
-                raise ValueError(f"{key} holds {dtype}, not numbers")
+        for key, (rows, sizes, dtype) in _plan(zf, runs).items():
             problem = check(key, rows[i], dtype) if check is not None else None
             if problem:
                 from cobelrun.errors import ConfigError

@@ -28,6 +28,15 @@ CRCs on); :meth:`McapRecorder.flush` closes the chunk in progress so that everyt
 far is on disk. A file left without its summary (the process was killed) is made readable again
 by :func:`cobelrun.io.mcap_repair.repair_mcap`.
 
+Sinks: one set of log calls, several destinations. A :class:`FoxgloveStream` builds each
+message once and logs it on the channel of every :class:`FoxgloveSink` it feeds: the file
+(:class:`McapSink`, ``run.mcap``) and the live view (:class:`cobelrun.io.live.LiveSink`,
+foxglove-sdk's WebSocket server, ``task.record.live``). Each sink has a ``foxglove.Context``
+of its own, so the file holds exactly what it held before a live view existed, while the live
+view gets what it needs besides (the maze again for a client that connects late, and the
+per-trial series on ``/trial_series``); a live channel no client subscribed to costs one check
+per batch. :class:`McapRecorder` is the stream with the file sink (and optionally live ones).
+
 Only public APIs are used: ``foxglove.open_mcap`` with a private ``foxglove.Context`` per file
 (two recorders in one process never share channels), typed channels from ``foxglove.channels``,
 messages from ``foxglove.messages``. The maze's scene is built by
@@ -106,11 +115,20 @@ if TYPE_CHECKING:
     from cobelrun.monitors import ScenePath
 
 __all__ = [
+    "TIMELINES",
     "TRIAL_EVENT_SCHEMA",
+    "TRIAL_SERIES_SCHEMA",
     "TRIAL_TABLE_PROTO",
+    "FoxgloveSink",
+    "FoxgloveStream",
     "McapRecorder",
+    "McapSink",
     "heading_to_quaternion",
 ]
+
+#: ``task.record.mcap_timeline``: runs one after another on the log clock (``sequential``), or
+#: every run's clock starting at the file's start (``per_run``: runs side by side)
+TIMELINES = ("sequential", "per_run")
 
 _NS_PER_S = 1_000_000_000
 
@@ -136,6 +154,27 @@ TRIAL_EVENT_SCHEMA: dict[str, Any] = {
     "required": ["event", "run", "trial", "phase"],
 }
 
+
+#: JSON schema of ``cobel.TrialSeries`` on ``/trial_series`` (live view only): one message per
+#: trial of every run, at the trial's end, for the Plot panel (``/trial_series.steps``).
+TRIAL_SERIES_SCHEMA: dict[str, Any] = {
+    "title": "cobel.TrialSeries",
+    "description": "One trial of a cobel run: what trials.parquet gets, while the run goes",
+    "type": "object",
+    "properties": {
+        "run": {"type": "integer", "description": "Run index (0-based, as in trials.parquet)"},
+        "trial": {"type": "integer", "description": "Trial number, 1-based across phases"},
+        "phase": {"type": "string", "description": "Protocol phase name"},
+        "steps": {"type": "integer", "description": "Steps taken = escape latency"},
+        "reward": {"type": "number", "description": "Reward summed over the trial"},
+        "terminated": {"type": "boolean", "description": "false: the trial hit max_steps"},
+        "response": {
+            "type": "integer",
+            "description": "Coded response of the trial (only when the task codes one)",
+        },
+    },
+    "required": ["run", "trial", "phase", "steps", "reward", "terminated"],
+}
 
 #: ``cobel.TrialTable`` on ``/trials`` (protobuf; the file holds it as a FileDescriptorSet).
 TRIAL_TABLE_PROTO = """\
@@ -232,17 +271,116 @@ def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
     return t
 
 
-class McapRecorder:
-    """Write one run folder's ``run.mcap``: maze scene, poses, trial events, camera frames.
+#: simulated time per step on the log clock (100 ms; the pose clock of ``cobel.TrialTable``)
+STEP_NS = 100_000_000
+
+
+class FoxgloveSink:
+    """A destination of a :class:`FoxgloveStream`'s messages: a ``foxglove.Context`` of its
+    own with one foxglove-sdk sink attached (an MCAP file, a WebSocket server).
+
+    Subclasses attach the SDK sink to :attr:`context`; the stream creates its channels there.
+    """
+
+    #: a live sink logs a channel only while a client subscribes to it, gets the live-only
+    #: topics (``/trial_series``), and sees the maze again when a client subscribes late
+    live: bool = False
+
+    def __init__(self) -> None:
+        self.context = foxglove.Context()
+        self._closed = False
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has run."""
+        return self._closed
+
+    def write_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """A metadata record (files keep it; a live view has nowhere to keep it)."""
+
+    def attach(self, *, log_time: int, name: str, media_type: str, data: bytes) -> None:
+        """An attachment (files keep it; a live view has nowhere to keep it)."""
+
+    def latch(self, channel: Any, message: Any, log_time: int) -> None:
+        """``message`` is the state of ``channel`` (the maze): a live sink logs it again for
+        every client that subscribes later."""
+
+    def flush(self) -> None:
+        """Make what was logged so far durable (files) or sent (live); a no-op by default."""
+
+    def close(self) -> None:
+        """Finish the sink; idempotent."""
+        self._closed = True
+
+
+class McapSink(FoxgloveSink):
+    """``run.mcap`` as a sink: ``foxglove.open_mcap`` on the sink's context (zstd chunks, chunk
+    CRCs, compressed on the calling thread).
 
     Parameters
     ----------
     path : path-like
         File to write (replaced if it exists).
+    chunk_size : int, default 1 MiB
+        Target uncompressed chunk size.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, chunk_size: int = 1 << 20) -> None:
+        super().__init__()
+        self._closed = True
+        self.path = Path(path)
+        options = MCAPWriteOptions(
+            compression=MCAPCompression.Zstd,
+            chunk_size=int(chunk_size),
+            compression_threads=0,  # compress on the calling thread (cores are shared)
+        )
+        self._writer = foxglove.open_mcap(
+            self.path, allow_overwrite=True, context=self.context, writer_options=options
+        )
+        self._closed = False
+
+    def write_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        self._writer.write_metadata(name, dict(metadata))
+
+    def attach(self, *, log_time: int, name: str, media_type: str, data: bytes) -> None:
+        self._writer.attach(log_time=log_time, create_time=log_time, name=name,
+                            media_type=media_type, data=data)  # fmt: skip
+
+    def flush(self) -> None:
+        """Close the chunk in progress and flush it to the file: everything written so far is
+        readable after a crash (with :func:`repair_mcap`). Frequent flushes compress worse."""
+        if not self._closed:
+            self._writer.flush()
+
+    def close(self) -> None:
+        """Write the last chunk, the summary and the footer; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.close()
+        finally:
+            # a writer whose close failed (a full disk) is dropped now, while Python runs:
+            # foxglove-sdk's writer logs from its destructor, which panics at interpreter exit
+            self._writer = None
+
+
+_Log = Any  # a channel's bound ``log`` method
+
+
+class FoxgloveStream:
+    """A run's Foxglove stream: maze scene, poses, trial events and tables, camera frames and
+    monitors' paths, each message built once and logged to every sink.
+
+    Parameters
+    ----------
+    sinks : sequence of FoxgloveSink
+        Where the messages go (at least one): :class:`McapSink` and/or
+        :class:`cobelrun.io.live.LiveSink`. The stream closes them.
     geometry : Geometry, optional
         The maze, graph or arena; written once as a ``foxglove.SceneUpdate`` on ``/maze`` (and
-        as the attachment ``geometry.json``) so that Foxglove's 3D panel shows the maze under
-        the poses.
+        as the attachment ``geometry.json`` of a file) so that Foxglove's 3D panel shows the
+        maze under the poses.
     start_ns : int, optional
         Log time origin in nanoseconds since the Unix epoch: the run's real wall-clock start
         (``time.time_ns()``, the default). The scene and the metadata are logged at this time;
@@ -250,69 +388,109 @@ class McapRecorder:
     metadata : mapping of str to str, optional
         Written as the MCAP metadata record ``cobel`` (e.g. seed, task, config hash, which runs
         are kept in full); ``start_ns`` is added.
-    chunk_size : int, default 1 MiB
-        Target uncompressed chunk size.
-
-    Examples
-    --------
-    >>> with McapRecorder(run_dir / "run.mcap", geometry=env.unwrapped.geometry()) as rec:
-    ...     rec.write_poses(0, t_ns, poses)        # doctest: +SKIP
     """
 
     TRIAL_TOPIC = "/trial"
     TRIALS_TOPIC = "/trials"
     SCENE_TOPIC = "/maze"
+    SERIES_TOPIC = "/trial_series"
 
     def __init__(
         self,
-        path: str | os.PathLike[str],
+        sinks: Sequence[FoxgloveSink],
         *,
         geometry: Geometry | None = None,
         start_ns: int | None = None,
         metadata: Mapping[str, str] | None = None,
-        chunk_size: int = 1 << 20,
     ) -> None:
-        self.path = Path(path)
-        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
-        if self.start_ns < 0:
-            raise ValueError(f"start_ns must be >= 0, got {self.start_ns}")
+        self.sinks = list(sinks)
         self._closed = True
-        self._context = foxglove.Context()
-        options = MCAPWriteOptions(
-            compression=MCAPCompression.Zstd,
-            chunk_size=int(chunk_size),
-            compression_threads=0,  # compress on the calling thread (cores are shared)
-        )
-        self._writer = foxglove.open_mcap(
-            self.path, allow_overwrite=True, context=self._context, writer_options=options
-        )
-        self._closed = False
-        self._poses: dict[str, PoseInFrameChannel] = {}
-        self._cameras: dict[int, RawImageChannel] = {}
-        self._trials: foxglove.Channel | None = None
-        self._paths: dict[str, SceneUpdateChannel] = {}
         try:
-            self._trial = foxglove.Channel(
-                self.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA, context=self._context
-            )
+            if not self.sinks:
+                raise ValueError("a FoxgloveStream needs at least one sink")
+            self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+            if self.start_ns < 0:
+                raise ValueError(f"start_ns must be >= 0, got {self.start_ns}")
+        except BaseException:
+            self._close_sinks()
+            raise
+        self._closed = False
+        #: topic -> the channel on each sink (None: not created there yet, or not logged there)
+        self._topics: dict[str, list[Any]] = {}
+        self._live = any(s.live for s in self.sinks)
+        try:
+            self._logs(self.TRIAL_TOPIC, self._trial_channel)
+            if self._live:
+                self._logs(self.SERIES_TOPIC, self._series_channel, live_only=True)
             meta = {str(k): str(v) for k, v in (metadata or {}).items()}
             meta.setdefault("start_ns", str(self.start_ns))
-            self._writer.write_metadata("cobel", meta)
+            for sink in self.sinks:
+                sink.write_metadata("cobel", meta)
             if geometry is not None:
                 self._write_scene(geometry)
         except BaseException:
-            self.close()  # a complete (if empty) file, never a half-open writer
+            self.close()  # complete (if empty) files, never a half-open writer
             raise
 
-    # ------------------------------------------------------------------ poses
-    def _pose_channel(self, topic: str, run: int | None) -> PoseInFrameChannel:
-        ch = self._poses.get(topic)
-        if ch is None:
-            meta = {} if run is None else {"run": str(run)}
-            ch = PoseInFrameChannel(topic, metadata=meta, context=self._context)
-            self._poses[topic] = ch
-        return ch
+    # ------------------------------------------------------------------ channels
+    @staticmethod
+    def _trial_channel(context: foxglove.Context) -> foxglove.Channel:
+        return foxglove.Channel(FoxgloveStream.TRIAL_TOPIC, schema=TRIAL_EVENT_SCHEMA,
+                                context=context)  # fmt: skip
 
+    @staticmethod
+    def _series_channel(context: foxglove.Context) -> foxglove.Channel:
+        return foxglove.Channel(FoxgloveStream.SERIES_TOPIC, schema=TRIAL_SERIES_SCHEMA,
+                                context=context)  # fmt: skip
+
+    def _logs(self, topic: str, make: Any, *, live_only: bool = False) -> list[_Log]:
+        """The ``log`` methods of ``topic``'s channels that want this message: every file sink,
+        and the live sinks where a client subscribes to it. Channels are created on first use
+        by ``make(context)``; ``live_only`` topics exist on live sinks only."""
+        channels = self._topics.get(topic)
+        if channels is None:
+            channels = self._topics[topic] = [None] * len(self.sinks)
+        logs = []
+        for i, sink in enumerate(self.sinks):
+            if live_only and not sink.live:
+                continue
+            ch = channels[i]
+            if ch is None:
+                ch = channels[i] = make(sink.context)
+            if not sink.live or ch.has_sinks():
+                logs.append(ch.log)
+        return logs
+
+    def prepare_run(self, run: int, *, images: bool = False) -> None:
+        """Advertise run ``run``'s pose (and camera) channels to live clients before its first
+        batch, so that a client subscribes in time to see it (files create them on first use)."""
+        self._check_open()
+        if not self._live:
+            return
+        for topic, make in self._run_channels(int(run), images):
+            channels = self._topics.setdefault(topic, [None] * len(self.sinks))
+            for i, sink in enumerate(self.sinks):
+                if sink.live and channels[i] is None:
+                    channels[i] = make(sink.context)
+
+    @staticmethod
+    def _run_channels(run: int, images: bool) -> list[tuple[str, Any]]:
+        meta = {"run": str(run)}
+        pose = f"/run_{run:04d}/pose"
+        out: list[tuple[str, Any]] = [
+            (pose, lambda c: PoseInFrameChannel(pose, metadata=meta, context=c))
+        ]
+        if images:
+            camera = f"/run_{run:04d}/camera"
+            out.append((camera, lambda c: RawImageChannel(camera, metadata=meta, context=c)))
+        return out
+
+    @property
+    def live(self) -> bool:
+        """True if a live sink is fed."""
+        return self._live
+
+    # ------------------------------------------------------------------ poses
     def write_poses(self, run: int, t_ns: np.ndarray, poses: np.ndarray) -> None:
         """Write ``foxglove.PoseInFrame`` messages on ``/run_{run:04d}/pose``.
 
@@ -335,9 +513,12 @@ class McapRecorder:
             return
         if not np.isfinite(p).all():
             raise ValueError("write_poses: x, y and heading must be finite (no NaN/inf)")
-        self._log_poses(self._pose_channel(f"/run_{int(run):04d}/pose", int(run)), t, p)
+        topic, make = self._run_channels(int(run), False)[0]
+        logs = self._logs(topic, make)
+        if logs:
+            self._log_poses(logs, t, p)
 
-    def _log_poses(self, channel: PoseInFrameChannel, t: np.ndarray, p: np.ndarray) -> None:
+    def _log_poses(self, logs: list[_Log], t: np.ndarray, p: np.ndarray) -> None:
         # a grid or graph run revisits a few hundred poses: build each Pose once
         uniq, inverse = np.unique(p, axis=0, return_inverse=True)
         qz, qw = heading_to_quaternion(uniq[:, 2])
@@ -348,12 +529,18 @@ class McapRecorder:
             )
         ]
         sec, nsec = np.divmod(t, _NS_PER_S)
-        log = channel.log
-        for ti, s, ns, k in zip(
-            t.tolist(), sec.tolist(), nsec.tolist(), inverse.reshape(-1).tolist(), strict=True
-        ):
+        rows = zip(t.tolist(), sec.tolist(), nsec.tolist(), inverse.reshape(-1).tolist(),
+                   strict=True)  # fmt: skip
+        if len(logs) == 1:
+            log = logs[0]
+            for ti, s, ns, k in rows:
+                msg = PoseInFrame(timestamp=Timestamp(s, ns), frame_id=FRAME_ID, pose=table[k])
+                log(msg, log_time=ti)
+            return
+        for ti, s, ns, k in rows:
             msg = PoseInFrame(timestamp=Timestamp(s, ns), frame_id=FRAME_ID, pose=table[k])
-            log(msg, log_time=ti)
+            for log in logs:
+                log(msg, log_time=ti)
 
     # ------------------------------------------------------------------ trial events
     def write_trial_events(
@@ -434,10 +621,10 @@ class McapRecorder:
         ends = ("\n".join([end_fmt] * n) % tuple(
             v for row in zip(*end_cols, runs, ints["trial"], strict=True) for v in row
         )).encode().split(b"\n")  # fmt: skip
-        log = self._trial.log
-        for a, b, t0, t1 in zip(starts, ends, ts.tolist(), te.tolist(), strict=True):
-            log(a, log_time=t0)
-            log(b, log_time=t1)
+        for log in self._logs(self.TRIAL_TOPIC, self._trial_channel):
+            for a, b, t0, t1 in zip(starts, ends, ts.tolist(), te.tolist(), strict=True):
+                log(a, log_time=t0)
+                log(b, log_time=t1)
 
     # ------------------------------------------------------------------ trial tables
     def write_trial_table(
@@ -500,14 +687,49 @@ class McapRecorder:
         if rew.shape != (n,) or not np.isfinite(rew).all():
             raise ValueError(f"write_trial_table: reward must be ({n},) finite floats")
         cls, fds = _trial_table_type()
-        if self._trials is None:
+
+        def make(context: foxglove.Context) -> foxglove.Channel:
             schema = foxglove.Schema(name="cobel.TrialTable", encoding="protobuf", data=fds)
-            self._trials = foxglove.Channel(self.TRIALS_TOPIC, schema=schema,
-                                            message_encoding="protobuf", context=self._context)  # fmt: skip
-        msg = cls(run=int(run), phase=str(phase), first_trial=int(first_trial),
-                  reward=rew.tolist(), **cols)  # fmt: skip
-        msg.timestamp.seconds, msg.timestamp.nanos = divmod(t, _NS_PER_S)
-        self._trials.log(msg.SerializeToString(), log_time=t)
+            return foxglove.Channel(self.TRIALS_TOPIC, schema=schema,
+                                    message_encoding="protobuf", context=context)  # fmt: skip
+
+        logs = self._logs(self.TRIALS_TOPIC, make)
+        if logs:
+            msg = cls(run=int(run), phase=str(phase), first_trial=int(first_trial),
+                      reward=rew.tolist(), **cols)  # fmt: skip
+            msg.timestamp.seconds, msg.timestamp.nanos = divmod(t, _NS_PER_S)
+            data = msg.SerializeToString()
+            for log in logs:
+                log(data, log_time=t)
+        if self._live and n:
+            self._write_series(int(run), str(phase), int(first_trial), t, cols, rew)
+
+    def _write_series(
+        self, run: int, phase: str, first_trial: int, t: int, cols: dict[str, list[Any]],
+        reward: np.ndarray,
+    ) -> None:  # fmt: skip
+        """One ``cobel.TrialSeries`` per trial on ``/trial_series`` of the live sinks that a
+        client subscribes to, logged at each trial's end on the pose clock."""
+        logs = self._logs(self.SERIES_TOPIC, self._series_channel, live_only=True)
+        if not logs:
+            return
+        steps = cols["steps"]
+        n = len(steps)
+        ends = t + (np.cumsum(steps, dtype=np.int64) + np.arange(n, dtype=np.int64)) * STEP_NS
+        resp = cols.get("response")
+        fmt = ('{"run":%d,"trial":%d,"phase":' + json.dumps(phase).replace("%", "%%")
+               + ',"steps":%d,"reward":%r,"terminated":%s' + ("}" if resp is None
+               else ',"response":%d}'))  # fmt: skip
+        values: list[list[Any]] = [[run] * n, list(range(first_trial, first_trial + n)), steps,
+                                   reward.tolist(),
+                                   ["true" if x else "false" for x in cols["terminated"]]]  # fmt: skip
+        if resp is not None:
+            values.append(resp)
+        lines = ("\n".join([fmt] * n) % tuple(v for row in zip(*values, strict=True)
+                                                for v in row)).encode().split(b"\n")  # fmt: skip
+        for log in logs:
+            for line, te in zip(lines, ends.tolist(), strict=True):
+                log(line, log_time=te)
 
     # ------------------------------------------------------------------ paths
     def write_paths(
@@ -538,9 +760,9 @@ class McapRecorder:
             if t < 0:
                 raise ValueError("write_paths: times must be >= 0")
             topic = f"/run_{int(run):04d}/{path.name}"
-            channel = self._paths.get(topic)
-            if channel is None:
-                channel = self._paths[topic] = SceneUpdateChannel(topic, context=self._context)
+            logs = self._logs(topic, lambda c, topic=topic: SceneUpdateChannel(topic, context=c))
+            if not logs:
+                continue
             lines, spheres = [], []
             for seg, kind in zip(path.segments, path.kinds, strict=True):
                 xy = np.asarray(seg, np.float64).reshape(-1, 2)
@@ -558,7 +780,9 @@ class McapRecorder:
             entity = SceneEntity(timestamp=_timestamp(t), frame_id=FRAME_ID, id=path.name,
                                  lifetime=life, metadata=meta, lines=lines,
                                  spheres=spheres)  # fmt: skip
-            channel.log(SceneUpdate(entities=[entity]), log_time=t)
+            update = SceneUpdate(entities=[entity])
+            for log in logs:
+                log(update, log_time=t)
 
     # ------------------------------------------------------------------ images
     def write_image(self, run: int, t_ns: int, image: np.ndarray) -> None:
@@ -582,12 +806,10 @@ class McapRecorder:
         t = int(t_ns)
         if t < 0:
             raise ValueError("write_image: t_ns must be >= 0")
-        ch = self._cameras.get(int(run))
-        if ch is None:
-            ch = RawImageChannel(
-                f"/run_{int(run):04d}/camera", metadata={"run": str(run)}, context=self._context
-            )
-            self._cameras[int(run)] = ch
+        topic, make = self._run_channels(int(run), True)[1]
+        logs = self._logs(topic, make)
+        if not logs:
+            return
         h, w, _ = img.shape
         msg = RawImage(
             timestamp=_timestamp(t),
@@ -598,25 +820,26 @@ class McapRecorder:
             step=3 * w,
             data=np.ascontiguousarray(img).tobytes(),
         )
-        ch.log(msg, log_time=t)
+        for log in logs:
+            log(msg, log_time=t)
 
     # ------------------------------------------------------------------ scene
     def _write_scene(self, geometry: Geometry) -> None:
         entities = scene_entities(geometry, _timestamp(self.start_ns))
-        channel = SceneUpdateChannel(self.SCENE_TOPIC, context=self._context)
-        channel.log(SceneUpdate(entities=entities), log_time=self.start_ns)
-        self._writer.attach(
-            log_time=self.start_ns,
-            create_time=self.start_ns,
-            name="geometry.json",
-            media_type="application/json",
-            data=geometry.to_json().encode(),
-        )
+        update = SceneUpdate(entities=entities)
+        topic = self.SCENE_TOPIC
+        self._logs(topic, lambda c: SceneUpdateChannel(topic, context=c))
+        data = geometry.to_json().encode()
+        for sink, channel in zip(self.sinks, self._topics[topic], strict=True):
+            channel.log(update, log_time=self.start_ns)
+            sink.latch(channel, update, self.start_ns)
+            sink.attach(log_time=self.start_ns, name="geometry.json",
+                        media_type="application/json", data=data)  # fmt: skip
 
     # ------------------------------------------------------------------ lifecycle
     def _check_open(self) -> None:
         if self._closed:
-            raise ValueError(f"McapRecorder({str(self.path)!r}) is closed")
+            raise ValueError(f"{self!r} is closed")
 
     @property
     def closed(self) -> bool:
@@ -624,24 +847,32 @@ class McapRecorder:
         return self._closed
 
     def flush(self) -> None:
-        """Close the chunk in progress and flush it to the file: everything written so far is
-        readable after a crash (with :func:`repair_mcap`). Frequent flushes compress worse."""
+        """Flush every sink: the file closes the chunk in progress, so everything written so
+        far is readable after a crash (with :func:`repair_mcap`)."""
         if not self._closed:
-            self._writer.flush()
+            for sink in self.sinks:
+                sink.flush()
 
     def close(self) -> None:
-        """Write the last chunk, the summary and the footer; idempotent."""
+        """Finish every sink (the file's last chunk, summary and footer; the live server
+        stops); idempotent. Every sink is closed even when one fails (the first error is
+        raised)."""
         if self._closed:
             return
         self._closed = True
-        try:
-            self._writer.close()
-        finally:
-            # a writer whose close failed (a full disk) is dropped now, while Python runs:
-            # foxglove-sdk's writer logs from its destructor, which panics at interpreter exit
-            self._writer = None
+        self._close_sinks()
 
-    def __enter__(self) -> McapRecorder:
+    def _close_sinks(self) -> None:
+        first: BaseException | None = None
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except BaseException as exc:
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def __enter__(self) -> FoxgloveStream:
         return self
 
     def __exit__(
@@ -651,6 +882,55 @@ class McapRecorder:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        sinks = ", ".join(type(s).__name__ for s in self.sinks)
+        return f"{type(self).__name__}([{sinks}], start_ns={self.start_ns}, {state})"
+
+
+class McapRecorder(FoxgloveStream):
+    """Write one run folder's ``run.mcap``: maze scene, poses, trial events, camera frames
+    (a :class:`FoxgloveStream` whose first sink is the file).
+
+    Parameters
+    ----------
+    path : path-like
+        File to write (replaced if it exists).
+    geometry, start_ns, metadata
+        As :class:`FoxgloveStream`.
+    chunk_size : int, default 1 MiB
+        Target uncompressed chunk size.
+    live : sequence of FoxgloveSink, optional
+        More sinks fed the same messages (a live view: :class:`cobelrun.io.live.LiveSink`).
+
+    Examples
+    --------
+    >>> with McapRecorder(run_dir / "run.mcap", geometry=env.unwrapped.geometry()) as rec:
+    ...     rec.write_poses(0, t_ns, poses)        # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        geometry: Geometry | None = None,
+        start_ns: int | None = None,
+        metadata: Mapping[str, str] | None = None,
+        chunk_size: int = 1 << 20,
+        live: Sequence[FoxgloveSink] = (),
+    ) -> None:
+        self.path = Path(path)
+        if start_ns is not None and int(start_ns) < 0:
+            raise ValueError(f"start_ns must be >= 0, got {int(start_ns)}")
+        try:
+            file = McapSink(self.path, chunk_size=chunk_size)
+        except BaseException:
+            for sink in live:
+                sink.close()
+            raise
+        super().__init__([file, *live], geometry=geometry, start_ns=start_ns,
+                         metadata=metadata)  # fmt: skip
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

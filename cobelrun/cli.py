@@ -72,6 +72,7 @@ Examples:
   cobel run task=tmaze_extinction seed=3 task.runs=20 agent.epsilon=0.2
   cobel run -m task=tmaze_extinction seed=1,2,3          # a sweep (multirun)
   cobel run task=tmaze_extinction hydra.run.dir=out/x    # choose the output folder
+  cobel run task=gridworld --live                        # watch it: ws://127.0.0.1:8765
 \b
 Hydra flags work as usual: -m/--multirun, --cfg job (print the config), --info, -c.
 Results go to results/<task>/<date>/<time>_<id>/ (COBEL_RESULTS changes the root).
@@ -96,6 +97,23 @@ def run_cmd(
         bool, typer.Option("--quiet", help="No end-of-run summary (the folder is still printed).")
     ] = False,
     allow_target: AllowTarget = None,
+    live: Annotated[
+        bool,
+        typer.Option(
+            "--live",
+            help="Stream the run to a live view (Foxglove/Lichtblick on ws://127.0.0.1:PORT; "
+            "task.record.live=true).",
+        ),
+    ] = False,
+    port: Annotated[
+        int | None,
+        typer.Option(
+            "--port",
+            min=0,
+            max=65535,
+            help="The live view's port (default 8765; 0: any free port). Implies --live.",
+        ),
+    ] = None,
 ) -> None:
     allow_targets(allow_target)
     if debug:
@@ -103,8 +121,19 @@ def run_cmd(
         os.environ["HYDRA_FULL_ERROR"] = "1"
     from cobelrun.hydra_app import launch
 
+    args = list(ctx.args)
+    extra = []  # the record keys, so that config.yaml says how the run ran
+    if live or port is not None:
+        extra.append("task.record.live=true")
+    if port is not None:
+        extra.append(f"task.record.live_port={port}")
+    if extra:
+        # Hydra's parser takes the overrides only as one unbroken run of words: put these at
+        # its start (the user's own task.record.live_port=... comes later and wins)
+        at = next((i for i, a in enumerate(args) if "=" in a and not a.startswith("-")), 0)
+        args[at:at] = extra
     try:
-        code = launch(list(ctx.args), quiet=quiet)
+        code = launch(args, quiet=quiet)
     except CobelError as exc:
         fail(str(exc))
     except KeyboardInterrupt:

@@ -86,6 +86,18 @@ class RecordConfig:
         waits for the simulation's GIL; Linux, main thread, background writes, else the
         thread). The process pays only with a core to spare for it: on 2 cores it was slower
         (docs/speed.md).
+    mcap_timeline
+        ``"sequential"``: runs follow each other on ``run.mcap``'s log clock (100 ms per
+        pose); ``"per_run"``: every run's clock starts at the file's start, so that runs can be
+        watched side by side.
+    live
+        Also stream what ``run.mcap`` gets (and the per-trial series) to a live view:
+        foxglove-sdk's WebSocket server on ``live_host:live_port`` (:mod:`cobelrun.io.live`).
+        A port in use is one line; the run goes on.
+    live_port, live_host
+        Where the live view listens (port 0: any free port).
+    live_wait
+        Seconds to wait for a live client before the first trial (0: start at once).
     """
 
     steps: bool = True
@@ -97,6 +109,11 @@ class RecordConfig:
     images: bool = False
     training_log: bool = False
     step_writer: str = "thread"
+    mcap_timeline: str = "sequential"
+    live: bool = False
+    live_port: int = 8765
+    live_host: str = "127.0.0.1"
+    live_wait: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "task.record") -> RecordConfig:
@@ -117,6 +134,11 @@ class RecordConfig:
             images=spec.images,
             training_log=spec.training_log,
             step_writer=spec.step_writer,
+            mcap_timeline=spec.mcap_timeline,
+            live=spec.live,
+            live_port=spec.live_port,
+            live_host=spec.live_host,
+            live_wait=float(spec.live_wait),
         )
 
     def records_run(self, run: int) -> bool:
@@ -308,14 +330,10 @@ class RunRecorder:
         self._mcap_tables: list[tuple[Any, ...]] = []  # trial tables awaiting the MCAP
         self._last_pending = time.monotonic()
         self.start_ns = time.time_ns()
-        self.mcap = None
-        if record.mcap:
-            from cobelrun.io.mcap import McapRecorder
-
-            self.mcap = McapRecorder(folder.mcap, geometry=geometry, start_ns=self.start_ns,
-                                     metadata=dict(metadata or {}))  # fmt: skip
+        self.mcap = self._foxglove_stream(record, geometry, metadata)
         self._active: dict[bool, list[Monitor]] = {}
         self._clock = 0  # simulated ns since the start
+        self._clocks: dict[int, int] = {}  # mcap_timeline=per_run: each run's own clock
         self._writer = WriterThread(enabled=background)
         self._frames = _FrameGrabber(env) if self.mcap is not None and record.images else None
         self.agents = (
@@ -330,6 +348,35 @@ class RunRecorder:
         joined = sorted({t.name for m in self._joinable for t in m.tables()})
         if joined and self._step_process(background):
             self._steps = StepWriterProcess(joined, self._write_forked, self._finish_table)
+
+    def _foxglove_stream(
+        self, record: RecordConfig, geometry: Any, metadata: Mapping[str, str] | None
+    ) -> Any:
+        """``run.mcap`` and/or the live view: one :class:`~cobelrun.io.mcap.FoxgloveStream`
+        feeding both (None when neither is on)."""
+        live = []
+        if record.live:
+            from cobelrun.io.live import LiveSink
+
+            sink = LiveSink.start(record.live_host, record.live_port)
+            if sink is not None:
+                live.append(sink)
+        meta = dict(metadata or {})
+        if record.mcap_timeline != "sequential":
+            meta["timeline"] = record.mcap_timeline
+        stream: Any = None
+        if record.mcap:
+            from cobelrun.io.mcap import McapRecorder
+
+            stream = McapRecorder(self.folder.mcap, geometry=geometry, start_ns=self.start_ns,
+                                  metadata=meta, live=live)  # fmt: skip
+        elif live:
+            from cobelrun.io.mcap import FoxgloveStream
+
+            stream = FoxgloveStream(live, geometry=geometry, start_ns=self.start_ns, metadata=meta)
+        if live and record.live_wait > 0:  # the channels are advertised: wait for a viewer
+            live[0].wait_for_client(record.live_wait)
+        return stream
 
     def _write_forked(self, batch: TrialBatch, info: BatchInfo) -> None:
         """In the step writer process: build and write a joined flush's step rows."""
@@ -390,6 +437,9 @@ class RunRecorder:
     def start_run(self, run: int, agent: Any) -> None:
         for m in self.monitors:
             m.start_run(run, agent)
+        if self.mcap is not None and self.mcap.live and self.record_cfg.mcap_run(run):
+            # advertised now, so that a live client subscribes before the run's first batch
+            self._writer.submit(self.mcap.prepare_run, run, self._frames is not None)
 
     def phase_callbacks(self, first_trial: int, run: int = 0) -> list[Any]:
         """Trial callbacks the monitors need for a phase starting at ``first_trial`` (empty for
@@ -603,8 +653,13 @@ class RunRecorder:
     ) -> None:
         n = batch.n_trials
         n_poses = batch.n_steps + n
-        t0 = self.start_ns + self._clock
-        self._clock += n_poses * STEP_NS
+        if self.record_cfg.mcap_timeline == "per_run":
+            clock = self._clocks.get(run, 0)
+            self._clocks[run] = clock + n_poses * STEP_NS
+        else:
+            clock = self._clock
+            self._clock += n_poses * STEP_NS
+        t0 = self.start_ns + clock
         if self.mcap is None:
             return
         response = trial_cols.get("response")

@@ -155,6 +155,20 @@ class RecordSpec(Spec):
     training_log: Flag = False
     #: who builds and writes the per-step tables: thread or process (cobelrun.recorder)
     step_writer: Annotated[Literal["thread", "process"], Expect("thread or process")] = "thread"
+    #: run.mcap's log clock: runs one after another, or each run from the file's start
+    mcap_timeline: Annotated[Literal["sequential", "per_run"], Expect("sequential or per_run")] = (
+        "sequential"
+    )
+    #: stream to a live view (foxglove-sdk's WebSocket server; cobelrun.io.live)
+    live: Flag = False
+    live_port: Annotated[
+        int, Field(ge=0, le=65535), Expect("a port from 0 (any free one) to 65535")
+    ] = 8765
+    live_host: Annotated[str, Field(min_length=1), Expect("a host name or address")] = "127.0.0.1"
+    #: seconds to wait for a live client before the first trial (0: do not wait)
+    live_wait: Annotated[
+        float, Field(ge=0, le=86400, allow_inf_nan=False), Expect("seconds from 0 to 86400")
+    ] = 0.0
 
 
 class TaskSpec(Spec):

@@ -14,7 +14,8 @@ trials, recording, closing the files) and of its phases' time, each as a ratio t
 how many messages the client got; and CPU time, which machine load disturbs less: the run's
 simulation and writer threads (manifest ``cpu_time_s``) and the whole process's (``wait4``:
 foxglove-sdk's server threads included), the latter's excess over "off" per second of the "off"
-run. Writes ``benchmarks/results/live.json``.
+run. First, the stream's own cost in this process (:func:`micro`: less disturbed by load).
+Writes ``benchmarks/results/live.json``.
 """
 
 from __future__ import annotations
@@ -127,12 +128,86 @@ def run_once(setting: str, runs: int, extra: list[str], out: Path) -> dict[str, 
     }
 
 
+def micro(repeats: int, poses: int = 40_000, trials: int = 2_000) -> dict[str, dict[str, float]]:
+    """The stream's own cost, in this process: the same poses, trial events and trial table
+    written to ``run.mcap`` alone, with a live view nobody watches, and with a client
+    subscribed to every channel (settings alternate; median of ``repeats``). CPU is
+    ``time.process_time`` over the writes and 0.3 s after them (the server's sending threads
+    included); per message of the batch."""
+    import math
+
+    import numpy as np
+
+    from cobelrun.io.live import LiveSink
+    from cobelrun.io.mcap import STEP_NS, McapRecorder
+
+    rng = np.random.default_rng(0)
+    headings = rng.choice([0.0, math.pi / 2, math.pi, -math.pi / 2], poses)
+    p = np.column_stack([rng.integers(0, 11, poses), rng.integers(0, 11, poses), headings])
+    start = 1_763_900_000_000_000_000
+    t = start + np.arange(poses, dtype=np.int64) * STEP_NS
+    per = poses // trials
+    steps = np.full(trials, per - 1)
+    trial = np.arange(1, trials + 1)
+    t0s = t[::per][:trials]
+    t1s = t0s + (per - 1) * STEP_NS
+    zeros = np.zeros(trials, dtype=np.int64)
+    reward = rng.random(trials)
+    n_messages = poses + 2 * trials + 1
+    samples: dict[str, list[tuple[float, float]]] = {s: [] for s in SETTINGS}
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(repeats):
+            for setting in SETTINGS:
+                live, client = [], None
+                if setting != "off":
+                    port = free_port()
+                    live = [LiveSink(port=port)]
+                rec = McapRecorder(Path(tmp) / f"{setting}_{i}.mcap", start_ns=start, live=live)
+                if setting == "live_one_client":
+                    rec.prepare_run(0)
+                    client = subprocess.Popen([sys.executable, "-c", client_code(), str(port)],
+                                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+                    live[0].wait_for_client(60)
+                    time.sleep(0.5)  # its subscriptions to every channel are in
+                c0, w0 = time.process_time(), time.perf_counter()
+                rec.write_poses(0, t, p)
+                rec.write_trial_events(0, trial, "training", t0s, t1s, zeros, zeros, steps, reward)
+                rec.write_trial_table(0, "training", 1, start, steps, reward, zeros, zeros,
+                                      np.ones(trials, bool))  # fmt: skip
+                wall = time.perf_counter() - w0
+                time.sleep(0.3)
+                cpu = time.process_time() - c0
+                rec.close()
+                if client is not None:
+                    client.communicate(timeout=60)
+                samples[setting].append((cpu, wall))
+    out = {}
+    for setting, v in samples.items():
+        cpu = statistics.median(c for c, _ in v)
+        wall = statistics.median(w for _, w in v)
+        out[setting] = {"cpu_us_per_message": 1e6 * cpu / n_messages,
+                        "wall_us_per_message": 1e6 * wall / n_messages}  # fmt: skip
+    base = out["off"]["cpu_us_per_message"]
+    print(f"\nstream only ({poses} poses, {trials} trials: {n_messages} messages), median of "
+          f"{repeats}")  # fmt: skip
+    for setting, r in out.items():
+        r["cpu_ratio"] = r["cpu_us_per_message"] / base
+        print(f"{setting:16s} CPU {r['cpu_us_per_message']:6.2f} us/message (x{r['cpu_ratio']:.2f})"
+              f", calling thread {r['wall_us_per_message']:6.2f} us/message")  # fmt: skip
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--micro-only", action="store_true", help="only the stream's own cost")
     ap.add_argument("extra", nargs="*", help="more overrides for every run")
     opts = ap.parse_args()
+    sys.path.insert(0, str(ROOT))
+    stream = micro(max(opts.repeats, 5))
+    if opts.micro_only:
+        return
     samples: dict[str, list[dict[str, float]]] = {s: [] for s in SETTINGS}
     with tempfile.TemporaryDirectory() as tmp:
         run_once("off", 1, opts.extra, Path(tmp) / "warmup")  # numba's cache, page cache
@@ -162,7 +237,7 @@ def main() -> None:
     out = HERE / "results" / "live.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({"task": TASK, "runs": opts.runs, "extra": opts.extra,
-                               "repeats": opts.repeats, "median": rows,
+                               "repeats": opts.repeats, "median": rows, "stream": stream,
                                "samples": samples}, indent=2))  # fmt: skip
     print(f"wrote {out}")
 

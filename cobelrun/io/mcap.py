@@ -271,6 +271,10 @@ def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
     return t
 
 
+#: at most this many poses of one batch (a piece of a phase) go to a live view, evenly spread,
+#: the last one always: they arrive at once, and the file keeps every pose
+LIVE_POSES = 256
+
 #: simulated time per step on the log clock (100 ms; the pose clock of ``cobel.TrialTable``)
 STEP_NS = 100_000_000
 
@@ -447,21 +451,30 @@ class FoxgloveStream:
         """The ``log`` methods of ``topic``'s channels that want this message: every file sink,
         and the live sinks where a client subscribes to it. Channels are created on first use
         by ``make(context)``; ``live_only`` topics exist on live sinks only."""
+        files, live = self._split_logs(topic, make, live_only=live_only)
+        return files + live
+
+    def _split_logs(
+        self, topic: str, make: Any, *, live_only: bool = False
+    ) -> tuple[list[_Log], list[_Log]]:
+        """:meth:`_logs`, as (the files' logs, the watched live sinks' logs)."""
         channels = self._topics.get(topic)
         if channels is None:
             channels = self._topics[topic] = [None] * len(self.sinks)
-        logs = []
+        files, live = [], []
         for i, sink in enumerate(self.sinks):
             if live_only and not sink.live:
                 continue
             ch = channels[i]
             if ch is None:
                 ch = channels[i] = make(sink.context)
-            if not sink.live or ch.has_sinks():
-                logs.append(ch.log)
-        return logs
+            if not sink.live:
+                files.append(ch.log)
+            elif ch.has_sinks():
+                live.append(ch.log)
+        return files, live
 
-    def prepare_run(self, run: int, *, images: bool = False) -> None:
+    def prepare_run(self, run: int, images: bool = False) -> None:
         """Advertise run ``run``'s pose (and camera) channels to live clients before its first
         batch, so that a client subscribes in time to see it (files create them on first use)."""
         self._check_open()
@@ -514,9 +527,15 @@ class FoxgloveStream:
         if not np.isfinite(p).all():
             raise ValueError("write_poses: x, y and heading must be finite (no NaN/inf)")
         topic, make = self._run_channels(int(run), False)[0]
-        logs = self._logs(topic, make)
-        if logs:
-            self._log_poses(logs, t, p)
+        files, live = self._split_logs(topic, make)
+        if files:
+            self._log_poses(files, t, p)
+        if live:  # a viewer sees a batch arrive at once: a few hundred poses draw its track
+            k = p.shape[0]
+            if k > LIVE_POSES:
+                keep = np.unique(np.linspace(0, k - 1, LIVE_POSES).round().astype(np.int64))
+                t, p = t[keep], p[keep]
+            self._log_poses(live, t, p)
 
     def _log_poses(self, logs: list[_Log], t: np.ndarray, p: np.ndarray) -> None:
         # a grid or graph run revisits a few hundred poses: build each Pose once

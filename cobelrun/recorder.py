@@ -453,6 +453,26 @@ class RunRecorder:
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:
         for m in self.monitors:
             m.end_run(run, agent, last_trial)
+        with self.guard.critical():
+            self._write_grids(run, [g for m in self.monitors for g in m.scene_grids()])
+
+    def _run_clock(self, run: int) -> int:
+        """Run ``run``'s log time now: its last recorded trial's end (its last pose)."""
+        clock = (
+            self._clocks.get(run, 0) if self.record_cfg.mcap_timeline == "per_run" else self._clock
+        )
+        return self.start_ns + max(clock - STEP_NS, 0)
+
+    def _write_grids(
+        self, run: int, grids: list[Any], times: list[int] | None = None
+    ) -> None:  # fmt: skip
+        """Monitors' maps (:class:`~cobelrun.monitors.SceneGrid`) to run.mcap and the live
+        view, at ``times`` (default: the run's clock now); only for the runs the MCAP keeps."""
+        if not grids or self.mcap is None or not self.record_cfg.mcap_run(run):
+            return
+        if times is None:
+            times = [self._run_clock(run)] * len(grids)
+        self._writer.submit(self.mcap.write_grids, run, times, grids)
 
     def save_agent(self, run: int, agent: Any) -> None:
         """Add run ``run``'s trained agent to the job's ``agents.npz`` (written in batches)."""
@@ -599,6 +619,8 @@ class RunRecorder:
             for kind, payload in fork.pending:
                 if kind == "event":
                     self._emit(*payload)
+                elif kind == "grids":
+                    self._write_grids(*payload)
                 else:
                     self._commit_rows(*payload)
             fork.pending = []
@@ -649,8 +671,11 @@ class RunRecorder:
             self._sinks[table].writer.write_part(cols)
 
     def _write_mcap(
-        self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict
-    ) -> None:
+        self, run: int, phase: str, trial: np.ndarray, batch: TrialBatch, trial_cols: dict,
+        grids: list[Any] | None = None,
+    ) -> None:  # fmt: skip
+        """The batch's poses, trial events and table, frames, paths and maps (``grids``: a
+        forked run's, taken when it recorded the batch; default: the monitors' now)."""
         n = batch.n_trials
         n_poses = batch.n_steps + n
         if self.record_cfg.mcap_timeline == "per_run":
@@ -689,6 +714,13 @@ class RunRecorder:
                 None if response is None else np.asarray(response),
             )  # fmt: skip
             info = BatchInfo(run=run, phase=phase, first_trial=int(trial[0]), env=self.env)
+            if grids is None:
+                grids = [g for m in self.monitors for g in m.scene_grids()]
+            if grids:  # at the end of the trial they follow (before the first: its start)
+                ends, first = t[end_pos], int(trial[0])
+                at = [int(t0 if g.trial < first else ends[min(g.trial - first, n - 1)])
+                      for g in grids]  # fmt: skip
+                self._write_grids(run, grids, at)
             for m in self.monitors:
                 paths = m.scene_paths(batch, info)
                 if paths:
@@ -782,8 +814,12 @@ class ForkedRun:
         rows = self.recorder._rows(self.run, phase, first_trial, batch, self.monitors,
                                    first_in_phase)  # fmt: skip
         if rows is not None:
-            self.pending.append(("rows", rows))
+            adds, mcap, joined = rows
+            grids = [g for m in self.monitors for g in m.scene_grids()]
+            self.pending.append(("rows", (adds, (*mcap, grids), joined)))
 
     def end_run(self, agent: Any, last_trial: int) -> None:
         for m in self.monitors:
             m.end_run(self.run, agent, last_trial)
+        self.pending.append(("grids", (self.run, [g for m in self.monitors
+                                                  for g in m.scene_grids()])))  # fmt: skip

@@ -187,3 +187,58 @@ def test_mcap_timeline(cli, timeline: str) -> None:  # noqa: F811
     else:
         assert "timeline" not in meta
         assert first["/run_0001/pose"] > last["/run_0000/pose"]
+
+
+def test_grids_round_trip(tmp_path: Path) -> None:
+    """A monitor's maps (SceneGrid) as foxglove.Grid: float32 fields, row 0 at the lowest y."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from cobelrun.monitors import SceneGrid
+
+    a = np.arange(6, dtype=np.float32).reshape(2, 3)
+    b = np.full((2, 3), np.nan, np.float32)
+    grid = SceneGrid(name="activity_analysis", trial=3, origin=(-1.0, 2.0), cell_size=(0.5, 0.25),
+                     fields={"unit_00": a, "unit_01": b})  # fmt: skip
+    with McapRecorder(tmp_path / "run.mcap", start_ns=10**18) as rec:
+        rec.write_grids(2, [10**18 + 7], [grid])
+        with pytest.raises(ValueError, match="times for"):
+            rec.write_grids(2, [], [grid])
+    with open(tmp_path / "run.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        ((schema, channel, message, msg),) = list(reader.iter_decoded_messages())
+    assert channel.topic == "/run_0002/activity_analysis" and schema.name == "foxglove.Grid"
+    assert message.log_time == 10**18 + 7
+    assert msg.column_count == 3 and msg.cell_stride == 8 and msg.row_stride == 24
+    assert (msg.pose.position.x, msg.pose.position.y) == (-1.0, 2.0)
+    assert (msg.cell_size.x, msg.cell_size.y) == (0.5, 0.25)
+    assert [f.name for f in msg.fields] == ["unit_00", "unit_01"]
+    data = np.frombuffer(msg.data, "<f4").reshape(2, 3, 2)
+    assert np.array_equal(data[..., 0], a) and np.isnan(data[..., 1]).all()
+
+
+@pytest.mark.slow  # ~20 s: a DQN on rendered panoramas
+def test_place_cell_maps_reach_the_mcap(cli) -> None:  # noqa: F811
+    """The activity-map monitor's snapshots go to run.mcap (and so to the live view) as grids,
+    one per snapshot at its trial's end."""
+    pytest.importorskip("stable_baselines3")
+    tiny = ["task=place_cells", "task.runs=1", "task.protocol.phases.0.trials=3",
+            "task.protocol.max_steps=8", "agent.learning_starts=4", "task.monitors.maps.every=2",
+            "task.monitors.maps.grid=[6,5]", "task.record.mcap=true"]  # fmt: skip
+    proc = cli("run", *tiny)
+    assert proc.returncode == 0, proc.stderr
+    path = _run_dir(proc.stdout) / "run.mcap"
+    check_mcap(path)
+    from mcap_protobuf.decoder import DecoderFactory
+
+    times, poses = [], []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        topics = ["/run_0000/activity_analysis", "/run_0000/pose"]
+        for _, channel, message, msg in reader.iter_decoded_messages(topics, log_time_order=True):
+            if channel.topic == "/run_0000/activity_analysis":
+                times.append(message.log_time)
+                assert msg.column_count == 6 and len(msg.fields) == 16
+            elif channel.topic == "/run_0000/pose":
+                poses.append(message.log_time)
+    assert len(times) == 3  # trials 0 (before training), 2 and 3 (the last)
+    assert times[0] == poses[0] and times[-1] == poses[-1]

@@ -13,6 +13,8 @@ Channels (all in the frame ``maze``, world units; see ``docs/mcap.md``)
 ``/run_NNNN/<name>``
     ``foxglove.SceneUpdate`` (protobuf): paths that monitors draw over the maze at a trial's
     start or end, e.g. ``/run_NNNN/replay``: each replay bout as highlighted line strips.
+    ``foxglove.Grid`` (protobuf): maps that monitors show over the maze, e.g.
+    ``/run_NNNN/activity_analysis``: a layer's units (a float32 field each) at each snapshot.
 ``/trial``
     ``cobel.TrialEvent`` (JSON, schema :data:`TRIAL_EVENT_SCHEMA`): one ``start`` and one ``end``
     event per trial of the runs kept in full, trials 1-based.
@@ -56,13 +58,21 @@ from typing import TYPE_CHECKING, Any
 
 import foxglove
 import numpy as np
-from foxglove.channels import PoseInFrameChannel, RawImageChannel, SceneUpdateChannel
+from foxglove.channels import (
+    GridChannel,
+    PoseInFrameChannel,
+    RawImageChannel,
+    SceneUpdateChannel,
+)
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import (
     Duration,
+    Grid,
     KeyValuePair,
     LinePrimitive,
     LinePrimitiveLineType,
+    PackedElementField,
+    PackedElementFieldNumericType,
     Point3,
     Pose,
     PoseInFrame,
@@ -72,6 +82,7 @@ from foxglove.messages import (
     SceneUpdate,
     SpherePrimitive,
     Timestamp,
+    Vector2,
     Vector3,
 )
 
@@ -112,7 +123,7 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from cobelrun.envs.base import Geometry
-    from cobelrun.monitors import ScenePath
+    from cobelrun.monitors import SceneGrid, ScenePath
 
 __all__ = [
     "TIMELINES",
@@ -274,6 +285,9 @@ def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
 #: at most this many poses of one batch (a piece of a phase) go to a live view, evenly spread,
 #: the last one always: they arrive at once, and the file keeps every pose
 LIVE_POSES = 256
+
+#: height of monitors' maps above the floor (below the paths and the walls' tops)
+GRID_HEIGHT = 0.01
 
 #: simulated time per step on the log clock (100 ms; the pose clock of ``cobel.TrialTable``)
 STEP_NS = 100_000_000
@@ -802,6 +816,48 @@ class FoxgloveStream:
             update = SceneUpdate(entities=[entity])
             for log in logs:
                 log(update, log_time=t)
+
+    # ------------------------------------------------------------------ grids
+    def write_grids(self, run: int, t_ns: Sequence[int], grids: Sequence[SceneGrid]) -> None:
+        """Show monitors' maps (:class:`~cobelrun.monitors.SceneGrid`): one ``foxglove.Grid``
+        per grid on ``/run_{run:04d}/{grid.name}``, a float32 field per map, its origin at the
+        grid's lower-left corner just above the floor of the frame ``maze``.
+
+        Parameters
+        ----------
+        run : int
+            Run index.
+        t_ns : sequence of int
+            Absolute log time of each grid.
+        grids : sequence of SceneGrid
+            What to show.
+        """
+        self._check_open()
+        if len(t_ns) != len(grids):
+            raise ValueError(f"write_grids: {len(t_ns)} times for {len(grids)} grids")
+        for t, grid in zip(t_ns, grids, strict=True):
+            t = int(t)
+            if t < 0:
+                raise ValueError("write_grids: times must be >= 0")
+            data = grid.stacked()
+            _, nx, nf = data.shape
+            dx, dy = (float(v) for v in grid.cell_size)
+            if not (dx > 0 and dy > 0) or not all(np.isfinite(grid.origin)):
+                raise ValueError(f"write_grids: {grid.name}: bad origin or cell size")
+            topic = f"/run_{int(run):04d}/{grid.name}"
+            logs = self._logs(topic, lambda c, topic=topic: GridChannel(topic, context=c))
+            if not logs:
+                continue
+            fields = [PackedElementField(name=str(name), offset=4 * i,
+                                         type=PackedElementFieldNumericType.Float32)
+                      for i, name in enumerate(grid.fields)]  # fmt: skip
+            msg = Grid(timestamp=_timestamp(t), frame_id=FRAME_ID,
+                       pose=scene_pose(grid.origin[0], grid.origin[1], GRID_HEIGHT),
+                       column_count=nx, cell_size=Vector2(x=dx, y=dy), row_stride=4 * nf * nx,
+                       cell_stride=4 * nf, fields=fields,
+                       data=np.ascontiguousarray(data, dtype="<f4").tobytes())  # fmt: skip
+            for log in logs:
+                log(msg, log_time=t)
 
     # ------------------------------------------------------------------ images
     def write_image(self, run: int, t_ns: int, image: np.ndarray) -> None:

@@ -1,6 +1,6 @@
 """The monitor protocol: :class:`Monitor` (its lifecycle), the tables it declares
 (:class:`Table`), where a batch belongs (:class:`BatchInfo`), the paths it may draw
-(:class:`ScenePath`) and :class:`TrialColumnsMonitor`, the base of monitors that add columns to
+(:class:`ScenePath`) and maps it may show (:class:`SceneGrid`), and :class:`TrialColumnsMonitor`, the base of monitors that add columns to
 the ``trials`` table. The lifecycle is described in :mod:`cobelrun.monitors`."""
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ __all__ = [
     "BatchInfo",
     "Emit",
     "Monitor",
+    "SceneGrid",
     "ScenePath",
     "Table",
     "TrialColumnsMonitor",
@@ -210,8 +211,53 @@ class Monitor(abc.ABC):
         for the runs the MCAP keeps); none by default."""
         return []
 
+    def scene_grids(self) -> list[SceneGrid]:
+        """Maps to show over the maze in ``run.mcap`` and the live view, taken since the last
+        call (asked after each batch and at the end of each run; only the runs the MCAP keeps
+        show them); none by default."""
+        return []
+
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:  # noqa: B027
         """The run's last trial is over."""
+
+
+@dataclass(frozen=True)
+class SceneGrid:
+    """Maps over the maze that a monitor shows in ``run.mcap`` and the live view: one
+    ``foxglove.Grid`` on ``/run_NNNN/<name>`` with a float field per map, all on the same bins
+    (e.g. the activity of a layer's units, one field each; Foxglove's 3D panel colours the grid
+    by the field you pick).
+
+    Attributes
+    ----------
+    name
+        Topic suffix: ``/run_NNNN/<name>``.
+    trial
+        The trial after which the maps were taken (1-based; 0: before the first trial); the
+        grid is logged at that trial's end (0: at the first trial's start).
+    origin
+        ``(x, y)`` of the lower-left corner of bin (0, 0), world units.
+    cell_size
+        ``(dx, dy)`` of a bin, world units.
+    fields
+        Field name -> ``(ny, nx)`` float array, row 0 at the lowest ``y``; NaN: no value there.
+    metadata
+        Key/value strings (e.g. layer, units); not written to the grid message.
+    """
+
+    name: str
+    trial: int
+    origin: tuple[float, float]
+    cell_size: tuple[float, float]
+    fields: Mapping[str, np.ndarray]
+    metadata: Mapping[str, str] = field(default_factory=dict)
+
+    def stacked(self) -> np.ndarray:
+        """The fields as one ``(ny, nx, n_fields)`` float32 array (field order kept)."""
+        arrays = [np.asarray(v, dtype=np.float32) for v in self.fields.values()]
+        if not arrays or any(a.ndim != 2 or a.shape != arrays[0].shape for a in arrays):
+            raise ValueError(f"SceneGrid {self.name!r}: fields must be equal (ny, nx) arrays")
+        return np.stack(arrays, axis=2)
 
 
 class TrialColumnsMonitor(Monitor):

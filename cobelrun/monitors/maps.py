@@ -32,7 +32,7 @@ from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, ProbeGrid, probe_grid
 from cobelrun.envs.base import ObservesGrid, supports
 from cobelrun.errors import ConfigError
 from cobelrun.monitors.activity import ActivityMonitor, HasActivations
-from cobelrun.monitors.base import Table
+from cobelrun.monitors.base import SceneGrid, Table
 from cobelrun.safety import check_allocation
 
 #: the run's log (``cobel.log``; warnings also on stderr)
@@ -106,6 +106,8 @@ class ActivityMapMonitor(ActivityMonitor):
         self._grid_written = False
         #: (run, layer) pairs already reported as silent (one warning each)
         self._silent_reported: set[tuple[int, str]] = set()
+        #: snapshots awaiting run.mcap / the live view (:meth:`scene_grids`; the newest kept)
+        self._grids: list[SceneGrid] = []
 
     # -- wiring ------------------------------------------------------------------------------
     def setup(self, env: Any) -> None:
@@ -234,10 +236,44 @@ class ActivityMapMonitor(ActivityMonitor):
             cols["x"].append(np.tile(pts[:, 0], units * d))
             cols["y"].append(np.tile(pts[:, 1], units * d))
             cols["value"].append(values.ravel())
+            self._keep_grid(name, trial, acts, ix, iy)
         self._last = trial
         self.snapshot_seconds.append(time.perf_counter() - t0)
         if cols["run"]:
             self.emit(MAPS_TABLE, {k: np.concatenate(v) for k, v in cols.items()})
+
+    #: units of a layer shown as maps in run.mcap and the live view (fields unit_00, ...)
+    SCENE_UNITS = 16
+    #: snapshots kept for scene_grids() between two calls (a run without run.mcap never asks)
+    SCENE_PENDING = 64
+
+    def _keep_grid(
+        self, layer: str, trial: int, acts: np.ndarray, ix: np.ndarray, iy: np.ndarray
+    ) -> None:
+        """The snapshot of a layer as a :class:`SceneGrid` on ``/run_NNNN/activity_<layer>``:
+        the first :data:`SCENE_UNITS` units' activity averaged over headings, NaN outside."""
+        g = self.grid
+        assert g is not None
+        mean = acts.mean(axis=1)  # (positions, units)
+        fields = {}
+        for u in range(min(self.SCENE_UNITS, mean.shape[1])):
+            plane = np.full((g.ny, g.nx), np.nan, np.float32)
+            plane[iy, ix] = mean[:, u]
+            fields[f"unit_{u:02d}"] = plane
+        if not fields:
+            return
+        self._grids.append(SceneGrid(
+            name=f"activity_{layer}", trial=int(trial),
+            origin=(float(g.x_edges[0]), float(g.y_edges[0])),
+            cell_size=(float(g.x_edges[1] - g.x_edges[0]), float(g.y_edges[1] - g.y_edges[0])),
+            fields=fields, metadata={"layer": layer, "units": str(mean.shape[1]),
+                                     "headings": "mean"},
+        ))  # fmt: skip
+        del self._grids[: -self.SCENE_PENDING]
+
+    def scene_grids(self) -> list[SceneGrid]:
+        grids, self._grids = self._grids, []
+        return grids
 
     def _check_silent(self, layer: str, acts: np.ndarray, trial: int) -> None:
         """Warn once per run and layer when, after training started, the layer's values are not

@@ -72,7 +72,7 @@ Examples:
   cobel run task=tmaze_extinction seed=3 task.runs=20 agent.epsilon=0.2
   cobel run -m task=tmaze_extinction seed=1,2,3          # a sweep (multirun)
   cobel run task=tmaze_extinction hydra.run.dir=out/x    # choose the output folder
-  cobel run task=gridworld --live                        # watch it: ws://127.0.0.1:8765
+  cobel run task=gridworld --live                        # watch it (docs/seeing.md)
 \b
 Hydra flags work as usual: -m/--multirun, --cfg job (print the config), --info, -c.
 Results go to results/<task>/<date>/<time>_<id>/ (COBEL_RESULTS changes the root).

@@ -51,37 +51,37 @@ def client_code() -> str:
 import json, sys, time
 sys.path.insert(0, {str(CLIENT.parent)!r})
 import live_client
-from websockets.sync.client import connect
-from websockets.exceptions import ConnectionClosed
+import websocket
 port = int(sys.argv[1])
 deadline = time.monotonic() + 600
 while True:
     try:
-        ws = connect(f"ws://127.0.0.1:{{port}}", subprotocols=[live_client.SUBPROTOCOL],
-                     open_timeout=2, close_timeout=0.2, max_size=None)
+        ws = websocket.create_connection(f"ws://127.0.0.1:{{port}}",
+                                         subprotocols=[live_client.SUBPROTOCOL], timeout=600)
         break
     except OSError:
         if time.monotonic() > deadline:
             raise
         time.sleep(0.005)
 n = nbytes = sub = 0
-with ws:
-    while True:
-        try:
-            msg = ws.recv()
-        except ConnectionClosed:
-            break
-        if isinstance(msg, str):
-            op = json.loads(msg)
-            if op.get("op") == "advertise":
-                subs = []
-                for ch in op["channels"]:
-                    sub += 1
-                    subs.append({{"id": sub, "channelId": ch["id"]}})
-                ws.send(json.dumps({{"op": "subscribe", "subscriptions": subs}}))
-        elif msg[0] == live_client.MESSAGE_DATA:
-            n += 1
-            nbytes += len(msg)
+while True:
+    try:
+        msg = ws.recv()
+    except (websocket.WebSocketConnectionClosedException, OSError):
+        break
+    if not msg:
+        break
+    if isinstance(msg, str):
+        op = json.loads(msg)
+        if op.get("op") == "advertise":
+            subs = []
+            for ch in op["channels"]:
+                sub += 1
+                subs.append({{"id": sub, "channelId": ch["id"]}})
+            ws.send(json.dumps({{"op": "subscribe", "subscriptions": subs}}))
+    elif msg[0] == live_client.MESSAGE_DATA:
+        n += 1
+        nbytes += len(msg)
 print(json.dumps({{"messages": n, "bytes": nbytes, "channels": sub}}))
 """
 

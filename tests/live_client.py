@@ -15,8 +15,7 @@ import struct
 import sys
 import time
 
-from websockets.exceptions import ConnectionClosed
-from websockets.sync.client import connect
+import websocket  # websocket-client (selenium's dependency: in the dev extra)
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 1  # binary opcode: u8 op, u32 subscription id, u64 log time, payload
@@ -27,29 +26,26 @@ def main(port: int, seconds: float) -> dict:
     ws = None
     while ws is None:
         try:
-            ws = connect(
-                f"ws://127.0.0.1:{port}",
-                subprotocols=[SUBPROTOCOL],
-                open_timeout=2,
-                close_timeout=0.2,
-            )
+            ws = websocket.create_connection(f"ws://127.0.0.1:{port}",
+                                             subprotocols=[SUBPROTOCOL], timeout=2)  # fmt: skip
         except OSError:
             if time.monotonic() > deadline:
                 return {"error": "no server"}
             time.sleep(0.02)
+    ws.settimeout(0.5)
     channels: dict[int, dict] = {}
     sub_topic: dict[int, str] = {}
     counts: dict[str, int] = {}
     first: dict[str, object] = {}
     log_times: dict[str, list[int]] = {}
     next_sub = 1
-    with ws:
+    try:
         while time.monotonic() < deadline:
             try:
-                msg = ws.recv(timeout=0.5)
-            except TimeoutError:
+                msg = ws.recv()
+            except websocket.WebSocketTimeoutException:
                 continue
-            except ConnectionClosed:
+            except websocket.WebSocketConnectionClosedException:
                 break
             if isinstance(msg, str):
                 op = json.loads(msg)
@@ -62,7 +58,7 @@ def main(port: int, seconds: float) -> dict:
                         next_sub += 1
                     ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
                 continue
-            if msg[0] != MESSAGE_DATA:
+            if not msg or msg[0] != MESSAGE_DATA:
                 continue
             sub, log_time = struct.unpack_from("<IQ", msg, 1)
             topic = sub_topic[sub]
@@ -76,6 +72,8 @@ def main(port: int, seconds: float) -> dict:
                     first[topic] = len(payload)
             if any(t.endswith("/pose") for t in counts) and "/trial" in counts:
                 break
+    finally:
+        ws.close(timeout=0.2)
     return {
         "channels": {c["topic"]: c["schemaName"] for c in channels.values()},
         "counts": counts,

@@ -285,6 +285,9 @@ def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
 #: at most this many poses of one batch (a piece of a phase) go to a live view, evenly spread,
 #: the last one always: they arrive at once, and the file keeps every pose
 LIVE_POSES = 256
+#: and the events of at most this many trials of a batch, the last ones (``/trial_series``
+#: still gets every trial)
+LIVE_TRIALS = 64
 
 #: height of monitors' maps above the floor (below the paths and the walls' tops)
 GRID_HEIGHT = 0.01
@@ -654,10 +657,13 @@ class FoxgloveStream:
         ends = ("\n".join([end_fmt] * n) % tuple(
             v for row in zip(*end_cols, runs, ints["trial"], strict=True) for v in row
         )).encode().split(b"\n")  # fmt: skip
-        for log in self._logs(self.TRIAL_TOPIC, self._trial_channel):
-            for a, b, t0, t1 in zip(starts, ends, ts.tolist(), te.tolist(), strict=True):
-                log(a, log_time=t0)
-                log(b, log_time=t1)
+        files, live = self._split_logs(self.TRIAL_TOPIC, self._trial_channel)
+        rows = list(zip(starts, ends, ts.tolist(), te.tolist(), strict=True))
+        for logs, keep in ((files, rows), (live, rows[-LIVE_TRIALS:])):
+            for log in logs:
+                for a, b, t0, t1 in keep:
+                    log(a, log_time=t0)
+                    log(b, log_time=t1)
 
     # ------------------------------------------------------------------ trial tables
     def write_trial_table(

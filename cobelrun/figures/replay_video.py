@@ -160,6 +160,7 @@ def replay_file(
     """``cobel replay RUN``: write the video; returns (file, frames). ``greedy_steps``: poses
     of the saved agent run greedily (``cobel replay --greedy`` makes them,
     :func:`cobelrun.commands.replay.greedy_steps`) drawn instead of the recorded steps."""
+    from cobelrun.analysis.paths import visited_poses
     from cobelrun.figures.runs import load_geometry
     from cobelrun.figures.tasks import _title
     from cobelrun.results import load_steps
@@ -175,7 +176,8 @@ def replay_file(
         part = greedy_steps
         title = f"{_title(run_dir)}, run {run}, greedy: "
     else:
-        part = select_steps(load_steps(run_dir), run, trials)
+        # one frame per step, then each trial's arrival (the goal it reached)
+        part = visited_poses(select_steps(load_steps(run_dir), run, trials))
         title = f"{_title(run_dir)}, run {run}: "
     n = write_video(frames(part, geometry, title=title), target, fps)
     return target, n

@@ -235,11 +235,17 @@ def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
 def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.ndarray, ...]:
     """Visits per spatial bin: grid cells for grids, ``bins`` x ``bins`` for arenas/graphs.
 
+    A visit is each step's pose and each trial's arrival (the pose after its last step, where
+    the steps table records it: :func:`cobelrun.analysis.paths.visited_poses`), so the goal
+    cell of a trial that reached it counts.
+
     Returns
     -------
     (counts, xedges, yedges)
         ``counts[i, j]`` visits with x in bin i and y in bin j.
     """
+    from cobelrun.analysis.paths import visited_poses
+
     x0, y0, x1, y1 = geometry.bounds
     if geometry.kind == "grid" and len(geometry.cells):
         cs = geometry.cell_size
@@ -248,42 +254,68 @@ def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.nd
         yedges = np.arange(cy.min() - cs / 2, cy.max() + cs, cs)
     else:
         xedges, yedges = np.linspace(x0, x1, bins + 1), np.linspace(y0, y1, bins + 1)
-    counts, xe, ye = np.histogram2d(steps["x"], steps["y"], bins=(xedges, yedges))
+    poses = visited_poses(steps)
+    counts, xe, ye = np.histogram2d(poses["x"], poses["y"], bins=(xedges, yedges))
     return counts, xe, ye
 
 
+#: what a figure drawn from a steps table without ``next_*`` columns says about itself
+NO_ARRIVALS = (
+    "older run folder: poses before each step only (the cells trials ended in are missing)"
+)
+
+
+def _note_no_arrivals(steps: pd.DataFrame, ax: Any) -> None:
+    """Say on the figure when the steps table lacks the arrival poses."""
+    from cobelrun.analysis.paths import has_arrivals
+
+    if len(steps) and not has_arrivals(steps):
+        ax.text(0.0, -0.18, NO_ARRIVALS, transform=ax.transAxes, fontsize=6, color="0.35",
+                va="top")  # fmt: skip
+
+
 def plot_occupancy(steps: pd.DataFrame, geometry: Any, ax: Any) -> None:
-    """Share of recorded steps in each place, on the maze (log-free colour scale)."""
+    """Share of visited poses (steps and arrivals) in each place, on the maze."""
     counts, xe, ye = occupancy(steps, geometry)
     share = np.ma.masked_equal(counts / max(1.0, counts.sum()), 0.0)
     draw_geometry(geometry, ax, labels=True)
     mesh = ax.pcolormesh(xe, ye, share.T, cmap="magma_r", alpha=0.85, zorder=2)
-    ax.figure.colorbar(mesh, ax=ax, label="share of recorded steps")
+    unit = "cell" if geometry.kind == "grid" else "bin"
+    ax.figure.colorbar(mesh, ax=ax, label=f"share of visits per {unit}")
     ax.set_title("occupancy")
     _axis_units(geometry, ax)
+    _note_no_arrivals(steps, ax)
 
 
 def plot_trajectories(
     steps: pd.DataFrame, geometry: Any, ax: Any, *, run: int = 0, count: int = 8
 ) -> None:
-    """``count`` trials of run ``run``, evenly spread over the run, coloured by trial."""
+    """``count`` trials of run ``run``, evenly spread over the run, coloured by trial; each
+    path runs from the trial's start to where its last step led (circle: start, square: end)."""
     import matplotlib.pyplot as plt
+
+    from cobelrun.analysis.paths import visited_poses
 
     part = steps[steps["run"] == run]
     if part.empty:
         raise CobelError(f"no recorded steps for run {run}")
+    poses = visited_poses(part)
     trials = np.unique(part["trial"])
     chosen = trials[np.linspace(0, len(trials) - 1, min(count, len(trials))).round().astype(int)]
     draw_geometry(geometry, ax, labels=True)
     cmap = plt.get_cmap("viridis")
     for i, t in enumerate(np.unique(chosen)):
-        tr = part[part["trial"] == t].sort_values("step")
+        tr = poses[poses["trial"] == t]
         jitter = (i - len(chosen) / 2) * 0.02 * geometry.cell_size
-        ax.plot(tr["x"] + jitter, tr["y"] + jitter, color=cmap(i / max(1, len(chosen) - 1)),
-                lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")  # fmt: skip
+        color = cmap(i / max(1, len(chosen) - 1))
+        x, y = tr["x"].to_numpy() + jitter, tr["y"].to_numpy() + jitter
+        ax.plot(x, y, color=color, lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")
+        ax.plot(x[:1], y[:1], "o", color=color, ms=3, zorder=4)
+        ax.plot(x[-1:], y[-1:], "s", color=color, ms=3, zorder=4)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.set_title(f"trajectories, run {run}")
     _axis_units(geometry, ax)
+    _note_no_arrivals(part, ax)
 
 
 def _axis_units(geometry: Any, ax: Any) -> None:

@@ -100,15 +100,19 @@ def draw_pool(geometry: Geometry, ax: Any, platforms: tuple[str, ...] = ()) -> N
 
 def plot_paths(steps: pd.DataFrame, trials: pd.DataFrame, geometry: Geometry, ax: Any,
                run: int, days: tuple[int, int], trials_per_day: int = 4) -> pd.DataFrame:  # fmt: skip
-    """The acquisition paths of ``run`` on the first and last of ``days`` (grey, black)."""
+    """The acquisition paths of ``run`` on the first and last of ``days`` (grey, black), each
+    to where its last step led (:func:`cobelrun.analysis.paths.visited_poses`)."""
+    from cobelrun.analysis.paths import visited_poses
+
     t = add_days(
         trials[(trials["phase"] == "acquisition") & (trials["run"] == run)], trials_per_day
     )
     draw_pool(geometry, ax, ("platform",))
     rows = []
+    poses = visited_poses(steps[steps["run"] == run])
     for day, color in zip(days, ("0.6", "k"), strict=True):
         for trial in t.loc[t["day"] == day, "trial"]:
-            p = steps[(steps["run"] == run) & (steps["trial"] == trial)]
+            p = poses[poses["trial"] == trial]
             ax.plot(p["x"], p["y"], color=color, lw=0.6, alpha=0.9,
                     label=f"day {day}" if trial == t.loc[t["day"] == day, "trial"].iloc[0] else None)  # fmt: skip
             rows.append({"run": run, "day": day, "trial": int(trial), "points": len(p)})
@@ -144,9 +148,13 @@ def plot_quadrants(table: pd.DataFrame, ax: Any) -> None:
 
 def plot_occupancy(steps: pd.DataFrame, geometry: Geometry, ax: Any, bins: int = 40) -> np.ndarray:
     """Heat map of the positions in ``steps`` (e.g. the probe trials of every run) over the
-    pool; returns the (bins, bins) fraction of time per bin."""
+    pool (each step's position and each trial's arrival); returns the (bins, bins) fraction
+    of positions per bin."""
+    from cobelrun.analysis.paths import visited_poses
+
     x0, y0, x1, y1 = geometry.bounds
-    h, _, _ = np.histogram2d(steps["x"], steps["y"], bins=bins, range=[[x0, x1], [y0, y1]])
+    poses = visited_poses(steps)
+    h, _, _ = np.histogram2d(poses["x"], poses["y"], bins=bins, range=[[x0, x1], [y0, y1]])
     h = h / max(h.sum(), 1)
     from matplotlib.colors import PowerNorm
 

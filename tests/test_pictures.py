@@ -5,6 +5,7 @@ bands inside the measure's range, rate maps of arena cells, the camera view in r
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -107,3 +108,109 @@ def test_visited_poses_of_a_table() -> None:
         [1, 1, 0.0, 0.0], [1, 2, 1.0, 0.0], [1, 3, 2.0, 0.0], [2, 1, 5.0, 5.0], [2, 2, 5.0, 6.0],
     ]  # fmt: skip
     assert got["heading"].iloc[-1] == 1.5
+
+
+# -- one-way doors ------------------------------------------------------------------------------
+def _blodgett_geometry() -> Any:
+    from cobelrun.envs.gridworld import GridWorldEnv
+    from cobelrun.envs.world import blodgett
+
+    return GridWorldEnv(world=blodgett()).geometry()
+
+
+def test_blodgett_doors_are_doors_not_walls() -> None:
+    from cobelrun.envs.world import BLODGETT_DOORS, blodgett
+
+    g = _blodgett_geometry()
+    world = blodgett()
+    assert len(g.doors) == len(BLODGETT_DOORS) == 6
+    walls = {tuple(w) for w in np.round(g.walls, 6).tolist()}
+    for a, b in BLODGETT_DOORS:  # the move a -> b is blocked, b -> a passes
+        (xa, ya), (xb, yb) = world.coords[a], world.coords[b]
+        mid = ((xa + xb) / 2, (ya + yb) / 2)
+        row = [d for d in g.doors if np.allclose(((d[0] + d[2]) / 2, (d[1] + d[3]) / 2), mid)]
+        assert len(row) == 1
+        assert np.allclose(row[0][4:], (xa - xb, ya - yb))  # passable from b towards a
+        assert tuple(np.round(row[0][:4], 6).tolist()) not in walls
+    # the start cell (24) is not sealed: its door to 25 is open on the way out
+    start = world.coords[24]
+    sides = [w for w in g.walls if np.isclose(max(w[0], w[2]), start[0] + 0.5)
+             and min(w[1], w[3]) <= start[1] <= max(w[1], w[3]) and w[0] == w[2]]  # fmt: skip
+    assert not sides
+
+
+def test_random_walk_crosses_doors_one_way_and_never_walls() -> None:
+    from cobelrun.envs.gridworld import GridWorldEnv
+    from cobelrun.envs.world import blodgett
+
+    env = GridWorldEnv(world=blodgett())
+    g = env.geometry()
+    walls = {tuple(w) for w in np.round(g.walls, 6).tolist()}
+    doors = {tuple(np.round(d[:4], 6).tolist()): d[4:] for d in g.doors}
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    through = 0
+    for _ in range(3000):
+        x0, y0, _h = env.agent_pose()
+        _, _, term, _, _ = env.step(int(rng.integers(4)))
+        x1, y1, _h = env.agent_pose()
+        if (x0, y0) != (x1, y1):
+            mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+            vertical = x0 != x1
+            seg = (mx, my - 0.5, mx, my + 0.5) if vertical else (mx - 0.5, my, mx + 0.5, my)
+            seg = tuple(np.round(seg, 6).tolist())
+            assert seg not in walls  # a path never crosses a drawn wall
+            if seg in doors:
+                assert np.allclose(doors[seg], (x1 - x0, y1 - y0))  # only the open way
+                through += 1
+        if term:
+            env.reset()
+    assert through > 0
+
+
+def test_doors_in_world_json_scene_and_pictures(tmp_path: Path) -> None:
+    import json
+
+    import matplotlib.pyplot as plt
+
+    from cobelrun.envs.base import Geometry
+    from cobelrun.figures.runs import draw_geometry
+    from cobelrun.io.validate import FolderFileError, read_world
+    from cobelrun.render.foxglove_scene import scene_entities
+
+    g = _blodgett_geometry()
+    path = tmp_path / "world.json"
+    path.write_text(g.to_json())
+    back = read_world(path)
+    np.testing.assert_array_equal(back.doors, g.doors)
+    old = {k: v for k, v in json.loads(g.to_json()).items() if k != "doors"}
+    path.write_text(json.dumps(old))
+    assert read_world(path).doors.shape == (0, 6)  # folders from before doors: none
+    path.write_text(json.dumps({**old, "doors": [[0, 0, 1, 0, 2, 0]]}))
+    with pytest.raises(FolderFileError, match="unit direction"):
+        read_world(path)
+    assert Geometry.from_dict(json.loads(g.to_json())).doors.shape == (6, 6)
+
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from cobelrun.io.mcap import McapRecorder
+
+    McapRecorder(tmp_path / "run.mcap", geometry=g, start_ns=10**18).close()
+    with open(tmp_path / "run.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        (scene,) = [m for _, c, _, m in reader.iter_decoded_messages() if c.topic == "/maze"]
+    by_id = {e.id: e for e in scene.entities}
+    assert len(by_id["doors"].arrows) == 6 and len(by_id["doors"].cubes) == 6
+    assert len(by_id["walls"].cubes) == len(g.walls)
+    for arrow, d in zip(by_id["doors"].arrows, g.doors, strict=True):  # arrows point the open way
+        q = arrow.pose.orientation
+        assert np.allclose((np.cos(2 * np.arctan2(q.z, q.w)), np.sin(2 * np.arctan2(q.z, q.w))),
+                           d[4:], atol=1e-9)  # fmt: skip
+    assert len(scene_entities(g)) == len(by_id)
+
+    fig, ax = plt.subplots()
+    draw_geometry(g, ax)
+    doors = [c for c in ax.collections if c.get_label() == "one-way door"]
+    assert len(doors) == 1 and len(doors[0].get_segments()) == 6
+    plt.close(fig)

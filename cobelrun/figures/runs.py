@@ -194,7 +194,9 @@ def load_geometry(run_dir: str | Path) -> Any:
 
 
 def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
-    """Draw walls, free cells, graph nodes/edges, arena outline and named regions on ``ax``."""
+    """Draw walls, one-way doors, free cells, graph nodes/edges, arena outline and named
+    regions on ``ax``. A door is a dashed segment with an arrow across it in the direction it
+    can be passed (:func:`draw_doors`)."""
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Polygon, Rectangle
 
@@ -206,6 +208,7 @@ def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
     if len(geometry.walls):
         segs = geometry.walls.reshape(-1, 2, 2)
         ax.add_collection(LineCollection(segs, colors="0.15", linewidths=1.5))
+    draw_doors(geometry, ax)
     if geometry.kind == "graph" and len(geometry.nodes):
         if len(geometry.edges):
             segs = geometry.nodes[geometry.edges]
@@ -230,6 +233,29 @@ def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
     ax.set_xlim(x0 - pad, x1 + pad)
     ax.set_ylim(y0 - pad, y1 + pad)
     ax.set_aspect("equal")
+
+
+#: colour of one-way doors in every picture of a maze
+DOOR_COLOR = "tab:purple"
+
+
+def draw_doors(geometry: Any, ax: Any) -> None:
+    """One-way doors (``geometry.doors``) as dashed segments, each with an arrow from one side
+    to the other in the direction the door can be passed."""
+    from matplotlib.collections import LineCollection
+
+    doors = getattr(geometry, "doors", np.zeros((0, 6)))
+    if not len(doors):
+        return
+    ax.add_collection(LineCollection(doors[:, :4].reshape(-1, 2, 2), colors=DOOR_COLOR,
+                                     linewidths=1.5, linestyles=(0, (2, 1.5)), zorder=2.5,
+                                     label="one-way door"))  # fmt: skip
+    size = 0.3 * geometry.cell_size
+    for x0, y0, x1, y1, dx, dy in doors.tolist():
+        mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+        ax.annotate("", xy=(mx + size * dx, my + size * dy), xytext=(mx - size * dx, my - size * dy),
+                    arrowprops={"arrowstyle": "-|>", "color": DOOR_COLOR, "lw": 1.0,
+                                "shrinkA": 0, "shrinkB": 0}, zorder=2.6)  # fmt: skip
 
 
 def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.ndarray, ...]:

@@ -214,3 +214,36 @@ def test_doors_in_world_json_scene_and_pictures(tmp_path: Path) -> None:
     doors = [c for c in ax.collections if c.get_label() == "one-way door"]
     assert len(doors) == 1 and len(doors[0].get_segments()) == 6
     plt.close(fig)
+
+
+# -- NWB: positions on the trials table's clock --------------------------------------------------
+def test_nwb_positions_line_up_with_the_trials(grid_run: Path, tmp_path: Path) -> None:
+    pynwb = pytest.importorskip("pynwb")
+    from cobelrun.io.nwb import STEP_SECONDS, export_run_folder
+
+    (path, *_) = export_run_folder(grid_run, tmp_path)
+    steps = cobelrun.load(grid_run).steps
+    s0 = steps[steps["run"] == 0].sort_values(["trial", "step"])
+    with pynwb.NWBHDF5IO(str(path), "r") as io:
+        nwb = io.read()
+        trials = nwb.trials.to_dataframe()
+        pos = nwb.processing["behavior"]["Position"]
+        series = pos["position"]
+        xy = series.data[:]
+        t = series.get_timestamps()
+        ends = pos["end_position"]
+        end_xy, end_t = ends.data[:], ends.timestamps[:]
+        reward_t = nwb.processing["behavior"]["reward"].get_timestamps()
+    assert len(xy) == len(s0) == int(trials["steps"].sum())
+    for i, row in enumerate(trials.itertuples()):
+        first = s0[s0["trial"] == row.trial].iloc[0]
+        k = int(np.searchsorted(t, row.start_time - 1e-9))
+        assert t[k] == pytest.approx(row.start_time)  # a sample at each trial's start
+        assert tuple(xy[k]) == (first["x"], first["y"])  # ... and it is the start pose
+        assert end_t[i] == pytest.approx(row.stop_time)
+        last = s0[s0["trial"] == row.trial].iloc[-1]
+        assert tuple(end_xy[i]) == (last["next_x"], last["next_y"])
+    np.testing.assert_allclose(reward_t, t + STEP_SECONDS)  # a reward comes with the arrival
+    assert (trials["stop_time"] - trials["start_time"]).round(9).tolist() == (
+        trials["steps"] * STEP_SECONDS
+    ).round(9).tolist()

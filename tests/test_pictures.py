@@ -247,3 +247,46 @@ def test_nwb_positions_line_up_with_the_trials(grid_run: Path, tmp_path: Path) -
     assert (trials["stop_time"] - trials["start_time"]).round(9).tolist() == (
         trials["steps"] * STEP_SECONDS
     ).round(9).tolist()
+
+
+# -- bands: 95% CI everywhere, inside the measure's range ---------------------------------------
+def _band_extent(ax) -> tuple[float, float, np.ndarray]:
+    from matplotlib.collections import PolyCollection
+
+    (band,) = [c for c in ax.collections if isinstance(c, PolyCollection)]
+    v = band.get_paths()[0].vertices
+    return float(v[:, 1].min()), float(v[:, 1].max()), v
+
+
+def test_bands_stay_in_the_measure_range_and_say_what_they_are() -> None:
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures.bands import measure_limits
+    from cobelrun.figures.extinction import plot_cumulative_response, plot_escape_latency
+    from cobelrun.figures.runs import curve_stats, plot_curves
+
+    # two runs, very different: the t interval (t(0.975, 1) = 12.7) goes far out of range
+    trials = pd.DataFrame({
+        "run": [0, 0, 0, 1, 1, 1], "trial": [1, 2, 3, 1, 2, 3], "phase": ["a"] * 6,
+        "steps": [1, 2, 100, 99, 3, 1], "cumulative_response": [0, 1, 2, 1, 2, 3],
+    })  # fmt: skip
+    s = curve_stats(trials, "steps")
+    assert (s["lo"] < 0).any()  # the numbers keep the true interval
+    for column, draw in (("steps", plot_escape_latency), ("cumulative_response",
+                                                           plot_cumulative_response)):  # fmt: skip
+        for how in ("curves", "task"):
+            fig, ax = plt.subplots()
+            if how == "curves":
+                plot_curves(trials, column, ax)
+                assert "95% CI" in ax.get_legend().get_texts()[0].get_text()
+            else:
+                draw(trials, ax)
+                assert "95% CI" in ax.get_ylabel()
+            lo, hi, v = _band_extent(ax)
+            plt.close(fig)
+            assert lo >= 0.0
+            if column == "cumulative_response":  # never more responses than trials so far
+                for x, y in v:
+                    assert y <= x + 1e-9
+    lo, hi = measure_limits("cumulative_response", np.array([1, 2, 3]))
+    assert lo.tolist() == [0, 0, 0] and hi.tolist() == [1, 2, 3]

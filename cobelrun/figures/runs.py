@@ -40,18 +40,13 @@ def curve_stats(trials: pd.DataFrame, column: str, units: Sequence[str] = ("run"
     pandas.DataFrame
         Index ``trial``; columns ``mean``, ``n``, ``lo``, ``hi``.
     """
-    from scipy import stats
+    from cobelrun.figures.bands import mean_ci
 
     if column not in trials:
         raise CobelError(f"the trials table has no {column!r} column; it has: "
                          f"{', '.join(map(str, trials.columns))}")  # fmt: skip
     per_unit = trials.groupby([*units, "trial"], sort=False)[column].mean().reset_index()
-    g = per_unit.groupby("trial")[column]
-    out = pd.DataFrame({"mean": g.mean(), "n": g.count(), "sem": g.sem(ddof=1)})
-    t = stats.t.ppf(0.975, np.maximum(out["n"] - 1, 1))
-    half = np.where(out["n"] > 1, t * out["sem"].fillna(0.0), 0.0)
-    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
-    return out.drop(columns="sem")
+    return mean_ci(per_unit.groupby("trial")[column])
 
 
 def plot_curves(
@@ -64,7 +59,8 @@ def plot_curves(
     label: str | None = None,
     ylabel: str | None = None,
 ) -> list[tuple[str, int]]:
-    """Mean ``column`` per trial with a 95% confidence band, one curve per ``hue`` value.
+    """Mean ``column`` per trial with a 95% confidence band (clipped to the range the measure
+    can take: :mod:`cobelrun.figures.bands`), one curve per ``hue`` value.
 
     Parameters
     ----------
@@ -88,6 +84,7 @@ def plot_curves(
     """
     import matplotlib.pyplot as plt
 
+    from cobelrun.figures.bands import BAND, clip_to_measure
     from cobelrun.figures.extinction import _mark_phases
 
     groups = [(None, trials)] if hue is None else list(trials.groupby(hue, sort=True))
@@ -98,12 +95,11 @@ def plot_curves(
         n = int(s["n"].max())
         name = label or column if hue is None else f"{hue}={value}"
         color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
-        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, 95% CI)")
-        # the band drawn stays inside the range the measure took (at small n the t interval
-        # reaches negative latencies or more responses than trials)
-        lo, hi = part[column].min(), part[column].max()
-        ax.fill_between(s.index, s["lo"].clip(lo, hi), s["hi"].clip(lo, hi), color=color,
-                        alpha=0.25, lw=0)  # fmt: skip
+        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, {BAND})")
+        # the band drawn stays inside the range the measure can take (at small n the t
+        # interval reaches negative latencies or more responses than trials)
+        lo, hi = clip_to_measure(column, s.index.to_numpy(), s["lo"], s["hi"], part[column])
+        ax.fill_between(s.index, lo, hi, color=color, alpha=0.25, lw=0)
         drawn.append((str(name), n))
     if "phase" in trials:
         _mark_phases(ax, trials)

@@ -153,7 +153,7 @@ def _watermaze(run_dir: Path) -> Any:
     try:
         summary = watermaze.daily_summary(trials)
         watermaze.plot_learning_curve(summary, axes[0][0], "escape_latency_s",
-                                      "escape latency [s] (mean ± SD)")  # fmt: skip
+                                      "escape latency [s] (mean, 95% CI)")  # fmt: skip
         if has_probe:
             watermaze.plot_quadrants(watermaze.probe_quadrants(trials), axes[0][1])
     except BaseException:

@@ -290,3 +290,26 @@ def test_bands_stay_in_the_measure_range_and_say_what_they_are() -> None:
                     assert y <= x + 1e-9
     lo, hi = measure_limits("cumulative_response", np.array([1, 2, 3]))
     assert lo.tolist() == [0, 0, 0] and hi.tolist() == [1, 2, 3]
+
+
+def test_titles_name_the_task_and_overrides_and_y_names_its_file(
+    grid_run: Path, tmp_path: Path
+) -> None:
+    import json
+    import shutil
+
+    from PIL import Image
+
+    from cobelrun.figures.runs import compare_file, plot_kind
+    from cobelrun.figures.tasks import _title
+    from cobelrun.io.run_folder import RunFolder
+
+    assert _title(grid_run).startswith("gridworld")  # the task, not the folder name
+    job = tmp_path / "3"
+    shutil.copytree(grid_run, job)
+    RunFolder(job).job.write_text(json.dumps({"overrides": ["agent.epsilon=0.5", "seed=2"]}))
+    assert _title(job) == "gridworld (agent.epsilon=0.5, seed=2)"  # a sweep job's own keys
+    got = compare_file([grid_run, job], y="latency")
+    assert got.name == "compare_latency.png" and not (grid_run / "compare.png").exists()
+    path = plot_kind(job, "occupancy", tmp_path / "o.png")
+    assert Image.open(path).size[0] > 300

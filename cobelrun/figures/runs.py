@@ -175,7 +175,8 @@ def compare_file(
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue="source", units=("source", "run"), ylabel=ylabel)
     fig.tight_layout()
-    return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / "compare.png")
+    default = "compare.png" if y is None else f"compare_{y}.png"  # --y names its file
+    return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / default)
 
 
 # -- geometry ----------------------------------------------------------------------------------
@@ -369,6 +370,9 @@ def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> 
             steps = load_steps(run_dir)
             draw = plot_occupancy if kind == "occupancy" else plot_trajectories
             draw(steps, geometry, ax)
+        from cobelrun.figures.tasks import _title
+
+        ax.set_title(f"{_title(run_dir)}: {ax.get_title() or kind}", fontsize=9)
     except BaseException:
         plt.close(fig)
         raise

@@ -40,8 +40,10 @@ def overrides_of(command: list[str] | None) -> list[str]:
 
 
 def _title(run_dir: Path) -> str:
-    """``task (swept/overridden keys)`` for a figure title."""
-    from cobelrun.io.validate import read_manifest
+    """``task (swept/overridden keys)`` for a figure title: a sweep job's own overrides
+    (``job.json``), else those of the ``cobel run`` command; never the folder's hash name
+    when the manifest names the task."""
+    from cobelrun.io.validate import read_json_or_none, read_manifest
 
     folder = RunFolder(run_dir)
     if not folder.manifest.is_file():
@@ -50,7 +52,11 @@ def _title(run_dir: Path) -> str:
         m = read_manifest(folder.manifest)
     except CobelError:
         return run_dir.name
-    keys = [o for o in overrides_of(m.get("command")) if not o.startswith("task=")]
+    job = (read_json_or_none(folder.job) or {}).get("overrides")
+    given = [str(o) for o in job] if isinstance(job, list) else overrides_of(m.get("command"))
+    keys = [
+        o for o in given if not o.startswith("task=") and not o.lstrip("+~").startswith("hydra")
+    ]
     task = str(m.get("task") or run_dir.name)
     return task + (f" ({', '.join(keys[:4])})" if keys else "")
 

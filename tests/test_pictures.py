@@ -313,3 +313,57 @@ def test_titles_name_the_task_and_overrides_and_y_names_its_file(
     assert got.name == "compare_latency.png" and not (grid_run / "compare.png").exists()
     path = plot_kind(job, "occupancy", tmp_path / "o.png")
     assert Image.open(path).size[0] > 300
+
+
+# -- rate maps of an arena's cells ---------------------------------------------------------------
+ARENA_CONFIG = """\
+env:
+  _target_: cobelrun.envs.Continuous2DEnv
+  arena: {shape: square, x0: 0.0, y0: 0.0, size: 1.0}
+  goals:
+    goal: {shape: circle, x: 0.85, y: 0.85, radius: 0.1, reward: 1.0, terminal: true}
+  starts: {start: [0.15, 0.15]}
+  observation:
+    - {kind: pose}
+    - {kind: place_cells, n: 2, sigma: 0.1, centres: [[0.3, 0.7], [0.8, 0.2]]}
+    - {kind: grid_cells, n: 3}
+    - {kind: head_direction, n: 4}
+"""
+
+
+def test_rate_maps_of_an_arena_s_cells(tmp_path: Path) -> None:
+    from PIL import Image
+
+    from cobelrun.figures.arena_cells import cell_rate_maps
+    from cobelrun.figures.kinds import available_kinds, plot_kind
+    from cobelrun.figures.learned import available
+
+    run = tmp_path / "arena_run"
+    run.mkdir()
+    (run / "config.yaml").write_text(ARENA_CONFIG)
+    assert "rate" in available(run) and "rate" in available_kinds(run)
+    from omegaconf import OmegaConf
+
+    from cobelrun.config import instantiate
+
+    env = instantiate("env", OmegaConf.create(ARENA_CONFIG).env)
+    maps = cell_rate_maps(env, bins=40)
+    env.close()
+    assert [(m["population"], m["cell"]) for m in maps] == [
+        ("place_cells", 0), ("place_cells", 1), ("grid_cells", 0), ("grid_cells", 1),
+        ("grid_cells", 2),
+    ]  # fmt: skip
+    for m, centre in zip(maps[:2], [(0.3, 0.7), (0.8, 0.2)], strict=True):
+        iy, ix = np.unravel_index(np.nanargmax(m["rate"]), m["rate"].shape)
+        assert (
+            abs((ix + 0.5) / 40 - centre[0]) <= 1 / 40
+            and abs((iy + 0.5) / 40 - centre[1]) <= 1 / 40
+        )
+    path = plot_kind(run, "rate", tmp_path / "rate.png")
+    assert Image.open(path).size[0] > 400
+
+
+def test_grid_runs_have_no_cell_rate_maps(grid_run: Path) -> None:
+    from cobelrun.figures.arena_cells import has_spatial_cells
+
+    assert not has_spatial_cells(grid_run)

@@ -367,3 +367,51 @@ def test_grid_runs_have_no_cell_rate_maps(grid_run: Path) -> None:
     from cobelrun.figures.arena_cells import has_spatial_cells
 
     assert not has_spatial_cells(grid_run)
+
+
+# -- the camera view in replays of 3D envs ------------------------------------------------------
+def test_which_runs_get_a_camera_view(grid_run: Path, tmp_path: Path) -> None:
+    from cobelrun.commands.replay import observes_images
+
+    assert not observes_images(grid_run)
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "config.yaml").write_text(
+        "env:\n  _target_: cobelrun.envs.TopologyEnv\n  observation:\n"
+        "    _target_: cobelrun.envs.observations.ImageObservation\n    height: 12\n"
+    )
+    assert observes_images(run)
+    (run / "config.yaml").write_text(ARENA_CONFIG.replace("{kind: pose}", "{kind: view}"))
+    assert observes_images(run)
+
+
+@pytest.mark.slow
+def test_replay_of_a_3d_run_shows_the_agent_s_view(tmp_path: Path) -> None:
+    pytest.importorskip("imageio_ffmpeg")
+    pytest.importorskip("pybullet")
+    from cobelrun.commands.replay import camera_view
+    from cobelrun.figures.replay_video import SIZE, frames, replay_file
+
+    run_dir = tmp_path / "run3d"
+    cobelrun.run("gridworld", ["env=tmaze_3d", "agent=mfec", "task.runs=1",
+                               "task.protocol.phases.0.trials=1", "task.protocol.max_steps=12",
+                               "task.record.mcap=false", "task.save_agents=none",
+                               "env.observation.height=24", "env.observation.width=24"],
+                 out=run_dir)  # fmt: skip
+    steps = cobelrun.load(run_dir).steps
+    env, view = camera_view(run_dir)
+    try:
+        img = view(*steps[["x", "y", "heading"]].iloc[0].to_numpy(float))
+        assert img.shape == (24, 24, 3) and img.dtype == np.uint8 and img.std() > 0
+        _, n = replay_file(run_dir, tmp_path / "v.gif", camera=view)
+        assert n == len(steps) + 1  # each step and the arrival
+        poses = visited_poses(steps)
+        got = list(frames(poses.head(len(poses)), load_geometry(run_dir), camera=view))
+    finally:
+        env.close()
+    right = [f[:, SIZE[0] // 2 :] for f in got]
+    turned = [i for i in range(1, len(poses)) if poses["heading"].iloc[i] != poses["heading"].iloc[i - 1]
+              and (poses["x"].iloc[i], poses["y"].iloc[i]) == (poses["x"].iloc[i - 1], poses["y"].iloc[i - 1])]  # fmt: skip
+    assert turned  # the agent turned on the spot at least once in 12 steps
+    for i in turned:  # the maze panel barely changes, the view does
+        assert not np.array_equal(right[i], right[i - 1])

@@ -415,3 +415,14 @@ def test_replay_of_a_3d_run_shows_the_agent_s_view(tmp_path: Path) -> None:
     assert turned  # the agent turned on the spot at least once in 12 steps
     for i in turned:  # the maze panel barely changes, the view does
         assert not np.array_equal(right[i], right[i - 1])
+
+
+def test_learned_maps_place_the_goal_states(grid_run: Path) -> None:
+    from cobelrun.figures.learned import state_positions
+
+    steps = cobelrun.load(grid_run).steps
+    pos = state_positions(steps)
+    ends = set(steps["next_state"]) - set(steps["state"])  # terminal states: arrived, never left
+    assert ends and ends <= set(pos)
+    old = state_positions(steps.drop(columns=["next_x", "next_y", "next_heading"]))
+    assert not ends & set(old)

@@ -96,8 +96,17 @@ def q_table(arrays: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def state_positions(steps: pd.DataFrame) -> dict[int, tuple[float, float]]:
-    """Each recorded state's place (x, y), from the steps table."""
-    first = steps.drop_duplicates("state")[["state", "x", "y"]]
+    """Each recorded state's place (x, y), from the steps table: the states steps were taken
+    in and, where the table records the pose after each step, the states they led to (so
+    terminal goals, where no step is taken, are placed too)."""
+    from cobelrun.analysis.paths import has_arrivals
+
+    places = steps[["state", "x", "y"]]
+    if has_arrivals(steps) and "next_state" in steps:
+        after = steps[["next_state", "next_x", "next_y"]]
+        after = after.set_axis(["state", "x", "y"], axis=1)
+        places = pd.concat([places, after], ignore_index=True)
+    first = places.drop_duplicates("state")
     return {int(s): (float(x), float(y)) for s, x, y in first.itertuples(index=False)}
 
 

@@ -44,6 +44,12 @@ def test_steps_record_the_pose_after_each_step(grid_run: Path) -> None:
     # within a trial, where a step led is where the next one starts
     np.testing.assert_array_equal(s["next_x"].to_numpy()[:-1][same], s["x"].to_numpy()[1:][same])
     np.testing.assert_array_equal(s["next_y"].to_numpy()[:-1][same], s["y"].to_numpy()[1:][same])
+    from cobelrun.envs.world import tmaze_paper
+
+    coords = tmaze_paper().coords  # and it is the place of the state the step led to
+    np.testing.assert_array_equal(s[["next_x", "next_y"]].to_numpy(), coords[s["next_state"]])
+    heads = {0: np.pi, 1: np.pi / 2, 2: 0.0, 3: -np.pi / 2}  # facing the way the step went
+    np.testing.assert_allclose(s["next_heading"], s["action"].map(heads), atol=1e-6)
 
 
 def test_goal_cells_are_occupied_and_trajectories_end_on_them(grid_run: Path) -> None:

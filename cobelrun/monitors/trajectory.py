@@ -46,7 +46,12 @@ class TrajectoryMonitor(Monitor):
             prev[1:] = batch.step_action[:-1]
             prev[batch.offsets[:-1][batch.steps > 0]] = -1
             before = base.poses_of(batch.step_state, prev)
-            after = base.poses_of(batch.step_next_state, batch.step_action)
+            # where a step led is where the trial's next step starts; only each trial's last
+            # step needs its own look-up
+            after = np.empty_like(before)
+            after[:-1] = before[1:]
+            last = batch.offsets[1:][batch.steps > 0] - 1
+            after[last] = base.poses_of(batch.step_next_state[last], batch.step_action[last])
         elif (poses := batch.with_poses(info.env).poses()) is not None:
             last = batch.offsets[1:] + np.arange(n)  # drop each trial's final pose
             keep = np.ones(poses.shape[0], bool)

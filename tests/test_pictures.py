@@ -307,7 +307,7 @@ def test_titles_name_the_task_and_overrides_and_y_names_its_file(
     from PIL import Image
 
     from cobelrun.figures.runs import compare_file, plot_kind
-    from cobelrun.figures.tasks import _title
+    from cobelrun.figures.titles import run_title as _title
     from cobelrun.io.run_folder import RunFolder
 
     assert _title(grid_run).startswith("gridworld")  # the task, not the folder name

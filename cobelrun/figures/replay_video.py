@@ -189,7 +189,7 @@ def replay_file(
     envs, :func:`cobelrun.commands.replay.camera_view`)."""
     from cobelrun.analysis.paths import visited_poses
     from cobelrun.figures.runs import load_geometry
-    from cobelrun.figures.tasks import _title
+    from cobelrun.figures.titles import run_title as _title
     from cobelrun.results import load_steps
 
     run_dir = Path(run_dir)

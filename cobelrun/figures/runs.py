@@ -370,9 +370,9 @@ def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> 
             steps = load_steps(run_dir)
             draw = plot_occupancy if kind == "occupancy" else plot_trajectories
             draw(steps, geometry, ax)
-        from cobelrun.figures.tasks import _title
+        from cobelrun.figures.titles import run_title
 
-        ax.set_title(f"{_title(run_dir)}: {ax.get_title() or kind}", fontsize=9)
+        ax.set_title(f"{run_title(run_dir)}: {ax.get_title() or kind}", fontsize=9)
     except BaseException:
         plt.close(fig)
         raise

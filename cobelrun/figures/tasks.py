@@ -23,6 +23,8 @@ from typing import Any
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures.titles import overrides_of as overrides_of  # re-exported (web)
+from cobelrun.figures.titles import run_title as _title
 from cobelrun.io.run_folder import RunFolder
 
 #: the revaluation job's score file (``cobelrun.revaluation``)
@@ -30,35 +32,6 @@ REVALUATION_SCORES = "revaluation_scores.csv"
 #: the largest score file read (a job writes a few kB)
 MAX_SCORES_BYTES = 4 << 20
 WATERMAZE_COLUMNS = {"escape_latency_s", "path_length", "target_quadrant_fraction"}
-
-
-def overrides_of(command: list[str] | None) -> list[str]:
-    """The ``key=value`` overrides of a ``cobel run`` command line (``hydra.*`` left out)."""
-    if not command:
-        return []
-    return [a for a in command[1:] if "=" in a and not a.lstrip("+~").startswith("hydra.")]
-
-
-def _title(run_dir: Path) -> str:
-    """``task (swept/overridden keys)`` for a figure title: a sweep job's own overrides
-    (``job.json``), else those of the ``cobel run`` command; never the folder's hash name
-    when the manifest names the task."""
-    from cobelrun.io.validate import read_json_or_none, read_manifest
-
-    folder = RunFolder(run_dir)
-    if not folder.manifest.is_file():
-        return run_dir.name
-    try:
-        m = read_manifest(folder.manifest)
-    except CobelError:
-        return run_dir.name
-    job = (read_json_or_none(folder.job) or {}).get("overrides")
-    given = [str(o) for o in job] if isinstance(job, list) else overrides_of(m.get("command"))
-    keys = [
-        o for o in given if not o.startswith("task=") and not o.lstrip("+~").startswith("hydra")
-    ]
-    task = str(m.get("task") or run_dir.name)
-    return task + (f" ({', '.join(keys[:4])})" if keys else "")
 
 
 def read_scores(run_dir: str | Path) -> pd.DataFrame:

@@ -199,7 +199,12 @@ def plot_cmd(
     ],
     out: Annotated[
         Path | None,
-        typer.Option("--out", "-o", help="Output PNG (default: FIRST_RUN_DIR/plot.png)."),
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output PNG (default: FIRST_RUN_DIR/plot.png; plot_KIND.png "
+            "with --kind, a sweep's plot_Y.png with --y Y).",
+        ),
     ] = None,
     kind: Annotated[
         str | None,
@@ -278,7 +283,11 @@ def compare_cmd(
     ] = None,
     out: Annotated[
         Path | None,
-        typer.Option("--out", "-o", help="Output PNG (default: FIRST_RUN_DIR/compare.png)."),
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output PNG (default: FIRST_RUN_DIR/compare.png; compare_Y.png with --y Y).",
+        ),
     ] = None,
 ) -> None:
     """Overlay runs: one curve per run folder (mean and 95% band over its runs, n in the legend)."""

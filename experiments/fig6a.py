@@ -58,7 +58,7 @@ def draw(data: FigureData):
         table["trials_to_extinction"] = trials_to_extinction(trials)
         tables.append(table)
     fig.suptitle("Fig. 6: extinction, DQN on camera images (A) vs tabular Dyna-Q (B); "
-                 "mean ± SEM", fontsize=10)  # fmt: skip
+                 "mean, 95% CI", fontsize=10)  # fmt: skip
     return fig, pd.concat(tables, ignore_index=True)
 
 

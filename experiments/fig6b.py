@@ -28,7 +28,7 @@ def draw(data: FigureData):
     n = trials["run"].nunique()
     axes[0].set_title("Dyna-Q: cumulative response")
     axes[1].set_title("Dyna-Q: escape latency")
-    fig.suptitle(f"Fig. 6B: extinction in the gridworld T-maze ({n} runs, mean ± SEM)")
+    fig.suptitle(f"Fig. 6B: extinction in the gridworld T-maze ({n} runs, mean, 95% CI)")
     resp, lat = summarize(trials, "cumulative_response"), summarize(trials, "steps")
     phase = first_run(trials).set_index("trial")["phase"]
     table = pd.concat(

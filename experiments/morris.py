@@ -1,7 +1,7 @@
 """Morris water maze with Foster, Morris & Dayan (2000)'s place-cell actor-critic.
 
 Four panels from ``task=morris_water_maze`` (8 runs): escape latency and path length per day
-(mean and SD over runs; acquisition, then reversal with the platform in the opposite
+(mean and 95% CI over runs; acquisition, then reversal with the platform in the opposite
 quadrant); the paths of one agent on day 1 and on the last acquisition day; the probe trial's
 quadrant occupancy (60 s, platform removed) against the 25% chance line; and the probe's
 occupancy heat map over all runs. The numbers in the CSV are the learning curves and the

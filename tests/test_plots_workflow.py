@@ -85,7 +85,8 @@ def test_compare_and_kinds_on_saved_geometry(sweep, tmp_path, cli):
     geometry = load_geometry(a)
     steps = cobelrun.load(a).steps
     counts, _, _ = occupancy(steps, geometry)
-    assert counts.sum() == len(steps)  # every step falls in a cell of the saved grid
+    # every step and every trial's arrival falls in a cell of the saved grid
+    assert counts.sum() == len(steps) + len(steps.groupby(["run", "trial"]))
     for kind in ("occupancy", "trajectories", "latency", "response"):
         out = tmp_path / f"{kind}.png"
         proc = cli("plot", str(a), "--kind", kind, "-o", str(out))

@@ -246,6 +246,10 @@ class Geometry:
     regions : dict
         Named regions, each ``{"shape": "point"|"circle"|"polygon", ...}``: ``x, y`` (point,
         circle), ``radius`` (circle), ``points`` (polygon). Goals, starts and places.
+    doors : (d, 6) float64
+        One-way doors ``x0, y0, x1, y1, dx, dy``: the door's segment (not in ``walls``) and
+        the unit direction in which it can be passed (the other way it is a wall). Run folders
+        written before doors were saved have none (their doors are in ``walls``).
     """
 
     kind: str
@@ -257,6 +261,7 @@ class Geometry:
     edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     outline: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     regions: dict[str, dict[str, Any]] = field(default_factory=dict)
+    doors: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
     KINDS = ("grid", "graph", "arena", "none")
 
@@ -269,6 +274,7 @@ class Geometry:
         self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 2)
         self.edges = np.asarray(self.edges, np.int64).reshape(-1, 2)
         self.outline = np.asarray(self.outline, np.float64).reshape(-1, 2)
+        self.doors = np.asarray(self.doors, np.float64).reshape(-1, 6)
         self.cell_size = float(self.cell_size)
 
     def to_dict(self) -> dict[str, Any]:
@@ -283,12 +289,13 @@ class Geometry:
             "edges": self.edges.tolist(),
             "outline": self.outline.tolist(),
             "regions": self.regions,
+            "doors": self.doors.tolist(),
         }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Geometry:
         known = {"kind", "bounds", "walls", "cells", "cell_size", "nodes", "edges", "outline",
-                 "regions"}  # fmt: skip
+                 "regions", "doors"}  # fmt: skip
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"unknown geometry keys {unknown}; allowed: {sorted(known)}")

@@ -217,7 +217,8 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
 
     def geometry(self) -> Geometry:
         """The grid as data: free cells, a wall segment wherever a move is blocked (outer
-        walls, wall cells, two-way walls and one-way doors), places and starts."""
+        walls, wall cells, two-way walls), one-way doors on their own (``doors``: the segment
+        and the direction it can be passed), places and starts."""
         w = self._world
         free = np.flatnonzero(~w.blocked)
         xy = w.coords[free]
@@ -228,10 +229,19 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
                          [0.5, -0.5, 0.5, 0.5], [-0.5, -0.5, 0.5, -0.5]])  # fmt: skip
         k, a = np.nonzero(stays)
         segs = np.round(np.tile(xy[k], 2) + side[a], 9)
+        # a blocked move whose reverse passes is a one-way door: passable towards this cell
+        move = np.array([[-1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, -1.0]])  # world x, y
+        index = {(float(x), float(y)): i for i, (x, y) in enumerate(xy.tolist())}
+        door = np.zeros(len(k), bool)
+        for j, (kk, aa) in enumerate(zip(k.tolist(), a.tolist(), strict=True)):
+            nb = index.get(tuple((xy[kk] + move[aa]).tolist()))
+            door[j] = nb is not None and intended[nb, (aa + 2) % 4] == free[kk]
+        doors = np.hstack([segs[door], 0.0 - move[a[door]]]) if door.any() else np.zeros((0, 6))
+        segs = segs[~door]
         segs = np.unique(segs, axis=0) if segs.size else segs
         lo, hi = xy.min(axis=0) - 0.5, xy.max(axis=0) + 0.5
         return Geometry(kind="grid", bounds=(lo[0], lo[1], hi[0], hi[1]), walls=segs, cells=xy,
-                        nodes=xy, regions=self._place_regions())  # fmt: skip
+                        nodes=xy, regions=self._place_regions(), doors=doors)  # fmt: skip
 
     # ------------------------------------------------------------------ hooks for subclasses
     def _make_observation_space(self) -> spaces.Space:

@@ -20,7 +20,10 @@ PROBE = "greedy_correct"
 
 
 def choice_summary(trials: pd.DataFrame) -> pd.DataFrame:
-    """Per trial: agents, mean and standard error of ``reward`` (and ``greedy_correct``)."""
+    """Per trial: agents, mean, standard error and 95 % CI (``_lo``, ``_hi``: t distribution)
+    of ``reward`` (and ``greedy_correct``)."""
+    from cobelrun.figures.bands import ci_half_width
+
     if "reward" not in trials:
         raise CobelError("the trials table has no reward column (no reward monitor)")
     cols = ["reward", *([PROBE] if PROBE in trials else [])]
@@ -29,25 +32,29 @@ def choice_summary(trials: pd.DataFrame) -> pd.DataFrame:
     for col in cols:
         out[f"{col}_mean"] = g[col].mean()
         out[f"{col}_sem"] = g[col].std(ddof=1).fillna(0) / np.sqrt(g[col].count())
+        half = ci_half_width(g[col].std(ddof=1), g[col].count())
+        out[f"{col}_lo"], out[f"{col}_hi"] = out[f"{col}_mean"] - half, out[f"{col}_mean"] + half
     return out.reset_index()
 
 
 def plot_mean_reward(
     trials: pd.DataFrame, ax, chance: float = 0.5, epsilon: float | None = None
 ) -> pd.DataFrame:
-    """Mean reward per trial over agents (band: standard error), chance level, the
+    """Mean reward per trial over agents (band: 95% CI, inside [0, 1]), chance level, the
     epsilon-greedy ceiling ``1 - epsilon / 2`` and the greedy probe if recorded.
     Returns the plotted numbers (:func:`choice_summary`)."""
+    from cobelrun.figures.bands import BAND
+
     s = choice_summary(trials)
     x = s["trial"].to_numpy()
     n = int(s["runs"].max())
-    series = [("reward", "tab:blue", f"training reward (mean of {n} agents)")]
+    series = [("reward", "tab:blue", f"training reward (mean of {n} agents, {BAND})")]
     if f"{PROBE}_mean" in s:
-        series.append((PROBE, "tab:green", "greedy choice correct (4 displays)"))
+        series.append((PROBE, "tab:green", f"greedy choice correct (4 displays, {BAND})"))
     for col, color, label in series:
-        mean, sem = s[f"{col}_mean"], s[f"{col}_sem"]
-        ax.plot(x, mean, color=color, lw=1.5, label=label)
-        ax.fill_between(x, mean - sem, mean + sem, color=color, alpha=0.25, lw=0)
+        ax.plot(x, s[f"{col}_mean"], color=color, lw=1.5, label=label)
+        lo, hi = np.clip(s[f"{col}_lo"], 0.0, 1.0), np.clip(s[f"{col}_hi"], 0.0, 1.0)
+        ax.fill_between(x, lo, hi, color=color, alpha=0.25, lw=0)
     ax.axhline(chance, color="0.4", ls="--", lw=1, label="chance")
     if epsilon is not None and epsilon > 0:
         ceiling = 1 - epsilon / 2

@@ -18,8 +18,10 @@ from cobelrun.errors import CobelError
 def test_predictions(
     trials_by_model: Mapping[str, pd.DataFrame], phase: str = "test"
 ) -> pd.DataFrame:
-    """Mean and standard error over runs of ``V`` per model and trial type in ``phase`` (for
-    a task without that phase: the last trial of every phase)."""
+    """Mean, standard error and 95 % CI half width (``ci``) over runs of ``V`` per model and
+    trial type in ``phase`` (for a task without that phase: the last trial of every phase)."""
+    from cobelrun.figures.bands import ci_half_width
+
     rows = []
     for model, t in trials_by_model.items():
         if "V" not in t:
@@ -34,21 +36,23 @@ def test_predictions(
         for name, values in g:
             rows.append({"model": model, "probe": name, "by": key, "V": float(values.mean()),
                          "sem": float(values.std(ddof=1) / np.sqrt(len(values)))
-                         if len(values) > 1 else 0.0})  # fmt: skip
+                         if len(values) > 1 else 0.0,
+                         "ci": float(ci_half_width(values.std(ddof=1), len(values)))})  # fmt: skip
     return pd.DataFrame(rows)
 
 
 def plot_predictions(table: pd.DataFrame, ax: Any, title: str) -> None:
-    """Grouped bars: one group per probe (trial type), one bar per model."""
+    """Grouped bars: one group per probe (trial type), one bar per model (mean and 95% CI
+    over runs)."""
     models = list(dict.fromkeys(table["model"]))
     probes = list(dict.fromkeys(table["probe"]))
     width = 0.8 / max(1, len(models))
     for k, model in enumerate(models):
         part = table[table["model"] == model].set_index("probe").reindex(probes)
         x = np.arange(len(probes)) + (k - (len(models) - 1) / 2) * width
-        ax.bar(x, part["V"], width, yerr=part["sem"], label=model, capsize=2)
+        ax.bar(x, part["V"], width, yerr=part["ci"], label=model, capsize=2)
     ax.axhline(0, color="0.4", lw=0.8)
     ax.set_xticks(range(len(probes)), probes, fontsize=8)
     ax.set_title(title, fontsize=9)
-    ax.set_ylabel("V (prediction)")
+    ax.set_ylabel("V (prediction; mean, 95% CI)")
     ax.spines[["top", "right"]].set_visible(False)

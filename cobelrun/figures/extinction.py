@@ -30,9 +30,13 @@ def phase_boundaries(trials: pd.DataFrame) -> list[tuple[float, str]]:
 
 
 def summarize(trials: pd.DataFrame, column: str) -> pd.DataFrame:
-    """Per trial: mean, std, standard error and 25th/75th percentile of ``column`` across runs."""
+    """Per trial: mean, std, standard error, 95 % confidence interval (``lo``, ``hi``: t
+    distribution, :mod:`cobelrun.figures.bands`) and 25th/75th percentile of ``column`` across
+    runs."""
+    from cobelrun.figures.bands import ci_half_width
+
     g = trials.groupby("trial")[column]
-    return pd.DataFrame(
+    out = pd.DataFrame(
         {
             "mean": g.mean(),
             "std": g.std(ddof=0),
@@ -41,14 +45,20 @@ def summarize(trials: pd.DataFrame, column: str) -> pd.DataFrame:
             "q75": g.quantile(0.75),
         }
     )
+    half = ci_half_width(g.std(ddof=1), g.count())
+    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
+    return out
 
 
-def _shade(ax, summary: pd.DataFrame, color: str, label: str) -> None:
+def _shade(ax, summary: pd.DataFrame, color: str, label: str, column: str) -> None:
+    from cobelrun.figures.bands import BAND, clip_to_measure
+
     x = summary.index.to_numpy()
-    ax.plot(x, summary["mean"], color=color, lw=1.5, label=label)
-    # mean ± standard error: latencies are bimodal (found the goal or hit max_steps), so a
-    # percentile band jumps between the two modes and hides the mean's trend
-    lo, hi = summary["mean"] - summary["sem"], summary["mean"] + summary["sem"]
+    ax.plot(x, summary["mean"], color=color, lw=1.5, label=f"{label} (mean, {BAND})")
+    # mean and its 95% CI: latencies are bimodal (found the goal or hit max_steps), so a
+    # percentile band jumps between the two modes and hides the mean's trend; the band stays
+    # inside the measure's range (no negative latencies, no more responses than trials)
+    lo, hi = clip_to_measure(column, x, summary["lo"], summary["hi"])
     ax.fill_between(x, lo, hi, color=color, alpha=0.3, lw=0)
 
 
@@ -60,23 +70,29 @@ def _mark_phases(ax, trials: pd.DataFrame) -> None:
 
 
 def plot_cumulative_response(trials: pd.DataFrame, ax) -> None:
-    """Cumulative response curve (mean ± standard error across runs), phase boundaries."""
+    """Cumulative response curve (mean and 95% CI across runs), phase boundaries."""
     if "cumulative_response" not in trials:
         raise CobelError("the trials table has no cumulative_response column (no response monitor)")
-    _shade(ax, summarize(trials, "cumulative_response"), "tab:blue", "cumulative responses")
+    _shade(
+        ax,
+        summarize(trials, "cumulative_response"),
+        "tab:blue",
+        "cumulative responses",
+        "cumulative_response",
+    )
     _mark_phases(ax, trials)
     ax.set_xlabel("trial")
-    ax.set_ylabel("cumulative responses")
+    ax.set_ylabel("cumulative responses (mean, 95% CI)")
 
 
 def plot_escape_latency(trials: pd.DataFrame, ax) -> None:
-    """Escape latency in steps (mean ± standard error across runs), phase boundaries."""
+    """Escape latency in steps (mean and 95% CI across runs), phase boundaries."""
     if "steps" not in trials:
         raise CobelError("the trials table has no steps column (no latency monitor)")
-    _shade(ax, summarize(trials, "steps"), "tab:red", "escape latency")
+    _shade(ax, summarize(trials, "steps"), "tab:red", "escape latency", "steps")
     _mark_phases(ax, trials)
     ax.set_xlabel("trial")
-    ax.set_ylabel("escape latency [steps]")
+    ax.set_ylabel("escape latency [steps] (mean, 95% CI)")
 
 
 def trials_to_extinction(trials: pd.DataFrame, level: float = 0.5) -> float:
@@ -92,12 +108,15 @@ def trials_to_extinction(trials: pd.DataFrame, level: float = 0.5) -> float:
 
 
 def plot_response_rate(trials: pd.DataFrame, ax, color: str = "tab:green") -> float:
-    """Mean right-arm response per trial (band: standard error) and per 10-trial block, the 0.5
+    """Mean right-arm response per trial (band: 95% CI, inside [0, 1]) and per 10-trial block, the 0.5
     level and the first trial after the switch below it. Returns that trial count (:func:`trials_to_extinction`)."""
+    from cobelrun.figures.bands import BAND, clip_to_measure
+
     s = summarize(trials, "response")
     x = s.index.to_numpy()
-    ax.plot(x, s["mean"], color=color, lw=0.6, alpha=0.6, label="per trial")
-    ax.fill_between(x, s["mean"] - s["sem"], s["mean"] + s["sem"], color=color, alpha=0.2, lw=0)
+    ax.plot(x, s["mean"], color=color, lw=0.6, alpha=0.6, label=f"per trial (mean, {BAND})")
+    lo, hi = clip_to_measure("response", x, s["lo"], s["hi"])
+    ax.fill_between(x, lo, hi, color=color, alpha=0.2, lw=0)
     blocks = s["mean"].groupby((s.index - s.index.min()) // 10).transform("mean")
     ax.step(x, blocks, where="mid", color="k", lw=1, label="10-trial blocks")
     ax.axhline(0.5, color="0.5", ls=":", lw=1)

@@ -77,7 +77,7 @@ def plot_selection(
 
     from cobelrun.figures import learned, save_figure
     from cobelrun.figures.runs import load_geometry, plot_trajectories
-    from cobelrun.figures.tasks import _title
+    from cobelrun.figures.titles import run_title as _title
 
     run_dir = Path(run_dir)
     if kind in learned.KINDS:

@@ -8,7 +8,8 @@
 - ``sr``: the successor-representation row of state ``--state`` (mean over actions of
   M[s, a, :]), i.e. the expected discounted future occupancy of every state;
 - ``rate``: rate maps of recorded units (an ``activity_maps`` table), the snapshot trial
-  chosen by ``--trials``.
+  chosen by ``--trials``; for a 2D arena run without recorded units, the rate maps of the
+  arena's place, grid and boundary cells (:mod:`cobelrun.figures.arena_cells`).
 
 Q comes from a tabular agent's ``Q`` or, for SR agents, from ``M`` and ``w``
 (Q[s, a] = sum_s' M[s, a, s'] w[s']). States are placed where the recorded ``steps`` saw them
@@ -57,6 +58,11 @@ def available(run_dir: str | Path) -> list[str]:
         out.append("sr")
     if folder.table("activity_maps").is_file():
         out.append("rate")
+    else:
+        from cobelrun.figures.arena_cells import has_spatial_cells
+
+        if has_spatial_cells(run_dir):
+            out.append("rate")
     return out
 
 
@@ -90,8 +96,17 @@ def q_table(arrays: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def state_positions(steps: pd.DataFrame) -> dict[int, tuple[float, float]]:
-    """Each recorded state's place (x, y), from the steps table."""
-    first = steps.drop_duplicates("state")[["state", "x", "y"]]
+    """Each recorded state's place (x, y), from the steps table: the states steps were taken
+    in and, where the table records the pose after each step, the states they led to (so
+    terminal goals, where no step is taken, are placed too)."""
+    from cobelrun.analysis.paths import has_arrivals
+
+    places = steps[["state", "x", "y"]]
+    if has_arrivals(steps) and "next_state" in steps:
+        after = steps[["next_state", "next_x", "next_y"]]
+        after = after.set_axis(["state", "x", "y"], axis=1)
+        places = pd.concat([places, after], ignore_index=True)
+    first = places.drop_duplicates("state")
     return {int(s): (float(x), float(y)) for s, x, y in first.itertuples(index=False)}
 
 
@@ -175,7 +190,11 @@ def plot_learned(
     if kind not in have:  # cobel plot names every kind the run offers (figures.kinds)
         raise CobelError(f"{run_dir} has nothing for --kind {kind}; of the saved-agent kinds "
                          f"it offers: {', '.join(have) or 'none'}")  # fmt: skip
-    if kind == "rate":
+    if kind == "rate" and not RunFolder(run_dir).table("activity_maps").is_file():
+        from cobelrun.figures.arena_cells import plot_cell_rate_maps
+
+        fig = plot_cell_rate_maps(run_dir)
+    elif kind == "rate":
         fig = _rate(run_dir, run, trials)
     else:
         fig = _tabular(run_dir, kind, run, state)

@@ -11,7 +11,7 @@ and no agent is run.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,10 +58,20 @@ def select_steps(steps: pd.DataFrame, run: int, trials: str | None) -> pd.DataFr
     return part.sort_values(["trial", "step"])
 
 
+#: a camera: the (h, w, 3) uint8 view at a pose (x, y, heading in radians)
+Camera = Callable[[float, float, float], np.ndarray]
+
+
 def frames(
-    steps: pd.DataFrame, geometry: Any, *, title: str = "", trail: int = 30
+    steps: pd.DataFrame,
+    geometry: Any,
+    *,
+    title: str = "",
+    trail: int = 30,
+    camera: Camera | None = None,
 ) -> Iterator[np.ndarray]:
-    """RGB frames (H, W, 3) uint8, one per recorded step."""
+    """RGB frames (H, W, 3) uint8, one per row of ``steps`` (a pose); with ``camera``, the
+    view at each pose is drawn beside the maze."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -70,15 +80,27 @@ def frames(
     from cobelrun.figures.runs import draw_geometry
 
     w, h = SIZE
-    fig, ax = plt.subplots(figsize=(w / 100, h / 100), dpi=100)
+    if camera is None:
+        fig, ax = plt.subplots(figsize=(w / 100, h / 100), dpi=100)
+        view_ax = None
+    else:
+        fig, (ax, view_ax) = plt.subplots(1, 2, figsize=(w / 100, h / 100), dpi=100,
+                                          gridspec_kw={"width_ratios": [1.4, 1.0]})  # fmt: skip
     try:
         draw_geometry(geometry, ax, labels=len(geometry.regions) <= 12)
         (path_line,) = ax.plot([], [], color="tab:blue", lw=1.5, alpha=0.6, zorder=4)
         (dot,) = ax.plot([], [], "o", color="tab:red", ms=9, zorder=5)
         (tick,) = ax.plot([], [], color="tab:red", lw=2, zorder=5)
-        label = ax.set_title(" ")
+        label = fig.suptitle(" ", fontsize=9) if view_ax is not None else ax.set_title(" ")
+        moving: tuple[Any, ...] = (path_line, dot, tick, label)
+        if view_ax is not None and camera is not None and len(steps):
+            first = steps.iloc[0]
+            image = view_ax.imshow(camera(float(first["x"]), float(first["y"]),
+                                          float(first.get("heading", 0.0))))  # fmt: skip
+            view_ax.set_title("the agent's view", fontsize=8)
+            view_ax.set_axis_off()
+            moving = (*moving, image)
         fig.tight_layout()
-        moving = (path_line, dot, tick, label)
         for artist in moving:
             artist.set_animated(True)  # drawn per frame over the maze drawn once (blitting)
         fig.canvas.draw()
@@ -104,9 +126,11 @@ def frames(
             hx, hy = np.cos(heading[i]) * 0.45 * size, np.sin(heading[i]) * 0.45 * size
             tick.set_data([x[i], x[i] + hx], [y[i], y[i] + hy])
             label.set_text(f"{title}trial {trial[i]}, step {step[i]}")
+            if camera is not None:
+                image.set_data(camera(float(x[i]), float(y[i]), float(heading[i])))
             fig.canvas.restore_region(background)
             for artist in moving:
-                ax.draw_artist(artist)
+                fig.draw_artist(artist)
             rgba = np.asarray(fig.canvas.buffer_rgba())
             yield np.ascontiguousarray(rgba[:h, :w, :3])
     finally:
@@ -156,12 +180,16 @@ def replay_file(
     trials: str | None = None,
     fps: float = 10.0,
     greedy_steps: pd.DataFrame | None = None,
+    camera: Camera | None = None,
 ) -> tuple[Path, int]:
     """``cobel replay RUN``: write the video; returns (file, frames). ``greedy_steps``: poses
     of the saved agent run greedily (``cobel replay --greedy`` makes them,
-    :func:`cobelrun.commands.replay.greedy_steps`) drawn instead of the recorded steps."""
+    :func:`cobelrun.commands.replay.greedy_steps`) drawn instead of the recorded steps.
+    ``camera``: the view at a pose, drawn beside the maze (``cobel replay`` makes it for 3D
+    envs, :func:`cobelrun.commands.replay.camera_view`)."""
+    from cobelrun.analysis.paths import visited_poses
     from cobelrun.figures.runs import load_geometry
-    from cobelrun.figures.tasks import _title
+    from cobelrun.figures.titles import run_title as _title
     from cobelrun.results import load_steps
 
     run_dir = Path(run_dir)
@@ -175,7 +203,8 @@ def replay_file(
         part = greedy_steps
         title = f"{_title(run_dir)}, run {run}, greedy: "
     else:
-        part = select_steps(load_steps(run_dir), run, trials)
+        # one frame per step, then each trial's arrival (the goal it reached)
+        part = visited_poses(select_steps(load_steps(run_dir), run, trials))
         title = f"{_title(run_dir)}, run {run}: "
-    n = write_video(frames(part, geometry, title=title), target, fps)
+    n = write_video(frames(part, geometry, title=title, camera=camera), target, fps)
     return target, n

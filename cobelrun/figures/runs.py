@@ -40,18 +40,13 @@ def curve_stats(trials: pd.DataFrame, column: str, units: Sequence[str] = ("run"
     pandas.DataFrame
         Index ``trial``; columns ``mean``, ``n``, ``lo``, ``hi``.
     """
-    from scipy import stats
+    from cobelrun.figures.bands import mean_ci
 
     if column not in trials:
         raise CobelError(f"the trials table has no {column!r} column; it has: "
                          f"{', '.join(map(str, trials.columns))}")  # fmt: skip
     per_unit = trials.groupby([*units, "trial"], sort=False)[column].mean().reset_index()
-    g = per_unit.groupby("trial")[column]
-    out = pd.DataFrame({"mean": g.mean(), "n": g.count(), "sem": g.sem(ddof=1)})
-    t = stats.t.ppf(0.975, np.maximum(out["n"] - 1, 1))
-    half = np.where(out["n"] > 1, t * out["sem"].fillna(0.0), 0.0)
-    out["lo"], out["hi"] = out["mean"] - half, out["mean"] + half
-    return out.drop(columns="sem")
+    return mean_ci(per_unit.groupby("trial")[column])
 
 
 def plot_curves(
@@ -64,7 +59,8 @@ def plot_curves(
     label: str | None = None,
     ylabel: str | None = None,
 ) -> list[tuple[str, int]]:
-    """Mean ``column`` per trial with a 95% confidence band, one curve per ``hue`` value.
+    """Mean ``column`` per trial with a 95% confidence band (clipped to the range the measure
+    can take: :mod:`cobelrun.figures.bands`), one curve per ``hue`` value.
 
     Parameters
     ----------
@@ -88,6 +84,7 @@ def plot_curves(
     """
     import matplotlib.pyplot as plt
 
+    from cobelrun.figures.bands import BAND, clip_to_measure
     from cobelrun.figures.extinction import _mark_phases
 
     groups = [(None, trials)] if hue is None else list(trials.groupby(hue, sort=True))
@@ -98,12 +95,11 @@ def plot_curves(
         n = int(s["n"].max())
         name = label or column if hue is None else f"{hue}={value}"
         color = colors(i / max(1, len(groups) - 1)) if len(groups) > 3 else colors(i)
-        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, 95% CI)")
-        # the band drawn stays inside the range the measure took (at small n the t interval
-        # reaches negative latencies or more responses than trials)
-        lo, hi = part[column].min(), part[column].max()
-        ax.fill_between(s.index, s["lo"].clip(lo, hi), s["hi"].clip(lo, hi), color=color,
-                        alpha=0.25, lw=0)  # fmt: skip
+        ax.plot(s.index, s["mean"], color=color, lw=1.4, label=f"{name} (n={n}, {BAND})")
+        # the band drawn stays inside the range the measure can take (at small n the t
+        # interval reaches negative latencies or more responses than trials)
+        lo, hi = clip_to_measure(column, s.index.to_numpy(), s["lo"], s["hi"], part[column])
+        ax.fill_between(s.index, lo, hi, color=color, alpha=0.25, lw=0)
         drawn.append((str(name), n))
     if "phase" in trials:
         _mark_phases(ax, trials)
@@ -179,7 +175,8 @@ def compare_file(
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     plot_curves(trials, column, ax, hue="source", units=("source", "run"), ylabel=ylabel)
     fig.tight_layout()
-    return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / "compare.png")
+    default = "compare.png" if y is None else f"compare_{y}.png"  # --y names its file
+    return save_figure(fig, Path(out) if out else Path(run_dirs[0]) / default)
 
 
 # -- geometry ----------------------------------------------------------------------------------
@@ -194,7 +191,9 @@ def load_geometry(run_dir: str | Path) -> Any:
 
 
 def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
-    """Draw walls, free cells, graph nodes/edges, arena outline and named regions on ``ax``."""
+    """Draw walls, one-way doors, free cells, graph nodes/edges, arena outline and named
+    regions on ``ax``. A door is a dashed segment with an arrow across it in the direction it
+    can be passed (:func:`draw_doors`)."""
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Polygon, Rectangle
 
@@ -206,6 +205,7 @@ def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
     if len(geometry.walls):
         segs = geometry.walls.reshape(-1, 2, 2)
         ax.add_collection(LineCollection(segs, colors="0.15", linewidths=1.5))
+    draw_doors(geometry, ax)
     if geometry.kind == "graph" and len(geometry.nodes):
         if len(geometry.edges):
             segs = geometry.nodes[geometry.edges]
@@ -232,14 +232,43 @@ def draw_geometry(geometry: Any, ax: Any, *, labels: bool = True) -> None:
     ax.set_aspect("equal")
 
 
+#: colour of one-way doors in every picture of a maze
+DOOR_COLOR = "tab:purple"
+
+
+def draw_doors(geometry: Any, ax: Any) -> None:
+    """One-way doors (``geometry.doors``) as dashed segments, each with an arrow from one side
+    to the other in the direction the door can be passed."""
+    from matplotlib.collections import LineCollection
+
+    doors = getattr(geometry, "doors", np.zeros((0, 6)))
+    if not len(doors):
+        return
+    ax.add_collection(LineCollection(doors[:, :4].reshape(-1, 2, 2), colors=DOOR_COLOR,
+                                     linewidths=1.5, linestyles=(0, (2, 1.5)), zorder=2.5,
+                                     label="one-way door"))  # fmt: skip
+    size = 0.3 * geometry.cell_size
+    for x0, y0, x1, y1, dx, dy in doors.tolist():
+        mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+        ax.annotate("", xy=(mx + size * dx, my + size * dy), xytext=(mx - size * dx, my - size * dy),
+                    arrowprops={"arrowstyle": "-|>", "color": DOOR_COLOR, "lw": 1.0,
+                                "shrinkA": 0, "shrinkB": 0}, zorder=2.6)  # fmt: skip
+
+
 def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.ndarray, ...]:
     """Visits per spatial bin: grid cells for grids, ``bins`` x ``bins`` for arenas/graphs.
+
+    A visit is each step's pose and each trial's arrival (the pose after its last step, where
+    the steps table records it: :func:`cobelrun.analysis.paths.visited_poses`), so the goal
+    cell of a trial that reached it counts.
 
     Returns
     -------
     (counts, xedges, yedges)
         ``counts[i, j]`` visits with x in bin i and y in bin j.
     """
+    from cobelrun.analysis.paths import visited_poses
+
     x0, y0, x1, y1 = geometry.bounds
     if geometry.kind == "grid" and len(geometry.cells):
         cs = geometry.cell_size
@@ -248,42 +277,68 @@ def occupancy(steps: pd.DataFrame, geometry: Any, bins: int = 30) -> tuple[np.nd
         yedges = np.arange(cy.min() - cs / 2, cy.max() + cs, cs)
     else:
         xedges, yedges = np.linspace(x0, x1, bins + 1), np.linspace(y0, y1, bins + 1)
-    counts, xe, ye = np.histogram2d(steps["x"], steps["y"], bins=(xedges, yedges))
+    poses = visited_poses(steps)
+    counts, xe, ye = np.histogram2d(poses["x"], poses["y"], bins=(xedges, yedges))
     return counts, xe, ye
 
 
+#: what a figure drawn from a steps table without ``next_*`` columns says about itself
+NO_ARRIVALS = (
+    "older run folder: poses before each step only (the cells trials ended in are missing)"
+)
+
+
+def _note_no_arrivals(steps: pd.DataFrame, ax: Any) -> None:
+    """Say on the figure when the steps table lacks the arrival poses."""
+    from cobelrun.analysis.paths import has_arrivals
+
+    if len(steps) and not has_arrivals(steps):
+        ax.text(0.0, -0.18, NO_ARRIVALS, transform=ax.transAxes, fontsize=6, color="0.35",
+                va="top")  # fmt: skip
+
+
 def plot_occupancy(steps: pd.DataFrame, geometry: Any, ax: Any) -> None:
-    """Share of recorded steps in each place, on the maze (log-free colour scale)."""
+    """Share of visited poses (steps and arrivals) in each place, on the maze."""
     counts, xe, ye = occupancy(steps, geometry)
     share = np.ma.masked_equal(counts / max(1.0, counts.sum()), 0.0)
     draw_geometry(geometry, ax, labels=True)
     mesh = ax.pcolormesh(xe, ye, share.T, cmap="magma_r", alpha=0.85, zorder=2)
-    ax.figure.colorbar(mesh, ax=ax, label="share of recorded steps")
+    unit = "cell" if geometry.kind == "grid" else "bin"
+    ax.figure.colorbar(mesh, ax=ax, label=f"share of visits per {unit}")
     ax.set_title("occupancy")
     _axis_units(geometry, ax)
+    _note_no_arrivals(steps, ax)
 
 
 def plot_trajectories(
     steps: pd.DataFrame, geometry: Any, ax: Any, *, run: int = 0, count: int = 8
 ) -> None:
-    """``count`` trials of run ``run``, evenly spread over the run, coloured by trial."""
+    """``count`` trials of run ``run``, evenly spread over the run, coloured by trial; each
+    path runs from the trial's start to where its last step led (circle: start, square: end)."""
     import matplotlib.pyplot as plt
+
+    from cobelrun.analysis.paths import visited_poses
 
     part = steps[steps["run"] == run]
     if part.empty:
         raise CobelError(f"no recorded steps for run {run}")
+    poses = visited_poses(part)
     trials = np.unique(part["trial"])
     chosen = trials[np.linspace(0, len(trials) - 1, min(count, len(trials))).round().astype(int)]
     draw_geometry(geometry, ax, labels=True)
     cmap = plt.get_cmap("viridis")
     for i, t in enumerate(np.unique(chosen)):
-        tr = part[part["trial"] == t].sort_values("step")
+        tr = poses[poses["trial"] == t]
         jitter = (i - len(chosen) / 2) * 0.02 * geometry.cell_size
-        ax.plot(tr["x"] + jitter, tr["y"] + jitter, color=cmap(i / max(1, len(chosen) - 1)),
-                lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")  # fmt: skip
+        color = cmap(i / max(1, len(chosen) - 1))
+        x, y = tr["x"].to_numpy() + jitter, tr["y"].to_numpy() + jitter
+        ax.plot(x, y, color=color, lw=1.2, alpha=0.9, zorder=3, label=f"trial {t}")
+        ax.plot(x[:1], y[:1], "o", color=color, ms=3, zorder=4)
+        ax.plot(x[-1:], y[-1:], "s", color=color, ms=3, zorder=4)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     ax.set_title(f"trajectories, run {run}")
     _axis_units(geometry, ax)
+    _note_no_arrivals(part, ax)
 
 
 def _axis_units(geometry: Any, ax: Any) -> None:
@@ -315,6 +370,9 @@ def plot_kind(run_dir: str | Path, kind: str, out: str | Path | None = None) -> 
             steps = load_steps(run_dir)
             draw = plot_occupancy if kind == "occupancy" else plot_trajectories
             draw(steps, geometry, ax)
+        from cobelrun.figures.titles import run_title
+
+        ax.set_title(f"{run_title(run_dir)}: {ax.get_title() or kind}", fontsize=9)
     except BaseException:
         plt.close(fig)
         raise

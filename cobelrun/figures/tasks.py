@@ -23,6 +23,8 @@ from typing import Any
 import pandas as pd
 
 from cobelrun.errors import CobelError
+from cobelrun.figures.titles import overrides_of as overrides_of  # re-exported (web)
+from cobelrun.figures.titles import run_title as _title
 from cobelrun.io.run_folder import RunFolder
 
 #: the revaluation job's score file (``cobelrun.revaluation``)
@@ -30,29 +32,6 @@ REVALUATION_SCORES = "revaluation_scores.csv"
 #: the largest score file read (a job writes a few kB)
 MAX_SCORES_BYTES = 4 << 20
 WATERMAZE_COLUMNS = {"escape_latency_s", "path_length", "target_quadrant_fraction"}
-
-
-def overrides_of(command: list[str] | None) -> list[str]:
-    """The ``key=value`` overrides of a ``cobel run`` command line (``hydra.*`` left out)."""
-    if not command:
-        return []
-    return [a for a in command[1:] if "=" in a and not a.lstrip("+~").startswith("hydra.")]
-
-
-def _title(run_dir: Path) -> str:
-    """``task (swept/overridden keys)`` for a figure title."""
-    from cobelrun.io.validate import read_manifest
-
-    folder = RunFolder(run_dir)
-    if not folder.manifest.is_file():
-        return run_dir.name
-    try:
-        m = read_manifest(folder.manifest)
-    except CobelError:
-        return run_dir.name
-    keys = [o for o in overrides_of(m.get("command")) if not o.startswith("task=")]
-    task = str(m.get("task") or run_dir.name)
-    return task + (f" ({', '.join(keys[:4])})" if keys else "")
 
 
 def read_scores(run_dir: str | Path) -> pd.DataFrame:
@@ -153,7 +132,7 @@ def _watermaze(run_dir: Path) -> Any:
     try:
         summary = watermaze.daily_summary(trials)
         watermaze.plot_learning_curve(summary, axes[0][0], "escape_latency_s",
-                                      "escape latency [s] (mean ± SD)")  # fmt: skip
+                                      "escape latency [s] (mean, 95% CI)")  # fmt: skip
         if has_probe:
             watermaze.plot_quadrants(watermaze.probe_quadrants(trials), axes[0][1])
     except BaseException:

@@ -12,9 +12,12 @@ What goes where (NWB's own types, so NWB tools and ``nwbinspector`` read the fil
 - ``trials``: one row per trial with ``start_time``/``stop_time`` on the simulated clock (one
   step = 0.1 s, trials back to back), ``trial``, ``phase``, ``reward``, ``steps``,
   ``start_state``, ``end_state``, ``terminated`` and ``response`` where the run has them;
-- ``processing/behavior``: ``Position`` with the ``SpatialSeries`` of the agent's (x, y) at every
-  recorded step (``rate`` = 10 Hz when every step was recorded, else timestamps), and the
-  per-step reward as a ``TimeSeries``;
+- ``processing/behavior``: ``Position`` with the ``SpatialSeries`` ``position``, the agent's
+  (x, y) when it takes each recorded step (``rate`` = 10 Hz when every step was recorded, else
+  timestamps; the first sample of each trial is its start pose at the trial's ``start_time``)
+  and ``end_position``, where each trial ended (after its last step, at its ``stop_time``;
+  run folders with the steps table's ``next_x``/``next_y``), and the per-step reward as a
+  ``TimeSeries`` (each one step after its position sample, when the step arrives);
 - ``processing/network`` (deep agents with an activity-map monitor): ``activity_maps_<layer>``, a
   table with one row per (snapshot, unit) whose ``maps`` column holds the (headings, ny, nx)
   map (a ``TimeSeries`` would put the few snapshots first, which nwbinspector rightly flags);
@@ -254,37 +257,57 @@ def build_nwbfile(
         s = steps.sort_values(["trial", "step"] if "step" in steps else ["trial"])
         xy = s[["x", "y"]].to_numpy(np.float64)
         trial_start = dict(zip(t["trial"].to_numpy(), starts, strict=True))
-        step_in_trial = s["step"].to_numpy() if "step" in s else np.zeros(len(s))
+        # step k (1-based) is taken at start + (k - 1) dt from the pose its row holds, so the
+        # first sample of each trial is its start pose at the trial's start_time; its reward
+        # arrives one step later, at start + k dt (the last one at the trial's stop_time)
+        step_in_trial = s["step"].to_numpy() if "step" in s else np.ones(len(s))
         times = np.array([trial_start[tr] for tr in s["trial"].to_numpy()]) + (
-            step_in_trial * STEP_SECONDS
+            (step_in_trial - 1) * STEP_SECONDS
         )
         regular = len(times) == int(n_steps.sum()) and np.allclose(np.diff(times), STEP_SECONDS)
-        timing: dict[str, Any] = (
-            {"starting_time": float(times[0]), "rate": 1.0 / STEP_SECONDS}
-            if regular
-            else {"timestamps": times}
-        )
+
+        def timing(offset: float) -> dict[str, Any]:
+            if regular:
+                return {"starting_time": float(times[0]) + offset, "rate": 1.0 / STEP_SECONDS}
+            return {"timestamps": times + offset}
+
+        frame = ("maze coordinates: x to the right, y up, origin at the lowest-left node; one "
+                 "maze unit (a gridworld cell or the graph spacing) is one metre of the "
+                 "rendered scene")  # fmt: skip
         position = Position(
             spatial_series=SpatialSeries(
                 name="position",
-                description="the agent's (x, y) before each step",
+                description="the agent's (x, y) when it takes each step: the first sample of "
+                "each trial is its start position at the trial's start_time",
                 data=xy,
-                reference_frame="maze coordinates: x to the right, y up, origin at the "
-                "lowest-left node; one maze unit (a gridworld cell or the graph spacing) is one "
-                "metre of the rendered scene",
+                reference_frame=frame,
                 unit="meters",
-                **timing,
+                **timing(0.0),
             )
         )
+        if {"next_x", "next_y"} <= set(s):  # where each trial ended, at its stop_time
+            last = s.groupby("trial", sort=True).tail(1)
+            stop_of = dict(zip(t["trial"].to_numpy(), stops, strict=True))
+            position.add_spatial_series(
+                SpatialSeries(
+                    name="end_position",
+                    description="the agent's (x, y) after each trial's last step (the goal "
+                    "of a trial that reached it), at the trial's stop_time",
+                    data=last[["next_x", "next_y"]].to_numpy(np.float64),
+                    timestamps=np.array([stop_of[tr] for tr in last["trial"].to_numpy()]),
+                    reference_frame=frame,
+                    unit="meters",
+                )
+            )
         behavior.add(position)
         if "reward" in s:
             behavior.add(
                 pynwb.TimeSeries(
                     name="reward",
-                    description="reward received on each step",
+                    description="reward received on each step, when the step arrives",
                     data=s["reward"].to_numpy(np.float64),
                     unit="a.u.",
-                    **timing,
+                    **timing(STEP_SECONDS),
                 )
             )
 

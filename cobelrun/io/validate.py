@@ -352,7 +352,7 @@ def read_world(path: str | os.PathLike[str]) -> Any:
     p = Path(path)
     data = read_json_object(p, "the run's geometry")
     known = ("kind", "bounds", "walls", "cells", "cell_size", "nodes", "edges", "outline",
-             "regions")  # fmt: skip
+             "regions", "doors")  # fmt: skip
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise FolderFileError(f"{p}: unknown key {unknown[0]!r}; allowed: {', '.join(known)}")
@@ -371,6 +371,10 @@ def read_world(path: str | os.PathLike[str]) -> Any:
     cells = _points(p, "cells", data.get("cells"), 2)
     nodes = _points(p, "nodes", data.get("nodes"), 2)
     outline = _points(p, "outline", data.get("outline"), 2)
+    doors = _points(p, "doors", data.get("doors"), 6)  # absent in older run folders
+    if len(doors) and not np.allclose(np.hypot(doors[:, 4], doors[:, 5]), 1.0, atol=1e-6):
+        raise FolderFileError(f"{p}: doors must be [x0, y0, x1, y1, dx, dy] rows with (dx, dy) "
+                              "a unit direction")  # fmt: skip
     cell_size = _number(p, "cell_size", data.get("cell_size", 1.0), positive=True)
     if len(cells):
         span = cells.max(axis=0) - cells.min(axis=0)
@@ -396,7 +400,7 @@ def read_world(path: str | os.PathLike[str]) -> Any:
         checked[str(name)] = _region(p, f"regions.{name}", region)
     return Geometry(kind=kind, bounds=(x0, y0, x1, y1), walls=walls, cells=cells,
                     cell_size=cell_size, nodes=nodes, edges=edges, outline=outline,
-                    regions=checked)  # fmt: skip
+                    regions=checked, doors=doors)  # fmt: skip
 
 
 def _region(path: Path, key: str, region: Any) -> dict[str, Any]:

@@ -13,10 +13,16 @@ __all__ = ["TrajectoryMonitor"]
 
 
 class TrajectoryMonitor(Monitor):
-    """Every step: run, trial, step, state, pose (x, y, heading), action, reward and next state
-    (the ``steps`` table). Positions come from the env's pose contract (``x``/``y`` of the state
-    the action was taken in); envs without poses write NaN. Joinable: the recorder builds the
-    table from many batches at once, on its writer thread."""
+    """Every step: run, trial, step, state, pose (x, y, heading), action, reward, next state
+    and the pose after the step (next_x, next_y, next_heading): the ``steps`` table.
+
+    Positions come from the env's pose contract: ``x``/``y``/``heading`` where the action was
+    taken, ``next_*`` where it led, so a trial's path is its rows' poses followed by the last
+    row's ``next_*`` (the arrival: goal cells are visited). Envs without poses write NaN.
+    Joinable: the recorder builds the table from many batches at once, on its writer thread.
+    Run folders written before ``next_*`` existed lack those columns
+    (:func:`cobelrun.analysis.paths.visited_poses` falls back to the poses before each step).
+    """
 
     joinable = True
 
@@ -27,6 +33,8 @@ class TrajectoryMonitor(Monitor):
             pa.field("x", pa.float64()), pa.field("y", pa.float64()),
             pa.field("heading", pa.float32()), pa.field("action", pa.int16()),
             pa.field("reward", pa.float64()), pa.field("next_state", pa.int64()),
+            pa.field("next_x", pa.float64()), pa.field("next_y", pa.float64()),
+            pa.field("next_heading", pa.float32()),
         ), per="step")]  # fmt: skip
 
     def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
@@ -38,13 +46,20 @@ class TrajectoryMonitor(Monitor):
             prev[1:] = batch.step_action[:-1]
             prev[batch.offsets[:-1][batch.steps > 0]] = -1
             before = base.poses_of(batch.step_state, prev)
+            # where a step led is where the trial's next step starts; only each trial's last
+            # step needs its own look-up
+            after = np.empty_like(before)
+            after[:-1] = before[1:]
+            last = batch.offsets[1:][batch.steps > 0] - 1
+            after[last] = base.poses_of(batch.step_next_state[last], batch.step_action[last])
         elif (poses := batch.with_poses(info.env).poses()) is not None:
             last = batch.offsets[1:] + np.arange(n)  # drop each trial's final pose
             keep = np.ones(poses.shape[0], bool)
             keep[last] = False
             before = poses[keep]
+            after = batch.step_pose
         else:
-            before = np.full((batch.n_steps, 3), np.nan)
+            before = after = np.full((batch.n_steps, 3), np.nan)
         return {"steps": {
             "run": np.repeat(info.runs(n), batch.steps),
             "trial": np.repeat(info.trials(n), batch.steps),
@@ -54,4 +69,6 @@ class TrajectoryMonitor(Monitor):
             "action": batch.step_action.astype(np.int16),
             "reward": batch.step_reward,
             "next_state": batch.step_next_state,
+            "next_x": after[:, 0], "next_y": after[:, 1],
+            "next_heading": after[:, 2].astype(np.float32),
         }}  # fmt: skip

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from foxglove.messages import (
+    ArrowPrimitive,
     Color,
     CubePrimitive,
     CylinderPrimitive,
@@ -48,6 +49,8 @@ def scene_pose(x: float, y: float, z: float = 0.0, heading: float = 0.0) -> Pose
 
 _WALL = Color(r=0.35, g=0.35, b=0.4, a=1.0)
 _FLOOR = Color(r=0.88, g=0.88, b=0.85, a=1.0)
+_DOOR = Color(r=0.85, g=0.45, b=0.1, a=0.45)
+_DOOR_ARROW = Color(r=0.85, g=0.45, b=0.1, a=1.0)
 _GRAPH = Color(r=0.3, g=0.45, b=0.7, a=1.0)
 _LABEL = Color(r=0.1, g=0.1, b=0.1, a=1.0)
 # regions get colours in turn; their names are written next to them
@@ -68,13 +71,16 @@ PATH_COLORS = {
 PATH_HEIGHT = 0.3  # world units above the floor
 WALL_HEIGHT = 0.5  # in cell sizes
 WALL_THICKNESS = 0.06  # in cell sizes
+DOOR_HEIGHT = 0.2  # in cell sizes: one-way doors are low panels, not walls
 
 
 def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> list[SceneEntity]:
     """The maze as ``foxglove.SceneEntity`` objects (frame ``maze``).
 
     Entities: ``floor`` (free grid cells as flat cubes, or the arena outline as a closed line),
-    ``walls`` (one thin cube per wall segment, ``WALL_HEIGHT`` cells high), ``graph`` (nodes as
+    ``walls`` (one thin cube per wall segment, ``WALL_HEIGHT`` cells high), ``doors`` (each
+    one-way door a low translucent panel with an arrow across it in the direction it can be
+    passed; absent where the layout has none), ``graph`` (nodes as
     spheres, edges as a line list) and ``regions`` (a flat cylinder per point or circle region,
     a closed line per polygon, each with its name as a text label).
     """
@@ -128,6 +134,27 @@ def scene_entities(geometry: Geometry, timestamp: Timestamp | None = None) -> li
                 )
             )
         out.append(entity("walls", cubes=walls))
+    if len(g.doors):
+        panels, arrows = [], []
+        for x0, y0, x1, y1, dx, dy in g.doors.tolist():
+            length = math.hypot(x1 - x0, y1 - y0)
+            mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+            panels.append(
+                CubePrimitive(
+                    pose=scene_pose(mx, my, DOOR_HEIGHT * s / 2, math.atan2(y1 - y0, x1 - x0)),
+                    size=Vector3(x=length, y=WALL_THICKNESS * s / 2, z=DOOR_HEIGHT * s),
+                    color=_DOOR,
+                )
+            )
+            arrows.append(
+                ArrowPrimitive(
+                    pose=scene_pose(mx - 0.3 * s * dx, my - 0.3 * s * dy, 0.05 * s,
+                                    math.atan2(dy, dx)),
+                    shaft_length=0.4 * s, shaft_diameter=0.05 * s, head_length=0.2 * s,
+                    head_diameter=0.15 * s, color=_DOOR_ARROW,
+                )
+            )  # fmt: skip
+        out.append(entity("doors", cubes=panels, arrows=arrows))
     if len(g.nodes) and len(g.edges):  # a graph (a grid's nodes are its cells: drawn as floor)
         nodes = [
             SpherePrimitive(

@@ -1,0 +1,453 @@
+"""``cobel edit``: the design and its checks (the code ``cobel run`` uses), saving configs that
+compose to the drawn world (unknown keys and comments kept, nothing outside the folder), the
+one-line refusals, and the page in a real headless Chromium (selenium): a plus-maze drawn from
+the open field by clicking cells, saved, run with "run it" (latency falls); the built-in T-maze
+loaded, its extinction goal shown, saved unchanged and composed to the same world.
+
+The browser tests need Debian's ``chromium`` and ``chromium-driver`` and are skipped, saying so,
+where they are absent. ``COBEL_DOCS_SCREENSHOTS=1`` writes their screenshots into ``docs/img/``
+(the "Editing mazes" page shows them).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cobelrun.envs.gridworld import GridWorldEnv
+from cobelrun.errors import CobelError
+from cobelrun.web import edit_config as ec
+from cobelrun.web.grid_design import GridDesign, same_world
+from tests import inprocess
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+DOCS_IMG = REPO / "docs" / "img"
+cli = inprocess.cli  # fixture: cobel in this process
+
+
+def _compose_world(folder: Path | None, env: str):
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(folder) as compose:
+        cfg = compose([f"env={env}", "task=gridworld"])
+    return instantiate("env", cfg.env).unwrapped.world
+
+
+# -- the design (no browser) -----------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(ec.TEMPLATES))
+def test_every_template_becomes_a_layout_of_the_same_world(name: str) -> None:
+    from cobelrun.config import instantiate
+
+    loaded = ec.load_template(name)
+    built = instantiate("env.world", ec.plain(loaded.doc["world"]))
+    assert same_world(loaded.design.world(), built)  # walls, doors, starts in order, places
+    assert loaded.design.problems() == []
+
+
+def test_problems_are_cobel_runs_messages_next_to_their_cells() -> None:
+    design = ec.load_template("dyna_maze").design
+    for r in range(6):  # a wall across column 6 cuts the goal (row 0, col 8) off
+        design.paint("wall", (r, 6))
+    (p,) = design.problems()
+    assert p.message.startswith("goal state 8 (row 0, col 8) is unreachable from every start")
+    assert p.cell == (0, 8)
+    tmaze = ec.load_template("tmaze_paper").design
+    assert tmaze.phase_names() == ["acquisition", "extinction"]
+    tmaze.phases[1]["starts"] = [[2, 0]]  # a wall cell, from the extinction phase on
+    (p,) = tmaze.problems()
+    assert p.message == ("task.protocol phase 'extinction': starts: state 14 (row 2, col 0) is a "
+                         "wall cell; starts must be free cells")  # fmt: skip
+    assert (p.cell, p.phase) == ((2, 0), "extinction")
+
+
+def test_phases_show_and_edit_the_extinction_goal() -> None:
+    d = ec.load_template("tmaze_paper").design
+    left, right = d.state(d.places["left_arm"]), d.state(d.places["right_arm"])
+    acq, ext = d.phase_world(0), d.phase_world(1)
+    assert (acq.rewards[right], acq.rewards[left]) == (1.0, 0.0)
+    assert (ext.rewards[right], ext.rewards[left]) == (0.0, 1.0)
+    d.paint("goal", d.places["left_arm"], value=2.5, phase=1)
+    assert d.phases[1]["rewards"]["left_arm"] == 2.5  # by place name, as the protocol file
+    assert d.phase_world(1).rewards[left] == 2.5 and d.world().rewards[left] == 0.0
+
+
+def test_start_weights_are_start_probabilities() -> None:
+    d = GridDesign.blank(3, 1)
+    d.paint("start", (0, 2), weight=2)  # (0, 0) weight 1, (0, 2) weight 2
+    assert d.start_probabilities() == {(0, 0): pytest.approx(1 / 3), (0, 2): pytest.approx(2 / 3)}
+    env = GridWorldEnv(d.world())
+    env.reset(seed=0)
+    draws = [env.reset()[0] for _ in range(3000)]
+    assert np.mean(np.array(draws) == 2) == pytest.approx(2 / 3, abs=0.03)
+    d.paint("start", (0, 2), weight=1)  # lowered to 1
+    assert d.starts.count((0, 2)) == 1
+    d.paint("start", (0, 2), weight=1)  # the same weight again: no longer a start
+    assert (0, 2) not in d.starts
+
+
+def test_one_way_doors_and_walls_block_the_moves_they_should() -> None:
+    d = GridDesign.blank(3, 1)
+    d.paint("door", (0, 0), side="right")  # 0 -> 1 blocked, 1 -> 0 open
+    d.paint("edge", (0, 1), side="right")  # 1 <-> 2 blocked
+    ns = d.world().next_state
+    right, left = 2, 0
+    assert (ns[0, right], ns[1, left], ns[1, right], ns[2, left]) == (0, 0, 1, 2)
+    assert d.doors == {((0, 0), (0, 1))} and d.edges == {((0, 1), (0, 2))}
+    again = GridDesign.from_world(d.world())
+    assert (again.doors, again.edges) == (d.doors, d.edges)
+
+
+def test_save_keeps_keys_and_comments_and_composes_to_the_drawn_world(tmp_path: Path) -> None:
+    conf = tmp_path / "conf"
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "mine.yaml").write_text(
+        "# my maze: keep this comment\n"
+        "_target_: cobelrun.envs.GridWorldEnv\n"
+        "max_steps: 50   # a key the editor does not own\n"
+        "world:\n"
+        "  _target_: cobelrun.envs.world.from_layout\n"
+        "  layout: |\n"
+        "    S...\n"
+        "    ...G\n"
+        "  slip: 0.1     # kept too\n"
+    )
+    loaded = ec.load(conf, "mine")
+    assert loaded.design.extra == {"slip": 0.1}
+    assert ec.save(conf, "mine", loaded, loaded.design) == [conf / "env" / "mine.yaml"]
+    assert (conf / "env" / "mine.yaml").read_text() == loaded.text  # unchanged: byte for byte
+    d = loaded.design.copy()
+    d.paint("wall", (0, 2))
+    ec.save(conf, "mine", loaded, d)
+    text = (conf / "env" / "mine.yaml").read_text()
+    for kept in ("# my maze: keep this comment", "max_steps: 50   # a key the editor does not own",
+                 "slip: 0.1     # kept too", "S.#."):  # fmt: skip
+        assert kept in text
+    composed = _compose_world(conf, "mine")
+    assert same_world(composed, d.world()) and composed.next_state is None  # slip 0.1 kept
+
+
+def test_refusals_are_one_line_and_write_nothing(tmp_path: Path) -> None:
+    conf = tmp_path / "conf"
+    loaded = ec.load_template("open_field")
+    for bad in ("../evil", "a/b", "", "1abc", "x" * 70):
+        with pytest.raises(CobelError, match="is not a valid config name"):
+            ec.save(conf, bad, loaded, loaded.design)
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "other.yaml").write_text("_target_: cobelrun.envs.TwoAFCEnv\n")
+    with pytest.raises(CobelError, match="is not a gridworld env config"):
+        ec.load(conf, "other")
+    with pytest.raises(CobelError, match=r"other\.yaml exists; pick another name"):
+        ec.save(conf, "other", loaded, loaded.design)
+    big = "\n".join("." * 40 for _ in range(40))
+    (conf / "env" / "big.yaml").write_text(
+        "_target_: cobelrun.envs.GridWorldEnv\nworld:\n  _target_: cobelrun.envs.world.from_layout\n"
+        "  layout: |\n" + "".join(f"    {row}\n" for row in big.splitlines())
+    )
+    with pytest.raises(CobelError, match=r"too large to edit comfortably.*edit its YAML"):
+        ec.load(conf, "big")
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (conf / "task").symlink_to(outside)  # a folder that leads out of the config folder
+    with pytest.raises(CobelError, match="outside the config folder"):
+        ec.save(conf, "mine", loaded, loaded.design, with_task=True)
+    assert list(outside.iterdir()) == [] and not (conf / "env" / "mine.yaml").exists()
+    d = loaded.design.copy()
+    d.paint("wall", (0, 0))
+    d.starts = [(0, 0)]  # a start inside a wall: cobel run's message, nothing written
+    with pytest.raises(CobelError, match=r"not saved: .*row 0, col 0\) is a wall cell"):
+        ec.save(conf, "mine", loaded, d)
+
+
+def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
+    r = cli("edit", "env=../../etc")
+    assert r.returncode != 0 and "is not a valid config name" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("edit", "env=arena")
+    assert r.returncode != 0 and "is not a gridworld env config" in r.stderr
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = cli("edit", "--port", str(port))
+    assert r.returncode != 0 and f"port {port} on 127.0.0.1 is in use" in r.stderr
+
+
+def test_export_png_and_svg() -> None:
+    d = ec.load_template("blodgett_onehot").design
+    png, svg = d.figure("png"), d.figure("svg")
+    assert png.startswith(b"\x89PNG") and len(png) > 5000
+    assert b"<svg" in svg[:500]
+    assert d.svg().count('class="cobel-door"') == 6  # the six one-way doors
+
+
+# -- the page in Chromium ---------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("edit")
+
+
+@pytest.fixture(scope="module")
+def server(workdir: Path):
+    pytest.importorskip("nicegui", reason="cobel edit needs the web extra (NiceGUI)")
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
+    env.update(PYTHONPATH=str(REPO), COBEL_DEBUG="1")
+    code = "from cobelrun.cli import main; main()"
+    cmd = [sys.executable, "-c", code, "edit", "env=open_field", "-cd", str(workdir / "conf"),
+           "--port", str(port), "--results", str(workdir / "results")]  # fmt: skip
+    proc = subprocess.Popen(cmd, env=env, cwd=workdir, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                break
+        except OSError:
+            if proc.poll() is not None:
+                out = proc.stdout.read().decode() if proc.stdout else ""
+                pytest.fail(f"cobel edit exited: {out}")
+            time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail("cobel edit did not listen within 60 s")
+    yield f"http://127.0.0.1:{port}"
+    proc.terminate()
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
+        pytest.skip(f"needs Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}); "
+                    "`apt-get install chromium chromium-driver` (.ci/run does)")  # fmt: skip
+    webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (dev extra)")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1500,1000"):  # fmt: skip
+        opts.add_argument(arg)
+    service = webdriver.ChromeService(executable_path=str(CHROMEDRIVER))
+    driver = webdriver.Chrome(options=opts, service=service)
+    yield driver
+    driver.quit()
+
+
+def _wait_text(driver, css: str, pattern: str, timeout: float = 20.0) -> str:
+    from selenium.webdriver.common.by import By
+
+    deadline = time.monotonic() + timeout
+    text = ""
+    while time.monotonic() < deadline:
+        els = driver.find_elements(By.CSS_SELECTOR, css)
+        text = " | ".join(e.text for e in els)
+        if re.search(pattern, text):
+            return text
+        time.sleep(0.1)
+    raise AssertionError(f"{css} never matched {pattern!r}; last text {text!r}")
+
+
+def _cell(driver, r: int, c: int):
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.CSS_SELECTOR, f"rect.cobel-cell[data-r='{r}'][data-c='{c}']")
+
+
+def _click_cell(driver, r: int, c: int, kind: str | None = None) -> None:
+    """Click a cell, then wait until the page has redrawn it (as ``kind``, if given)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    for _ in range(50):  # the grid is redrawn after every change: find the cell afresh
+        try:
+            _cell(driver, r, c).click()
+            break
+        except StaleElementReferenceException:
+            time.sleep(0.05)
+    deadline = time.monotonic() + 10
+    while kind is not None and time.monotonic() < deadline:
+        try:
+            if f"cobel-{kind}" in (_cell(driver, r, c).get_attribute("class") or ""):
+                return
+        except StaleElementReferenceException:
+            pass
+        time.sleep(0.05)
+    if kind is not None:
+        raise AssertionError(f"cell ({r}, {c}) did not become a {kind} cell")
+
+
+def _fill(driver, css: str, text: str) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    box = driver.find_element(By.CSS_SELECTOR, f"{css} input")
+    box.send_keys(Keys.CONTROL, "a")
+    box.send_keys(text)
+    box.send_keys(Keys.TAB)
+
+
+def _press(driver, css: str) -> None:
+    from selenium.webdriver.common.by import By
+
+    driver.find_element(By.CSS_SELECTOR, css).click()
+
+
+def _shot(driver, name: str) -> None:
+    if os.environ.get("COBEL_DOCS_SCREENSHOTS") == "1":
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(DOCS_IMG / name))
+
+
+def _fill_text(driver, css: str) -> str:
+    return _cell(driver, *map(int, css.split(","))).get_attribute("fill") or ""
+
+
+def test_page_loads_nothing_from_outside(server: str) -> None:
+    import urllib.request
+
+    html = urllib.request.urlopen(server + "/", timeout=10).read().decode()
+    outside = re.findall(r"""(?:src|href)\s*=\s*["'](https?:)?//[^"']*""", html)
+    assert not outside, f"the editor loads from outside: {outside}"
+    assert "/_nicegui/" in html
+
+
+def test_draw_a_plus_maze_and_save(server: str, browser, workdir: Path) -> None:
+
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-origin", "template open_field")
+    _fill(browser, ".cobel-width", "5")
+    _fill(browser, ".cobel-height", "5")
+    _press(browser, ".cobel-resize")
+    _wait_text(browser, ".cobel-info", r"^5 x 5 cells")
+    _press(browser, ".cobel-tool-wall")
+    corners = [(r, c) for r in (0, 1, 3, 4) for c in (0, 1, 3, 4)]
+    for r, c in corners:  # a plus: the middle row and column stay open
+        _click_cell(browser, r, c, "wall")
+    _fill(browser, ".cobel-value", "1")
+    _press(browser, ".cobel-tool-goal")
+    _click_cell(browser, 0, 2)  # the north arm's end pays 1 and ends the trial
+    _wait_text(browser, ".cobel-yaml", r"G")
+    _press(browser, ".cobel-tool-start")  # one start: the south arm's end (the others removed)
+    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
+        _click_cell(browser, r, c)
+    _wait_text(browser, ".cobel-info", r"start probabilities: \(4,2\) 1\.00;")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    yaml_text = _wait_text(browser, ".cobel-yaml", "##G##")
+    assert "##.##\n....." in yaml_text.replace(" | ", "\n") or "....." in yaml_text
+    _shot(browser, "edit-plus-maze.png")
+    # a wall across the north arm: cobel run's message next to the goal cell
+    _press(browser, ".cobel-tool-wall")
+    _click_cell(browser, 1, 2, "wall")
+    msg = _wait_text(browser, ".cobel-problem-at", r"goal state 2 \(row 0, col 2\) is unreachable")
+    assert "open a path or move it" in msg
+    _shot(browser, "edit-problem.png")
+    _press(browser, ".cobel-undo")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    _fill(browser, ".cobel-name", "plus_maze")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/plus_maze\.yaml")
+    world = _compose_world(workdir / "conf", "plus_maze")  # as cobel run -cd DIR composes it
+    assert world.reachable().sum() == 9 and world.starts.tolist() == [22]
+    assert world.rewards[2] == 1.0 and world.terminal[2]
+    assert same_world(world, _plus_maze().world())
+
+
+def _plus_maze() -> GridDesign:
+    """The plus-maze the browser test draws, painted with the same calls its clicks make."""
+    d = ec.load_template("open_field").design
+    d.resize(5, 5)
+    for r, c in [(r, c) for r in (0, 1, 3, 4) for c in (0, 1, 3, 4)]:
+        d.paint("wall", (r, c))
+    d.paint("goal", (0, 2), value=1.0)
+    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
+        d.paint("start", (r, c))
+    return d
+
+
+@pytest.mark.slow
+def test_run_it_runs_the_maze_and_it_learns(server: str, browser, workdir: Path) -> None:
+    import cobelrun
+
+    conf = workdir / "conf"
+    loaded = ec.load_template("open_field")
+    ec.save(conf, "plus_run", loaded, _plus_maze())
+    browser.get(server + "/?env=plus_run")
+    _wait_text(browser, ".cobel-origin", "env/plus_run.yaml")
+    _press(browser, ".cobel-run")  # saves, then cobel run -cd DIR task=gridworld env=plus_run
+    status = _wait_text(browser, ".cobel-run-status", r"^(finished|failed)", timeout=240)
+    assert status.startswith("finished"), status
+    link = _wait_text(browser, ".cobel-dashboard", r"dashboard", timeout=30)
+    assert "/run?p=edit/plus_run/" in link
+    _shot(browser, "edit-run-it.png")
+    run_dir = Path(re.search(r"-> (\S+)$", status).group(1))
+    trials = cobelrun.load(run_dir).trials
+    assert trials["run"].nunique() == 3
+    steps = trials.groupby("trial")["steps"].mean()  # escape latency over the 3 runs
+    first, last = steps.iloc[:2].mean(), steps.iloc[-20:].mean()
+    assert last < 0.5 * first and last < 8  # falls towards the 4-step shortest path
+
+
+def test_load_the_tmaze_see_extinction_save_unchanged(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-origin", "template")
+    _press(browser, ".cobel-template")
+    option = next(o for o in _wait_all(browser, ".q-menu .q-item")
+                  if o.text.startswith("T-maze (paper"))  # fmt: skip
+    option.click()
+    _press(browser, ".cobel-load-template")
+    _wait_text(browser, ".cobel-origin", "template tmaze_paper")
+    left, right = "0,0", "0,6"
+    assert _fill_text(browser, right) == "#fac83c" and _fill_text(browser, left) == "#f0bebe"
+    _press(browser, ".cobel-phase")
+    option = next(o for o in _wait_all(browser, ".q-menu .q-item") if "extinction" in o.text)
+    option.click()  # the extinction phase: the reward moved to the left arm
+    deadline = time.monotonic() + 10
+    while _fill_text(browser, left) != "#fac83c" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _fill_text(browser, left) == "#fac83c" and _fill_text(browser, right) == "#f0bebe"
+    _shot(browser, "edit-tmaze-extinction.png")
+    _fill(browser, ".cobel-name", "tmaze_copy")
+    browser.find_element(By.CSS_SELECTOR, ".cobel-with-task").click()
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/tmaze_copy\.yaml, .*task/tmaze_copy\.yaml")
+    conf = workdir / "conf"
+    assert same_world(_compose_world(conf, "tmaze_copy"), _compose_world(None, "tmaze_paper"))
+    from cobelrun.compose import composer
+
+    with composer(conf) as compose:
+        mine = compose(["task=tmaze_copy"])
+    with composer(None) as compose:
+        theirs = compose(["task=tmaze_extinction"])
+    assert mine.task.protocol == theirs.task.protocol and mine.agent == theirs.agent
+
+
+def _wait_all(driver, css: str, timeout: float = 10.0):
+    from selenium.webdriver.common.by import By
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        els = driver.find_elements(By.CSS_SELECTOR, css)
+        if els:
+            return els
+        time.sleep(0.1)
+    raise AssertionError(f"nothing matches {css}")

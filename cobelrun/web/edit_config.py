@@ -200,7 +200,10 @@ def design_of(doc: Any, where: str) -> GridDesign:
     node = plain(world)
     size = _declared_size(builder, node)
     if size is not None:
-        check_size(*size)
+        try:
+            check_size(*size)
+        except CobelError as exc:
+            raise type(exc)(f"{where}: {exc}") from None
     built = instantiate("env.world", node)
     extra = {k: node[k] for k in PASS_KEYS if k in node} if builder in LAYOUT_BUILDERS else {}
     design = GridDesign.from_world(built, extra=extra)

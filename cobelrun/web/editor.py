@@ -292,15 +292,29 @@ class Page:
             self.phase_select.set_options(
                 opts, value=ENV_NONE if self.phase is None else self.phase
             )
-        self.phase_hint.text = (
-            "painting starts, goals, rewards and terminals changes what this phase sets"
-            if self.phase is not None else
-            f"{len(d.phases)} protocol phase(s); pick one to see and edit its goals and starts"
-        )  # fmt: skip
+        self.phase_hint.text = self._phase_text()
         try:
             self.yaml.content = ec.env_text(self.loaded, d)
         except CobelError as exc:
             self.yaml.content = f"# {exc}"
+
+    def _phase_text(self) -> str:
+        d = self.design
+        if self.phase is None or not 0 <= self.phase < len(d.phases):
+            return (f"{len(d.phases)} protocol phase(s); pick one to see and edit the goals and "
+                    "starts it sets")  # fmt: skip
+        p = d.phases[self.phase]
+        sets = []
+        for key in ("rewards", "terminals"):
+            if p.get(key):
+                sets.append(f"{key} " + ", ".join(f"{k}: {v}" for k, v in p[key].items()))
+        if p.get("starts") is not None:
+            sets.append("starts " + ", ".join(str(s) for s in p["starts"]))
+        if p.get("cycle"):
+            sets.append(f"a per-trial cycle of {len(p['cycle'])} changes")
+        what = "; ".join(sets) or "nothing (the world as the phase before left it)"
+        return (f"{p.get('name')} ({p.get('trials')} trials) sets {what}. Painting starts, goals, "
+                "rewards and terminals now changes what this phase sets.")  # fmt: skip
 
     # ------------------------------------------------------------------ events
     def _change(self, fn: Any) -> None:

@@ -451,3 +451,100 @@ def _wait_all(driver, css: str, timeout: float = 10.0):
             return els
         time.sleep(0.1)
     raise AssertionError(f"nothing matches {css}")
+
+
+# -- topology graphs ----------------------------------------------------------------------------
+def test_hex_graph_as_a_manual_topology_is_the_same_graph() -> None:
+    from cobelrun.config import instantiate
+    from cobelrun.web.graph_editor import load_graph_template
+
+    g = load_graph_template("hex_3d").design
+    assert (len(g.nodes), len(g.edges), g.n_directions) == (77, 196, 6)
+    assert g.rewards == {38: 1.0} and g.terminals == {38} and g.starts == "all"
+    manual = instantiate("env.topology", g.topology_node())
+    hexagonal = instantiate("env.topology", {"_target_": "cobelrun.envs.topology.hexagonal",
+                                             "width": 9, "height": 9})  # fmt: skip
+    assert np.array_equal(manual.neighbours, hexagonal.neighbours)
+    assert manual.places == hexagonal.places and g.problems() == []
+
+
+def test_graph_edits_renumber_and_unreachable_goals_are_named() -> None:
+    from cobelrun.web.graph_editor import load_graph_template
+
+    g = load_graph_template("grid").design  # 5 x 5, start 0, goal 24
+    assert g.problems() == []
+    for e in [(19, 24), (23, 24)]:
+        g.toggle_edge(*e)
+    assert g.problems() == ["goal node 24 is unreachable from every start; add an edge to it"]
+    g.toggle_edge(23, 24)
+    g.remove_node(0)  # the start goes, everything after it moves down one
+    assert g.rewards == {23: 1.0} and g.terminals == {23} and g.starts == []
+    assert g.problems() == ["starts: at least one start node is needed"]  # TopologyEnv's message
+    i = g.add_node(-1.2, 3.9)  # snapped to the grid
+    assert g.nodes[i] == (-1.0, 4.0) and g.add_node(-0.9, 4.1) == i
+
+
+def test_graph_save_keeps_keys_and_comments(tmp_path: Path) -> None:
+    from cobelrun.web.graph_editor import load_graph, load_graph_template, save_graph
+
+    conf = tmp_path / "conf"
+    loaded = load_graph_template("hex_3d")
+    path = save_graph(conf, "hex_copy", loaded, loaded.design)
+    assert path.read_text() == loaded.text  # unchanged: the built-in file as it is
+    d = loaded.design.copy()
+    d.paint("goal", 0, 2.0)
+    save_graph(conf, "hex_copy", load_graph(conf, "hex_copy"), d)
+    text = path.read_text()
+    assert "cobelrun.envs.topology.manual" in text and "fov: 240" in text
+    assert "# Fig. 8: 12 x 48 x 3 panorama" in text  # comments of kept keys stay
+    again = load_graph(conf, "hex_copy").design
+    assert again.rewards == {0: 2.0, 38: 1.0} and again.extra == d.extra
+
+
+@pytest.mark.slow
+def test_agents_view_is_the_runs_camera() -> None:
+    from cobelrun.web.graph_editor import load_graph_template
+
+    d = load_graph_template("hex_3d").design
+    img = d.agent_view(38, 90.0)  # the run's camera: 12 x 48 panorama, rendered by pybullet
+    assert img.shape == (12, 48, 3) and img.dtype == np.uint8 and img.std() > 5
+
+
+@pytest.mark.slow  # renders with pybullet: ~25 s on 2 loaded cores
+def test_graph_page_add_node_edge_and_preview_the_view(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/graph")
+    _wait_text(browser, ".cobel-origin", "template grid")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    _press(browser, ".cobel-tool-node")
+    bg = browser.find_element(By.CSS_SELECTOR, "rect.cobel-bg")
+    top_right = browser.find_element(By.CSS_SELECTOR, "circle.cobel-node[data-node='4']")
+    # one spacing (48 px) right of node 4: a new node 25 at (5, 4)
+    ActionChains(browser).move_to_element_with_offset(top_right, 48, 0).click().perform()
+    _wait_all(browser, "circle.cobel-node[data-node='25']")
+    assert bg is not None
+    _wait_text(browser, ".cobel-yaml", r"- \[5\.0, 4\.0\]")
+    _press(browser, ".cobel-tool-edge")
+    for node in (4, 25):
+        _wait_all(browser, f"circle.cobel-node[data-node='{node}']")[0].click()
+        time.sleep(0.3)
+    _wait_text(browser, ".cobel-yaml", r"\[4, 25\]")
+    _press(browser, ".cobel-tool-view")
+    _wait_all(browser, "circle.cobel-node[data-node='12']")[0].click()
+    _wait_text(browser, ".cobel-view-label", r"agent's view at node 12, heading 90 degrees "
+               r"\(84 x 84 px", timeout=60)  # fmt: skip
+    img = _wait_all(browser, ".cobel-view img[src^='data:image/png']", timeout=20)[0]
+    assert browser.execute_script("return arguments[0].naturalWidth", img) == 84
+    _shot(browser, "edit-graph.png")
+    _fill(browser, ".cobel-name", "grid_plus")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/grid_plus\.yaml")
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(workdir / "conf") as compose:
+        cfg = compose(["env=grid_plus", "task=gridworld", "~env.observation"])
+    env = instantiate("env", cfg.env).unwrapped
+    assert env.topology.n_nodes == 26 and 25 in env.topology.neighbours[4]

@@ -184,10 +184,16 @@ def design_of(doc: Any, where: str) -> GridDesign:
     from cobelrun.config import instantiate
 
     target = doc.get("_target_")
+    if target is None and doc.get("defaults"):
+        raise ConfigError(
+            f"{where} is composed from other configs (defaults: {plain(doc['defaults'])}); "
+            "cobel edit opens env files that stand alone: open the one it builds on"
+        )
     if target not in GRID_ENVS:
         raise ConfigError(
             f"{where} is not a gridworld env config (its _target_ is {target!r}); cobel edit "
-            f"edits envs built by {allowed_list(GRID_ENVS[:2])}"
+            f"edits envs built by {allowed_list(GRID_ENVS[:2])} and topology graphs "
+            "(cobelrun.envs.TopologyEnv with a topology node)"
         )
     world = doc.get("world")
     builder = world.get("_target_") if isinstance(world, dict) else None

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from cobelrun.errors import CobelError
+from cobelrun.errors import CobelError, ConfigError
 from cobelrun.web import edit_config as ec
 from cobelrun.web.grid_design import MAX_SIDE, TOOLS, GridDesign, Problem
 
@@ -83,6 +83,7 @@ class Editor:
     results: Path
     name: str = "my_maze"
     initial: ec.Loaded | None = None
+    graph_env: str | None = None  # env=NAME named a topology graph: the /graph page opens it
     runs: list[Child] = field(default_factory=list)
     dashboard: Child | None = None
     dashboard_port: int = 0
@@ -171,6 +172,7 @@ class Page:
         with ui.row().classes("items-center w-full"):
             ui.label("cobel edit").classes("text-xl font-bold")
             ui.label(f"config folder {ed.folder}").classes("text-sm cobel-folder")
+            ui.link("topology graphs", "/graph").classes("text-sm cobel-graph-link")
             self.origin = ui.label().classes("text-sm text-gray-600 cobel-origin")
         with ui.row().classes("w-full no-wrap items-start gap-6"):
             with ui.column().classes("w-72 gap-1"):
@@ -461,9 +463,18 @@ def build(editor: Editor) -> None:
     """Register the editor's page and the children's clean-up."""
     from nicegui import app, ui
 
+    from cobelrun.web.graph_editor import GraphPage
+
     @ui.page("/", title="cobel edit")
     def index(env: str = "") -> None:
+        if not env and editor.graph_env:
+            ui.navigate.to(f"/graph?env={quote(editor.graph_env)}")
+            return
         Page(editor, env).build()
+
+    @ui.page("/graph", title="cobel edit: graph")
+    def graph(env: str = "") -> None:
+        GraphPage(editor.folder, env).build()
 
     app.on_shutdown(editor.stop)
 
@@ -475,10 +486,24 @@ def prepare(folder: Path | None, env: str | None, results: Path) -> Editor:
         raise CobelError(f"{folder} is not a folder; pass a config folder with -cd DIR")
     initial = None
     name = "my_maze"
+    graph_env = None
     if env is not None:
         name = ec.check_name(env)
-        initial = ec.load(folder, env) if folder.is_dir() else ec.load_template(env)
-    return Editor(folder=folder, results=results, name=name, initial=initial)
+        try:
+            initial = ec.load(folder, env) if folder.is_dir() else ec.load_template(env)
+        except ConfigError as exc:
+            if "is not a gridworld env config" not in str(exc):
+                raise
+            from cobelrun.web.graph_editor import load_graph
+
+            try:
+                load_graph(folder, env)  # a topology graph: checked here, drawn on /graph
+            except ConfigError as graph_exc:
+                if "is not a topology env config" in str(graph_exc):
+                    raise exc from None  # neither: the gridworld message says what is edited
+                raise
+            graph_env, name = env, "my_maze"
+    return Editor(folder=folder, results=results, name=name, initial=initial, graph_env=graph_env)
 
 
 def edit(folder: Path | None = None, env: str | None = None, *, host: str = "127.0.0.1",

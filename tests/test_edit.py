@@ -548,3 +548,66 @@ def test_graph_page_add_node_edge_and_preview_the_view(server: str, browser, wor
         cfg = compose(["env=grid_plus", "task=gridworld", "~env.observation"])
     env = instantiate("env", cfg.env).unwrapped
     assert env.topology.n_nodes == 26 and 25 in env.topology.neighbours[4]
+
+
+# -- 2D arenas ----------------------------------------------------------------------------------
+def test_arena_checks_are_the_envs_and_name_the_shape() -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    d = load_arena(None, "water_maze").design
+    assert d.problems() == []
+    assert d.svg().count("cobel-place-cell") == 493  # the env's own place-cell centres
+    d.node["goals"]["platform"]["x"] = 0.99  # the platform half out of the pool
+    assert d.problems() == [("goal 'platform' lies (partly) outside the arena", "platform")]
+    assert 'stroke="#d00000"' in d.svg(bad="platform")
+    d.node["goals"]["platform"]["x"] = 0.42
+    for x, y in [(-0.2, -0.2), (0.2, -0.2), (0.2, 0.2)]:
+        d.add_vertex(x, y)
+    d.finish("obstacle")
+    name = d.add_start(0.1, -0.1)  # inside the new obstacle
+    assert d.problems() == [(f"start '{name}' at [0.1, -0.1] lies inside an obstacle "
+                             "(obstacles[0])", name)]  # fmt: skip
+    assert d.erase(0.1, -0.1, 0.05) == name and d.problems() == []
+    assert d.erase(0.15, -0.1, 0.01) == "obstacles[0]" and "obstacles" in d.node
+
+
+def test_arena_save_keeps_the_rest_and_composes(tmp_path: Path) -> None:
+    from cobelrun.web.arena_editor import load_arena, save_arena
+
+    conf = tmp_path / "conf"
+    loaded = load_arena(None, "water_maze")
+    path = save_arena(conf, "pool", loaded, loaded.design)
+    assert path.read_text() == loaded.text
+    d = loaded.design.copy()
+    d.add_goal(-0.3, 0.4, 0.08, 2.0)
+    save_arena(conf, "pool", load_arena(conf, "pool"), d)
+    text = path.read_text()
+    assert "speed: 0.3                  # m/s" in text and "start_order: shuffled" in text
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(conf) as compose:
+        cfg = compose(["env=pool", "task=morris_water_maze"])
+    env = instantiate("env", cfg.env).unwrapped
+    assert set(env.arena.goals) == {"platform", "platform_reversal", "goal_0"}
+    assert env.arena.goals["goal_0"].reward == 2.0
+
+
+@pytest.mark.slow
+def test_arena_page_start_goal_and_rays(server: str, browser) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/arena?env=water_maze")
+    _wait_text(browser, ".cobel-origin", "template water_maze")
+    _wait_text(browser, ".cobel-ok", "no problems", timeout=30)
+    svg = browser.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
+    _press(browser, ".cobel-tool-rays")
+    ActionChains(browser).move_to_element_with_offset(svg, -60, 40).click().perform()
+    rays = _wait_all(browser, "polyline.cobel-ray", timeout=30)
+    assert len(rays) == 36  # boundary-vector rays at the pose, every 10 degrees
+    _press(browser, ".cobel-tool-start")
+    svg = browser.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
+    ActionChains(browser).move_to_element_with_offset(svg, 60, -60).click().perform()
+    _wait_text(browser, ".cobel-yaml", r"start_0: \[")
+    _shot(browser, "edit-arena.png")

@@ -192,8 +192,9 @@ def design_of(doc: Any, where: str) -> GridDesign:
     if target not in GRID_ENVS:
         raise ConfigError(
             f"{where} is not a gridworld env config (its _target_ is {target!r}); cobel edit "
-            f"edits envs built by {allowed_list(GRID_ENVS[:2])} and topology graphs "
-            "(cobelrun.envs.TopologyEnv with a topology node)"
+            f"edits envs built by {allowed_list(GRID_ENVS[:2])}, topology graphs "
+            "(cobelrun.envs.TopologyEnv with a topology node) and 2D arenas "
+            "(cobelrun.envs.Continuous2DEnv)"
         )
     world = doc.get("world")
     builder = world.get("_target_") if isinstance(world, dict) else None

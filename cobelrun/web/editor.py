@@ -83,7 +83,8 @@ class Editor:
     results: Path
     name: str = "my_maze"
     initial: ec.Loaded | None = None
-    graph_env: str | None = None  # env=NAME named a topology graph: the /graph page opens it
+    graph_env: str | None = None  # env=NAME named a topology graph or an arena: that page
+    graph_page: str = "graph"
     runs: list[Child] = field(default_factory=list)
     dashboard: Child | None = None
     dashboard_port: int = 0
@@ -173,6 +174,7 @@ class Page:
             ui.label("cobel edit").classes("text-xl font-bold")
             ui.label(f"config folder {ed.folder}").classes("text-sm cobel-folder")
             ui.link("topology graphs", "/graph").classes("text-sm cobel-graph-link")
+            ui.link("2D arenas", "/arena").classes("text-sm cobel-arena-link")
             self.origin = ui.label().classes("text-sm text-gray-600 cobel-origin")
         with ui.row().classes("w-full no-wrap items-start gap-6"):
             with ui.column().classes("w-72 gap-1"):
@@ -468,13 +470,19 @@ def build(editor: Editor) -> None:
     @ui.page("/", title="cobel edit")
     def index(env: str = "") -> None:
         if not env and editor.graph_env:
-            ui.navigate.to(f"/graph?env={quote(editor.graph_env)}")
+            ui.navigate.to(f"/{editor.graph_page}?env={quote(editor.graph_env)}")
             return
         Page(editor, env).build()
 
     @ui.page("/graph", title="cobel edit: graph")
     def graph(env: str = "") -> None:
         GraphPage(editor.folder, env).build()
+
+    from cobelrun.web.arena_editor import ArenaPage
+
+    @ui.page("/arena", title="cobel edit: arena")
+    def arena(env: str = "") -> None:
+        ArenaPage(editor.folder, env).build()
 
     app.on_shutdown(editor.stop)
 
@@ -486,7 +494,7 @@ def prepare(folder: Path | None, env: str | None, results: Path) -> Editor:
         raise CobelError(f"{folder} is not a folder; pass a config folder with -cd DIR")
     initial = None
     name = "my_maze"
-    graph_env = None
+    graph_env, page = None, "graph"
     if env is not None:
         name = ec.check_name(env)
         try:
@@ -494,16 +502,31 @@ def prepare(folder: Path | None, env: str | None, results: Path) -> Editor:
         except ConfigError as exc:
             if "is not a gridworld env config" not in str(exc):
                 raise
-            from cobelrun.web.graph_editor import load_graph
+            graph_env, page = _other_page(folder, env, exc)
+            name = "my_maze"
+    return Editor(folder=folder, results=results, name=name, initial=initial,
+                  graph_env=graph_env, graph_page=page)  # fmt: skip
 
-            try:
-                load_graph(folder, env)  # a topology graph: checked here, drawn on /graph
-            except ConfigError as graph_exc:
-                if "is not a topology env config" in str(graph_exc):
-                    raise exc from None  # neither: the gridworld message says what is edited
-                raise
-            graph_env, name = env, "my_maze"
-    return Editor(folder=folder, results=results, name=name, initial=initial, graph_env=graph_env)
+
+def _other_page(folder: Path, env: str, gridworld_error: ConfigError) -> tuple[str, str]:
+    """``(env, page)`` where ``env`` is a topology graph (``graph``) or an arena (``arena``),
+    checked now; neither: the gridworld's message (it names what the editor edits)."""
+    from cobelrun.web.arena_editor import load_arena
+    from cobelrun.web.graph_editor import load_graph
+
+    try:
+        load_graph(folder, env)
+        return env, "graph"
+    except ConfigError as exc:
+        if "is not a topology env config" not in str(exc):
+            raise
+    try:
+        load_arena(folder, env)
+        return env, "arena"
+    except ConfigError as exc:
+        if "is not an arena env config" not in str(exc):
+            raise
+    raise gridworld_error from None
 
 
 def edit(folder: Path | None = None, env: str | None = None, *, host: str = "127.0.0.1",

@@ -189,6 +189,7 @@ class GraphPage:
         with ui.row().classes("items-center w-full"):
             ui.label("cobel edit: topology graph").classes("text-xl font-bold")
             ui.link("gridworlds", "/").classes("text-sm")
+            ui.link("2D arenas", "/arena").classes("text-sm")
             self.origin = ui.label().classes("text-sm text-gray-600 cobel-origin")
         with ui.row().classes("w-full no-wrap items-start gap-6"):
             with ui.column().classes("w-72 gap-1"):

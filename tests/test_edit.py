@@ -173,7 +173,7 @@ def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
     r = cli("edit", "env=../../etc")
     assert r.returncode != 0 and "is not a valid config name" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
-    r = cli("edit", "env=arena")
+    r = cli("edit", "env=bandit")  # neither a gridworld, a topology graph nor an arena
     assert r.returncode != 0 and "is not a gridworld env config" in r.stderr
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -189,6 +189,23 @@ def test_export_png_and_svg() -> None:
     assert png.startswith(b"\x89PNG") and len(png) > 5000
     assert b"<svg" in svg[:500]
     assert d.svg().count('class="cobel-door"') == 6  # the six one-way doors
+
+
+@pytest.mark.slow  # matplotlib draws 77 nodes and 196 edges: ~4 s
+def test_graph_and_arena_export_draw_the_env() -> None:
+    from cobelrun.web.arena_editor import load_arena
+    from cobelrun.web.graph_design import GraphDesign
+    from cobelrun.web.grid_design import geometry_figure
+
+    graph = GraphDesign.from_env_config(
+        ec.plain(ec.read_yaml(REPO / "conf/env/hex_3d.yaml")), "hex"
+    )
+    arena = load_arena(None, "arena").design
+    for design in (graph, arena):
+        assert geometry_figure(design.export_env(), "png").startswith(b"\x89PNG")
+        assert b"<svg" in geometry_figure(design.export_env(), "svg")[:500]
+    with pytest.raises(CobelError, match="export format 'gif' is unknown; allowed: png, svg"):
+        geometry_figure(arena.export_env(), "gif")
 
 
 # -- the page in Chromium ---------------------------------------------------------------------

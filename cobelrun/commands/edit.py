@@ -1,4 +1,4 @@
-"""``cobel edit [env=NAME] [-cd DIR] [--port P]``: design a gridworld in the browser."""
+"""``cobel edit [env=NAME] [-cd DIR] [--port P]``: design a maze or arena in the browser."""
 
 from __future__ import annotations
 
@@ -7,18 +7,21 @@ from typing import Annotated
 
 import typer
 
-HELP = """Edit a gridworld in the browser and save it as env/NAME.yaml in your config folder.
+HELP = """Edit a gridworld, topology graph or 2D arena in the browser; save it as env/NAME.yaml.
 
 \b
 Examples:
   cobel edit                          # start from the open field; saves into ./conf
   cobel edit env=tmaze_paper          # a built-in env (or ./conf/env/NAME.yaml) to start from
+  cobel edit env=water_maze           # an arena (hex_3d: a topology graph)
   cobel edit -cd myconf env=my_maze --port 8090
 \b
 Paint walls, one-way doors, starts (with weights), goals with rewards and terminal cells; see
 the protocol's phases (the T-maze's acquisition and extinction goals); every change is checked
 as `cobel run` checks it. "Run it" starts `cobel run -cd DIR task=... env=NAME` with a few runs
-and links to the dashboard. Binds to 127.0.0.1 unless --host says otherwise.
+and links to the dashboard. Topology graphs (/graph: nodes, edges, the agent's camera view)
+and 2D arenas (/arena: outline, obstacles, goals, starts, place cells, boundary-vector rays)
+have their own pages. Binds to 127.0.0.1 unless --host says otherwise.
 Needs NiceGUI and ruamel.yaml (the web extra).
 """
 

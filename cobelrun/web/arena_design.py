@@ -73,6 +73,10 @@ class ArenaDesign:
 
         return instantiate("env", self.node)
 
+    def export_env(self) -> Any:
+        """The env built for drawing."""
+        return self.env()
+
     def problems(self) -> list[tuple[str, str | None]]:
         """``cobel run``'s message and the goal/start/obstacle it names (if any)."""
         try:

@@ -164,6 +164,14 @@ class GraphDesign:
         out.update(self.extra)
         return out
 
+    def export_env(self) -> Any:
+        """The env built for drawing (no observation: a picture needs no camera)."""
+        from cobelrun.config import instantiate
+
+        node = self.env_node()
+        node.pop("observation", None)
+        return instantiate("env", node)
+
     def problems(self) -> list[str]:
         """``cobel run``'s messages for this graph: the topology and the env built as a run
         builds them (the observation left out: it only renders)."""

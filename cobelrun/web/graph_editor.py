@@ -229,6 +229,13 @@ class GraphPage:
             with ui.column().classes("w-96 gap-1"):
                 self.name = ui.input("env name", value=self.name0).classes("w-64 cobel-name")
                 ui.button("save", on_click=self._save).classes("cobel-save")
+                with ui.row():
+                    ui.button("export PNG", on_click=lambda: self._export("png")).props(
+                        "dense outline"
+                    ).classes("cobel-export-png")
+                    ui.button("export SVG", on_click=lambda: self._export("svg")).props(
+                        "dense outline"
+                    ).classes("cobel-export-svg")
                 self.status = ui.label(self.error).classes("text-sm cobel-status")
                 ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")
                 self.yaml = ui.code("", language="yaml").classes("w-96 text-xs cobel-yaml")
@@ -359,3 +366,16 @@ class GraphPage:
         self.existing.set_options(graph_env_names(self.folder))
         self.status.text = f"saved {path}"
         self.refresh()
+
+    def _export(self, fmt: str) -> None:
+        from nicegui import ui
+
+        from cobelrun.web.grid_design import geometry_figure
+
+        try:
+            data = geometry_figure(self.design.export_env(), fmt)
+        except CobelError as exc:
+            self.status.text = str(exc)
+            return
+        name = str(self.name.value or "").strip() or "maze"
+        ui.download.content(data, f"{name}.{fmt}")

@@ -541,31 +541,40 @@ class GridDesign:
 
     def figure(self, fmt: str, *, phase: int | None = None) -> bytes:
         """The world drawn as ``cobel show`` draws it (matplotlib), as PNG or SVG bytes."""
-        import io
-
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
         from cobelrun.envs.gridworld import GridWorldEnv
-        from cobelrun.figures.runs import draw_geometry
 
-        if fmt not in ("png", "svg"):
-            raise ConfigError(f"export format {fmt!r} is unknown; allowed: png, svg")
-        env = GridWorldEnv(self.phase_world(phase))
-        geometry = env.geometry()
-        side = max(3.0, min(12.0, 0.45 * max(self.width, self.height)))
-        fig, ax = plt.subplots(figsize=(side, side * self.height / max(self.width, 1) + 0.4))
-        try:
-            draw_geometry(geometry, ax, labels=len(geometry.regions) <= 20)
-            ax.set_xlabel("x [cells]")
-            ax.set_ylabel("y [cells]")
-            buf = io.BytesIO()
-            fig.savefig(buf, format=fmt, bbox_inches="tight", dpi=150)
-        finally:
-            plt.close(fig)
-        return buf.getvalue()
+        return geometry_figure(GridWorldEnv(self.phase_world(phase)), fmt)
+
+
+def geometry_figure(env: Any, fmt: str) -> bytes:
+    """An env's geometry drawn as ``cobel show`` draws it (walls, doors, nodes, regions; axes
+    in the env's units), as PNG or SVG bytes: the editors' "export"."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures.runs import draw_geometry
+
+    if fmt not in ("png", "svg"):
+        raise ConfigError(f"export format {fmt!r} is unknown; allowed: png, svg")
+    geometry = env.unwrapped.geometry()
+    x0, y0, x1, y1 = geometry.bounds
+    aspect = (y1 - y0) / max(x1 - x0, 1e-9)
+    side = 6.0
+    fig, ax = plt.subplots(figsize=(side, side * aspect + 0.4))
+    try:
+        draw_geometry(geometry, ax, labels=len(geometry.regions) <= 20)
+        unit = "cells" if geometry.kind == "grid" else "m" if geometry.kind != "graph" else "units"
+        ax.set_xlabel(f"x [{unit}]")
+        ax.set_ylabel(f"y [{unit}]")
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, bbox_inches="tight", dpi=150)
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
 
 
 def _bar(a: Cell, b: Cell, px: int, colour: str, frac: float, cls: str = "cobel-edge") -> str:

@@ -71,6 +71,15 @@ def test_problems_are_cobel_runs_messages_next_to_their_cells() -> None:
     assert (p.cell, p.phase) == ((2, 0), "extinction")
 
 
+def test_the_env_is_checked_too_not_only_its_world() -> None:
+    d = ec.load_template("blodgett_onehot").design  # DiscreteGridWorldEnv, observations kept
+    d.env_extra["observations"] = [[0.0, 1.0]] * 40  # an (S, d) array for the 40 states
+    assert d.problems() == []
+    d.resize(4, 5)  # 20 states now: the array no longer fits, as cobel run would say
+    (p,) = d.problems()
+    assert p.message == "observations must have shape (S=20, d), got (40, 2); one row per state"
+
+
 def test_phases_show_and_edit_the_extinction_goal() -> None:
     d = ec.load_template("tmaze_paper").design
     left, right = d.state(d.places["left_arm"]), d.state(d.places["right_arm"])
@@ -401,6 +410,8 @@ def _plus_maze() -> GridDesign:
 
 @pytest.mark.slow
 def test_run_it_runs_the_maze_and_it_learns(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
     import cobelrun
 
     conf = workdir / "conf"
@@ -413,6 +424,8 @@ def test_run_it_runs_the_maze_and_it_learns(server: str, browser, workdir: Path)
     assert status.startswith("finished"), status
     link = _wait_text(browser, ".cobel-dashboard", r"dashboard", timeout=30)
     assert "/run?p=edit/plus_run/" in link
+    href = browser.find_element(By.CSS_SELECTOR, ".cobel-dashboard").get_attribute("href")
+    assert href.startswith("http://127.0.0.1:") and "/run?p=edit/plus_run/" in href
     _shot(browser, "edit-run-it.png")
     run_dir = Path(re.search(r"-> (\S+)$", status).group(1))
     trials = cobelrun.load(run_dir).trials

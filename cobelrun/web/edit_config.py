@@ -216,6 +216,8 @@ def design_of(doc: Any, where: str) -> GridDesign:
     design = GridDesign.from_world(built, extra=extra)
     if builder in LAYOUT_BUILDERS:
         design.goal_reward = float(node.get("goal_reward", 1.0))
+    design.env_target = str(target)
+    design.env_extra = {k: v for k, v in plain(doc).items() if k not in ("_target_", "world")}
     return design
 
 

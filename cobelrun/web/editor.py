@@ -90,7 +90,12 @@ class Editor:
     dashboard_port: int = 0
 
     def first(self) -> ec.Loaded:
-        return self.initial if self.initial is not None else ec.load_template("open_field")
+        """What a new tab starts with: its own copy of what the command line named."""
+        import copy
+
+        if self.initial is None:
+            return ec.load_template("open_field")
+        return copy.deepcopy(self.initial)
 
     # ------------------------------------------------------------------ run it
     def run_command(self, env: str, task: str, out: Path, runs: int) -> list[str]:

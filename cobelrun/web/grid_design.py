@@ -118,6 +118,9 @@ class GridDesign:
         ``terminals`` and ``starts`` use place names or state indices.
     max_steps : int
         The protocol's per-trial step limit.
+    env_target, env_extra : str, dict
+        The env's ``_target_`` and its other keys (``observations``, ``max_steps``, ...): the
+        check builds the env with them, as a run does.
     """
 
     width: int
@@ -133,6 +136,8 @@ class GridDesign:
     extra: dict[str, Any] = field(default_factory=dict)
     phases: list[dict[str, Any]] = field(default_factory=list)
     max_steps: int = 100
+    env_target: str = "cobelrun.envs.GridWorldEnv"
+    env_extra: dict[str, Any] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -294,6 +299,7 @@ class GridDesign:
 
         try:
             world = self.world()
+            self._build_env(world)
         except CobelError as exc:
             return [Problem(str(exc), self._locate(str(exc)))]
         out: list[Problem] = []
@@ -317,6 +323,25 @@ class GridDesign:
                 out.append(Problem(f"task.protocol phase {phase.name!r}: {exc}", None, phase.name))
                 break
         return out
+
+    def _build_env(self, world: World) -> Any:
+        """The env around ``world`` with the config's other keys, as a run builds it: the
+        target through the gate and checked against its signature, then called."""
+        from hydra.utils import get_object
+
+        from cobelrun.config import validate_node
+
+        node = {"_target_": self.env_target, **self.env_extra}
+        validate_node("env", node, provided=["world"])  # the gate, keys and types
+        if any(isinstance(v, dict) and "_target_" in v for v in self.env_extra.values()):
+            return None  # nested objects: built by the run; the world is what is drawn here
+        try:
+            return get_object(self.env_target)(world=world, **copy.deepcopy(self.env_extra))
+        except CobelError:
+            raise
+        except Exception as exc:  # as instantiate reports a constructor's error
+            lines = str(exc).strip().splitlines()
+            raise ConfigError(f"cannot build env: {lines[-1] if lines else exc}") from None
 
     def _locate(self, message: str) -> Cell | None:
         """The cell a builder message names ("state 5 (row 1, col 2)", "states 3 and 4")."""

@@ -68,10 +68,11 @@ class ArenaDesign:
 
     # ------------------------------------------------------------------ building
     def env(self) -> Any:
-        """The env, built as ``cobel run`` builds it (the gate, then the constructor)."""
-        from cobelrun.config import instantiate
+        """The env, built as ``cobel run`` builds a flat node (:func:`cobelrun.config.factory`:
+        the gate, the keys checked against the constructor, then the constructor)."""
+        from cobelrun.config import factory
 
-        return instantiate("env", self.node)
+        return factory("env", self.node)()
 
     def export_env(self) -> Any:
         """The env built for drawing."""

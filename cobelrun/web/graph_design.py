@@ -165,22 +165,20 @@ class GraphDesign:
         return out
 
     def export_env(self) -> Any:
-        """The env built for drawing (no observation: a picture needs no camera)."""
-        from cobelrun.config import instantiate
+        """The env built as a run builds it, without its observation (a check or a picture
+        needs no camera): the topology, then the env around it, both through the gate."""
+        from cobelrun.web.grid_design import build_with
 
         node = self.env_node()
         node.pop("observation", None)
-        return instantiate("env", node)
+        topology = build_with("env.topology", node.pop("topology"))
+        return build_with("env", node, topology=topology)
 
     def problems(self) -> list[str]:
         """``cobel run``'s messages for this graph: the topology and the env built as a run
         builds them (the observation left out: it only renders)."""
-        from cobelrun.config import instantiate
-
-        node = self.env_node()
-        node.pop("observation", None)
         try:
-            env = instantiate("env", node)
+            env = self.export_env()
         except CobelError as exc:
             return [str(exc)]
         out = []
@@ -313,9 +311,9 @@ class GraphDesign:
     def agent_view(self, i: int, heading_deg: float) -> np.ndarray:
         """The agent's camera image at node ``i`` facing ``heading_deg`` (HxWx3 uint8),
         rendered by the run's pybullet scene for this graph."""
-        from cobelrun.config import instantiate
+        from cobelrun.web.grid_design import build_with
 
-        topology = instantiate("env.topology", self.topology_node())
+        topology = build_with("env.topology", self.topology_node())
         obs = self.camera()
         obs.bind(topology)
         try:

@@ -325,23 +325,8 @@ class GridDesign:
         return out
 
     def _build_env(self, world: World) -> Any:
-        """The env around ``world`` with the config's other keys, as a run builds it: the
-        target through the gate and checked against its signature, then called."""
-        from hydra.utils import get_object
-
-        from cobelrun.config import validate_node
-
-        node = {"_target_": self.env_target, **self.env_extra}
-        validate_node("env", node, provided=["world"])  # the gate, keys and types
-        if any(isinstance(v, dict) and "_target_" in v for v in self.env_extra.values()):
-            return None  # nested objects: built by the run; the world is what is drawn here
-        try:
-            return get_object(self.env_target)(world=world, **copy.deepcopy(self.env_extra))
-        except CobelError:
-            raise
-        except Exception as exc:  # as instantiate reports a constructor's error
-            lines = str(exc).strip().splitlines()
-            raise ConfigError(f"cannot build env: {lines[-1] if lines else exc}") from None
+        """The env around ``world`` with the config's other keys, as a run builds it."""
+        return build_with("env", {"_target_": self.env_target, **self.env_extra}, world=world)
 
     def _locate(self, message: str) -> Cell | None:
         """The cell a builder message names ("state 5 (row 1, col 2)", "states 3 and 4")."""
@@ -600,6 +585,29 @@ def geometry_figure(env: Any, fmt: str) -> bytes:
     finally:
         plt.close(fig)
     return buf.getvalue()
+
+
+def build_with(where: str, node: dict[str, Any], **objects: Any) -> Any:
+    """Build a ``_target_`` node whose values are plain data, with ``objects`` (built parts,
+    such as ``world``) passed as keyword arguments: the target through cobel's gate and checked
+    against its signature (:func:`cobelrun.config.validate_node`), then called. Hydra's
+    ``instantiate`` would turn the objects into configs, and takes ~1 s over a graph's lists.
+    A node with nested ``_target_`` values is left to the run (None is returned)."""
+    from hydra.utils import get_object
+
+    from cobelrun.config import validate_node
+
+    validate_node(where, node, provided=list(objects))  # the gate, the keys and their types
+    values = {k: v for k, v in node.items() if k != "_target_"}
+    if any(isinstance(v, dict) and "_target_" in v for v in values.values()):
+        return None
+    try:
+        return get_object(str(node["_target_"]))(**copy.deepcopy(values), **objects)
+    except CobelError:
+        raise
+    except Exception as exc:  # as instantiate reports a constructor's error
+        lines = str(exc).strip().splitlines()
+        raise ConfigError(f"cannot build {where}: {lines[-1] if lines else exc}") from None
 
 
 def _bar(a: Cell, b: Cell, px: int, colour: str, frac: float, cls: str = "cobel-edge") -> str:

@@ -601,6 +601,22 @@ def test_arena_checks_are_the_envs_and_name_the_shape() -> None:
     assert d.erase(0.15, -0.1, 0.01) == "obstacles[0]" and "obstacles" in d.node
 
 
+def test_arena_phases_are_the_water_mazes_protocol() -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    d = load_arena(None, "water_maze").design
+    assert d.phase_names() == ["acquisition", "probe", "reversal"]
+    gold = 'class="cobel-goal cobel-goal-{}" points="[^"]*" fill="#fac83c"'
+    assert re.search(gold.format("platform"), d.svg(phase=0))  # the platform pays
+    assert not re.search(gold.format("platform"), d.svg(phase=2))  # moved in the reversal
+    assert re.search(gold.format("platform_reversal"), d.svg(phase=2))
+    del d.node["goals"]["platform_reversal"]  # the protocol still switches it on: run's message
+    ((msg, name),) = d.problems()
+    assert msg.startswith("task.protocol phase 'acquisition': rewards: unknown goal "
+                          "'platform_reversal'")  # fmt: skip
+    assert name == "platform_reversal"
+
+
 def test_arena_save_keeps_the_rest_and_composes(tmp_path: Path) -> None:
     from cobelrun.web.arena_editor import load_arena, save_arena
 
@@ -640,4 +656,11 @@ def test_arena_page_start_goal_and_rays(server: str, browser) -> None:
     svg = browser.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
     ActionChains(browser).move_to_element_with_offset(svg, 60, -60).click().perform()
     _wait_text(browser, ".cobel-yaml", r"start_0: \[")
+    _press(browser, ".cobel-phase")  # the reversal: the platform moved to the SW quadrant
+    next(o for o in _wait_all(browser, ".q-menu .q-item") if "reversal" in o.text).click()
+    deadline = time.monotonic() + 20
+    css = "polygon.cobel-goal-platform_reversal"
+    while browser.find_element(By.CSS_SELECTOR, css).get_attribute("fill") != "#fac83c":
+        assert time.monotonic() < deadline, "the reversal phase did not show the moved platform"
+        time.sleep(0.2)
     _shot(browser, "edit-arena.png")

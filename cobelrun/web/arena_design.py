@@ -47,10 +47,15 @@ class ArenaDesign:
         The env config (``_target_``, ``arena``, ``obstacles``, ``goals``, ``starts``, ...).
     pending : list of [x, y]
         Vertices of a polygon being drawn (obstacle or outline).
+    phases, max_steps : list of dict, int
+        The protocol of the task that uses the env (the water maze's acquisition, probe and
+        reversal): checked and shown, not edited here.
     """
 
     node: dict[str, Any]
     pending: list[list[float]] = field(default_factory=list)
+    phases: list[dict[str, Any]] = field(default_factory=list)
+    max_steps: int = 100
 
     @classmethod
     def from_env_config(cls, node: dict[str, Any], where: str) -> ArenaDesign:
@@ -78,16 +83,48 @@ class ArenaDesign:
         """The env built for drawing."""
         return self.env()
 
+    def phase_env(self, phase: int | None) -> Any:
+        """The env as it is during ``phase`` (None: as built): the protocol's phases up to it
+        applied in order with the code a run uses (:class:`cobelrun.protocol.Protocol`)."""
+        from cobelrun.protocol import Protocol
+
+        env = self.env()
+        if phase is None or not self.phases:
+            return env
+        protocol = Protocol.from_config({"max_steps": self.max_steps, "phases": self.phases})
+        for p in protocol.phases[: phase + 1]:
+            protocol.apply(p, env)
+            for k in range(len(p.cycle or ())):
+                protocol.apply_trial(p, k, env)
+        return env
+
     def problems(self) -> list[tuple[str, str | None]]:
-        """``cobel run``'s message and the goal/start/obstacle it names (if any)."""
+        """``cobel run``'s message and the goal/start/obstacle it names (if any): the env,
+        then each phase of the protocol applied in order."""
+        from cobelrun.protocol import Protocol
+
         try:
-            self.env()
+            env = self.env()
+            if self.phases:
+                protocol = Protocol.from_config(
+                    {"max_steps": self.max_steps, "phases": self.phases}
+                )
+                for p in protocol.phases:
+                    try:
+                        protocol.apply(p, env)
+                        for k in range(len(p.cycle or ())):
+                            protocol.apply_trial(p, k, env)
+                    except CobelError as exc:
+                        raise ConfigError(f"task.protocol phase {p.name!r}: {exc}") from None
         except CobelError as exc:
             msg = str(exc)
-            m = _NAMED.search(msg)
+            m = _NAMED.search(msg) or re.search(r"unknown (?:goal|start) '([^']+)'", msg)
             name = None if m is None else (m.group(1) or m.group(2) or f"obstacles[{m.group(3)}]")
             return [(msg, name)]
         return []
+
+    def phase_names(self) -> list[str]:
+        return [str(p.get("name", f"phase {i}")) for i, p in enumerate(self.phases)]
 
     # ------------------------------------------------------------------ editing
     def _fresh(self, prefix: str, taken: Any) -> str:
@@ -184,7 +221,7 @@ class ArenaDesign:
         return float(lo[0] - pad), float(lo[1] - pad), float(hi[0] + pad), float(hi[1] + pad)
 
     def svg(self, size: int = 520, pose: tuple[float, float] | None = None,
-            bad: str | None = None) -> str:  # fmt: skip
+            bad: str | None = None, phase: int | None = None) -> str:  # fmt: skip
         """The arena (outline, obstacles, goals, starts, place-cell centres, the pending
         polygon and, at ``pose``, the boundary-vector rays) as an SVG; ``data-*`` on the root
         let a click be read back in world units."""
@@ -212,14 +249,17 @@ class ArenaDesign:
         for i, ob in enumerate(self.node.get("obstacles") or []):
             stroke = "#d00000" if bad == f"obstacles[{i}]" else "#333"
             poly(ob, "cobel-obstacle", "#555", stroke)
-        for name, g in (self.node.get("goals") or {}).items():
-            fill = "#fac83c" if float(g.get("reward", 1.0) or 0) else "#f0bebe"
-            poly(g, "cobel-goal", fill, "#d00000" if bad == name else "#a07000",
-                 ("reward", "terminal"))  # fmt: skip
         try:
-            env = self.env().unwrapped
+            env = self.phase_env(phase).unwrapped
         except CobelError:
             env = None
+        for name, g in (self.node.get("goals") or {}).items():
+            reward, terminal = float(g.get("reward", 1.0) or 0), g.get("terminal", True)
+            if env is not None and name in env.arena.goals:  # as the phase leaves it
+                reward, terminal = env.arena.goals[name].reward, env.arena.goals[name].terminal
+            fill = "#fac83c" if reward else "#f0bebe" if terminal else "#ffffff"
+            poly(g, f"cobel-goal cobel-goal-{html.escape(str(name))}", fill,
+                 "#d00000" if bad == name else "#a07000", ("reward", "terminal"))  # fmt: skip
         if env is not None:
             from cobelrun.envs.cells import BoundaryVectorCells, PlaceCells
 

@@ -22,6 +22,8 @@ ARENA_TEMPLATES: dict[str, str] = {
     "arena": "open square (the paper's 2D interface)",
     "water_maze": "Morris water maze (pool, platform, 493 place cells)",
 }
+#: the built-in task whose protocol comes with a built-in arena
+ARENA_TASKS = {"water_maze": "morris_water_maze"}
 #: a click in world units (the SVG's data-* give the transform)
 CLICK_JS = """(e) => {
   const svg = e.target.closest('svg');
@@ -60,7 +62,21 @@ def load_arena(folder: Path | None, name: str) -> LoadedArena:
         path, source = ec._builtin() / "env" / f"{name}.yaml", None
     ec.read_yaml(path)  # size and aliases bounded, a mapping
     where = str(path) if source is not None else f"template {name}"
-    return _from_text(path.read_text(encoding="utf-8"), where, source)
+    loaded = _from_text(path.read_text(encoding="utf-8"), where, source)
+    task = None  # the protocol that comes along: the folder's task/NAME.yaml or a built-in one
+    if folder is not None and (folder / "task" / f"{name}.yaml").is_file():
+        task, dirs = ec.read_yaml(folder / "task" / f"{name}.yaml"), [folder, ec._builtin()]
+    elif source is None and name in ARENA_TASKS:
+        task, dirs = (
+            ec.read_yaml(ec._builtin() / "task" / f"{ARENA_TASKS[name]}.yaml"),
+            [ec._builtin()],
+        )
+    if task is not None:
+        proto = ec._task_protocol(task, dirs) or {}
+        for d in (loaded.design, loaded.loaded):
+            d.phases = [dict(p) for p in proto.get("phases") or [] if isinstance(p, dict)]
+            d.max_steps = int(proto.get("max_steps", 100))
+    return loaded
 
 
 def arena_env_names(folder: Path) -> list[str]:
@@ -78,7 +94,7 @@ def arena_text(loaded: LoadedArena, design: ArenaDesign) -> str:
     """``env/NAME.yaml``: unchanged, or the loaded data with the arena's keys replaced."""
     from ruamel.yaml.comments import CommentedMap
 
-    if design.node == loaded.loaded.node:
+    if design.node == loaded.loaded.node:  # (phases are shown, not edited here)
         return loaded.text
     doc = loaded.doc
     for key in _KEYS:
@@ -142,6 +158,7 @@ class ArenaPage:
         self.history: list[ArenaDesign] = []
         self.tool = "start"
         self.pose: tuple[float, float] | None = None
+        self.phase: int | None = None
 
     def build(self) -> None:
         from nicegui import ui
@@ -184,6 +201,10 @@ class ArenaPage:
                 with ui.row().classes("items-center no-wrap"):
                     self.radius = ui.number("goal radius", value=0.1, min=0.001).classes("w-28")
                     self.reward = ui.number("reward", value=1.0).classes("w-24")
+                ui.label("phase").classes("font-bold mt-2")
+                self.phase_select = ui.select({-1: "env (as built)"}, value=-1,
+                                              on_change=self._set_phase).classes(
+                    "w-64 cobel-phase")  # fmt: skip
                 ui.button("undo", on_click=self._undo).props("dense").classes("cobel-undo")
             with ui.column().classes("gap-2"):
                 self.canvas = ui.html("", sanitize=False).classes("cobel-arena-box")
@@ -210,7 +231,11 @@ class ArenaPage:
 
         problems = self.design.problems()
         bad = problems[0][1] if problems else None
-        self.canvas.content = self.design.svg(pose=self.pose, bad=bad)
+        self.canvas.content = self.design.svg(pose=self.pose, bad=bad, phase=self.phase)
+        opts = {-1: "env (as built)"}
+        opts.update({i: f"phase {i + 1}: {n}" for i, n in enumerate(self.design.phase_names())})
+        if self.phase_select.options != opts:
+            self.phase_select.set_options(opts, value=-1 if self.phase is None else self.phase)
         self.problem_list.clear()
         with self.problem_list:
             for msg, _ in problems:
@@ -245,6 +270,10 @@ class ArenaPage:
 
     def _set_tool(self, name: str) -> None:
         self.tool = name
+        self.refresh()
+
+    def _set_phase(self, e: Any) -> None:
+        self.phase = None if e.value in (None, -1) else int(e.value)
         self.refresh()
 
     def _click(self, e: Any) -> None:
@@ -284,7 +313,7 @@ class ArenaPage:
     def _use(self, loaded: LoadedArena, name: str) -> None:
         self.loaded, self.design = loaded, loaded.design.copy()
         self.history.clear()
-        self.pose = None
+        self.pose, self.phase = None, None
         self.name.value = name
         self.status.text = f"loaded {loaded.origin}"
         self.refresh()

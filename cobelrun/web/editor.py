@@ -396,6 +396,13 @@ class Page:
             self._use(ec.load(self.editor.folder, self.existing.value), self.existing.value)
         except CobelError as exc:
             self.status.text = str(exc)
+            if "too large to edit" in str(exc):  # offer its YAML instead (read, size-checked)
+                path = self.editor.folder / "env" / f"{self.existing.value}.yaml"
+                try:
+                    ec.read_yaml(path)
+                    self.yaml.content = path.read_text(encoding="utf-8")
+                except (CobelError, OSError):
+                    pass
 
     def _save(self) -> list[Path] | None:
         name = str(self.name.value or "").strip()

@@ -279,13 +279,16 @@ def browser():
 
 
 def _wait_text(driver, css: str, pattern: str, timeout: float = 20.0) -> str:
+    from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.common.by import By
 
     deadline = time.monotonic() + timeout
     text = ""
     while time.monotonic() < deadline:
-        els = driver.find_elements(By.CSS_SELECTOR, css)
-        text = " | ".join(e.text for e in els)
+        try:
+            text = " | ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, css))
+        except StaleElementReferenceException:  # redrawn while read: read again
+            continue
         if re.search(pattern, text):
             return text
         time.sleep(0.1)
@@ -331,9 +334,17 @@ def _fill(driver, css: str, text: str) -> None:
 
 
 def _press(driver, css: str) -> None:
+    """Click the element ``css`` matches, found afresh until the click lands."""
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
     from selenium.webdriver.common.by import By
 
-    driver.find_element(By.CSS_SELECTOR, css).click()
+    for _ in range(100):
+        try:
+            driver.find_element(By.CSS_SELECTOR, css).click()
+            return
+        except (StaleElementReferenceException, NoSuchElementException):
+            time.sleep(0.05)
+    raise AssertionError(f"could not click {css}")
 
 
 def _shot(driver, name: str) -> None:
@@ -342,8 +353,23 @@ def _shot(driver, name: str) -> None:
         driver.save_screenshot(str(DOCS_IMG / name))
 
 
-def _fill_text(driver, css: str) -> str:
-    return _cell(driver, *map(int, css.split(","))).get_attribute("fill") or ""
+def _attr(driver, css: str, name: str) -> str:
+    """An attribute of the element ``css`` matches, found afresh (the SVG is redrawn after
+    every change, so an element found a moment ago may be gone)."""
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+    from selenium.webdriver.common.by import By
+
+    for _ in range(100):
+        try:
+            return driver.find_element(By.CSS_SELECTOR, css).get_attribute(name) or ""
+        except (StaleElementReferenceException, NoSuchElementException):
+            time.sleep(0.05)
+    raise AssertionError(f"{css} kept changing or never appeared")
+
+
+def _fill_text(driver, cell: str) -> str:
+    r, c = cell.split(",")
+    return _attr(driver, f"rect.cobel-cell[data-r='{r}'][data-c='{c}']", "fill")
 
 
 def test_page_loads_nothing_from_outside(server: str) -> None:
@@ -558,11 +584,11 @@ def test_graph_page_add_node_edge_and_preview_the_view(server: str, browser, wor
     _wait_text(browser, ".cobel-yaml", r"- \[5\.0, 4\.0\]")
     _press(browser, ".cobel-tool-edge")
     for node in (4, 25):
-        _wait_all(browser, f"circle.cobel-node[data-node='{node}']")[0].click()
+        _press(browser, f"circle.cobel-node[data-node='{node}']")
         time.sleep(0.3)
     _wait_text(browser, ".cobel-yaml", r"\[4, 25\]")
     _press(browser, ".cobel-tool-view")
-    _wait_all(browser, "circle.cobel-node[data-node='12']")[0].click()
+    _press(browser, "circle.cobel-node[data-node='12']")
     _wait_text(browser, ".cobel-view-label", r"agent's view at node 12, heading 90 degrees "
                r"\(84 x 84 px", timeout=60)  # fmt: skip
     img = _wait_all(browser, ".cobel-view img[src^='data:image/png']", timeout=20)[0]
@@ -660,7 +686,7 @@ def test_arena_page_start_goal_and_rays(server: str, browser) -> None:
     next(o for o in _wait_all(browser, ".q-menu .q-item") if "reversal" in o.text).click()
     deadline = time.monotonic() + 20
     css = "polygon.cobel-goal-platform_reversal"
-    while browser.find_element(By.CSS_SELECTOR, css).get_attribute("fill") != "#fac83c":
+    while _attr(browser, css, "fill") != "#fac83c":
         assert time.monotonic() < deadline, "the reversal phase did not show the moved platform"
         time.sleep(0.2)
     _shot(browser, "edit-arena.png")

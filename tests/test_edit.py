@@ -105,6 +105,19 @@ def test_start_weights_are_start_probabilities() -> None:
     assert (0, 2) not in d.starts
 
 
+def test_places_name_cells_that_phases_refer_to() -> None:
+    d = ec.load_template("tmaze_paper").design
+    d.paint("place", (0, 1), name="near_left")
+    d.phases[1]["rewards"]["near_left"] = 0.5  # a phase refers to the new name
+    assert d.phase_world(1).rewards[1] == 0.5 and d.world().places["near_left"] == 1
+    d.paint("place", (0, 2), name="near_left")  # the name moves
+    assert d.phase_world(1).rewards[2] == 0.5
+    with pytest.raises(CobelError, match="place name '2x' is not valid"):
+        d.paint("place", (0, 2), name="2x")
+    d.paint("place", (0, 2), name="")  # dropped: the phase's reference is now cobel run's error
+    assert "unknown place 'near_left'" in d.problems()[0].message
+
+
 def test_one_way_doors_and_walls_block_the_moves_they_should() -> None:
     d = GridDesign.blank(3, 1)
     d.paint("door", (0, 0), side="right")  # 0 -> 1 blocked, 1 -> 0 open

@@ -233,6 +233,7 @@ class Page:
             self.value = ui.number("reward", value=1.0, step=0.5).classes("w-24 cobel-value")
             self.weight = ui.number("start weight", value=1, min=1, max=20, precision=0)
             self.weight.classes("w-28 cobel-weight")
+        self.place = ui.input("place name", placeholder="left_arm").classes("w-48 cobel-place")
         ui.label("phase").classes("font-bold mt-2")
         self.phase_select = ui.select({ENV_NONE: "env (as built)"}, value=ENV_NONE,
                                       on_change=self._set_phase).classes("w-64 cobel-phase")  # fmt: skip
@@ -347,8 +348,10 @@ class Page:
             return
         value = float(self.value.value or 0.0)
         weight = int(self.weight.value or 1)
+        name = str(self.place.value or "")
         self._change(lambda: self.design.paint(self.tool, cell, value=value, weight=weight,
-                                               side=side_of(fx, fy), phase=self.phase))  # fmt: skip
+                                               side=side_of(fx, fy), phase=self.phase,
+                                               name=name))  # fmt: skip
 
     def _set_tool(self, name: str) -> None:
         self.tool = name

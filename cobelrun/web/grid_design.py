@@ -55,6 +55,7 @@ TOOLS: dict[str, str] = {
     "door": "one-way door: click near a cell's side; the move out through it is blocked",
     "edge": "two-way wall on the side of a cell nearest the click",
     "erase": "clear the cell (free, no start, reward or terminal)",
+    "place": "name the cell with the text in the 'place name' box (empty: drop its names)",
 }
 #: the edge of a cell nearest a click: (d_row, d_col)
 _SIDES = {"left": (0, -1), "up": (-1, 0), "right": (0, 1), "down": (1, 0)}
@@ -65,6 +66,7 @@ OWNED_KEYS = ("layout", "walls", "one_way", "rewards", "terminals", "starts", "p
 PASS_KEYS = ("slip", "reward_sd", "warps")
 
 _CELL_RE = re.compile(r"row (\d+), col (\d+)")
+_PLACE_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,63}")
 _STATE_RE = re.compile(r"\bstates? (\d+)\b")
 
 
@@ -367,11 +369,12 @@ class GridDesign:
         return {c: k / n for c, k in counts.items()} if n else {}
 
     def paint(self, tool: str, cell: Cell, *, value: float = 1.0, weight: int = 1,
-              side: str | None = None, phase: int | None = None) -> None:  # fmt: skip
+              side: str | None = None, phase: int | None = None, name: str = "") -> None:  # fmt: skip
         """Apply ``tool`` (one of :data:`TOOLS`) at ``cell``.
 
         ``value`` is the reward of ``goal``/``reward``, ``weight`` the start weight, ``side``
-        (left/up/right/down) the side of ``door``/``edge``. With ``phase`` set, ``start``,
+        (left/up/right/down) the side of ``door``/``edge``, ``name`` the place name of
+        ``place`` (protocols and monitors refer to cells by it). With ``phase`` set, ``start``,
         ``goal``, ``reward``, ``terminal`` and ``erase`` change that phase's entries instead of
         the env (what the protocol changes when the phase starts).
         """
@@ -384,7 +387,9 @@ class GridDesign:
         if phase is not None and tool in ("start", "goal", "reward", "terminal", "erase"):
             self._paint_phase(tool, cell, value, weight, phase)
             return
-        if tool == "wall":
+        if tool == "place":
+            self._name(cell, name.strip())
+        elif tool == "wall":
             if cell in self.walls:
                 self.walls.discard(cell)
             else:
@@ -441,6 +446,15 @@ class GridDesign:
                 else:
                     self.doors.discard((other, cell))
                     self.doors.add((cell, other))
+
+    def _name(self, cell: Cell, name: str) -> None:
+        if not name:
+            self.places = {k: v for k, v in self.places.items() if v != cell}
+            return
+        if not _PLACE_RE.fullmatch(name):
+            raise ConfigError(f"place name {name!r} is not valid; use a letter then letters, "
+                              "digits or '_' (like left_arm)")  # fmt: skip
+        self.places[name] = cell  # a name names one cell: given again, it moves
 
     def _clear(self, cell: Cell) -> None:
         self.walls.discard(cell)

@@ -508,6 +508,19 @@ def test_load_the_tmaze_see_extinction_save_unchanged(server: str, browser, work
     with composer(None) as compose:
         theirs = compose(["task=tmaze_extinction"])
     assert mine.task.protocol == theirs.task.protocol and mine.agent == theirs.agent
+    # a per-phase change: 50 extinction trials and the left arm paying 2, saved with the task
+    _fill(browser, ".cobel-trials", "50")
+    _fill(browser, ".cobel-value", "2")
+    _press(browser, ".cobel-tool-goal")
+    _click_cell(browser, 0, 0)
+    _wait_text(browser, ".cobel-phase-hint", r"sets rewards right_arm: 0.0, left_arm: 2.0")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*task/tmaze_copy\.yaml")
+    with composer(conf) as compose:
+        mine = compose(["task=tmaze_copy"])
+    ext = mine.task.protocol.phases[1]
+    assert (ext.name, ext.trials, ext.rewards.left_arm) == ("extinction", 50, 2.0)
+    assert mine.task.protocol.phases[0] == theirs.task.protocol.phases[0]
 
 
 def _wait_all(driver, css: str, timeout: float = 10.0):

@@ -238,6 +238,11 @@ class Page:
         self.phase_select = ui.select({ENV_NONE: "env (as built)"}, value=ENV_NONE,
                                       on_change=self._set_phase).classes("w-64 cobel-phase")  # fmt: skip
         self.phase_hint = ui.label().classes("text-xs text-gray-600 cobel-phase-hint")
+        self.trials = ui.number("trials in this phase", min=1, precision=0).classes(
+            "w-40 cobel-trials"
+        )
+        self.trials.on("change", self._set_trials)
+        self.trials.set_visibility(False)
         ui.button("undo", on_click=self._undo).props("dense").classes("mt-2 cobel-undo")
 
     def _save_panel(self) -> None:
@@ -361,7 +366,17 @@ class Page:
     def _set_phase(self, e: Any) -> None:
         v = e.value
         self.phase = None if v in (None, ENV_NONE) else int(v)
+        if self.phase is not None:
+            self.trials.value = self.design.phases[self.phase].get("trials")
+        self.trials.set_visibility(self.phase is not None)
         self.refresh()
+
+    def _set_trials(self) -> None:
+        if self.phase is None or self.trials.value is None:
+            return
+        i, n = self.phase, int(self.trials.value)
+        if self.design.phases[i].get("trials") != n:
+            self._change(lambda: self.design.phases[i].__setitem__("trials", n))
 
     def _resize(self) -> None:
         w, h = int(self.width.value or 0), int(self.height.value or 0)
@@ -377,6 +392,7 @@ class Page:
         self.design = loaded.design.copy()
         self.history.clear()
         self.phase = None
+        self.trials.set_visibility(False)
         self.width.value, self.height.value = self.design.width, self.design.height
         self.name.value = name
         self.status.text = f"loaded {loaded.origin}"

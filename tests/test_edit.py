@@ -191,6 +191,19 @@ def test_refusals_are_one_line_and_write_nothing(tmp_path: Path) -> None:
         ec.save(conf, "mine", loaded, d)
 
 
+def test_run_it_command_quotes_the_run_folder() -> None:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from cobelrun.web.editor import Editor
+
+    editor = Editor(folder=Path("/tmp/conf"), results=Path("/tmp/results"))
+    out = Path("/tmp/my results,a=b/it's")
+    cmd = editor.run_command("plus_maze", "gridworld", out, 3)
+    assert cmd[-6:-1] == ["-cd", "/tmp/conf", "task=gridworld", "env=plus_maze", "task.runs=3"]
+    (override,) = OverridesParser.create().parse_overrides([cmd[-1]])
+    assert override.key_or_group == "hydra.run.dir" and override.value() == str(out)
+
+
 def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
     r = cli("edit", "env=../../etc")
     assert r.returncode != 0 and "is not a valid config name" in r.stderr

@@ -100,8 +100,9 @@ class Editor:
     # ------------------------------------------------------------------ run it
     def run_command(self, env: str, task: str, out: Path, runs: int) -> list[str]:
         """``cobel run -cd DIR task=TASK env=ENV task.runs=N hydra.run.dir=OUT``."""
+        quoted = "'" + str(out).replace("\\", "\\\\").replace("'", "\\'") + "'"  # Hydra's quoting
         return [*_cobel(), "run", "-cd", str(self.folder), f"task={task}", f"env={env}",
-                f"task.runs={int(runs)}", f"hydra.run.dir={out}"]  # fmt: skip
+                f"task.runs={int(runs)}", f"hydra.run.dir={quoted}"]  # fmt: skip
 
     def start_run(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> Child:
         stamp = time.strftime("%Y%m%d-%H%M%S")

@@ -702,6 +702,17 @@ def test_arena_save_keeps_the_rest_and_composes(tmp_path: Path) -> None:
     env = instantiate("env", cfg.env).unwrapped
     assert set(env.arena.goals) == {"platform", "platform_reversal", "goal_0"}
     assert env.arena.goals["goal_0"].reward == 2.0
+    # with its task: the water maze's protocol, agent and monitors, on this arena
+    loaded = load_arena(conf, "pool")
+    assert loaded.task_doc is None  # the folder has no task/pool.yaml yet
+    with pytest.raises(CobelError, match="no task came with this arena"):
+        save_arena(conf, "pool", loaded, loaded.design, with_task=True)
+    template = load_arena(None, "water_maze")
+    save_arena(conf, "pool2", template, template.design, with_task=True)
+    with composer(conf) as compose:
+        mine, theirs = compose(["task=pool2"]), compose(["task=morris_water_maze"])
+    assert mine.task.name == "pool2" and mine.task.protocol == theirs.task.protocol
+    assert mine.env == theirs.env and mine.agent == theirs.agent
 
 
 @pytest.mark.slow
@@ -729,3 +740,21 @@ def test_arena_page_start_goal_and_rays(server: str, browser) -> None:
         assert time.monotonic() < deadline, "the reversal phase did not show the moved platform"
         time.sleep(0.2)
     _shot(browser, "edit-arena.png")
+
+
+@pytest.mark.slow
+def test_arena_run_it_runs_the_water_maze_task(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/arena?env=water_maze")
+    _wait_text(browser, ".cobel-origin", "template water_maze")
+    _fill(browser, ".cobel-name", "pool_run")
+    _press(browser, ".cobel-run")  # no task yet: says what it needs
+    _wait_text(browser, ".cobel-status", "run it needs a task")
+    browser.find_element(By.CSS_SELECTOR, ".cobel-with-task").click()
+    _press(browser, ".cobel-run")
+    status = _wait_text(browser, ".cobel-run-status", r"^(finished|failed)", timeout=400)
+    assert status.startswith("finished"), status
+    assert "task=pool_run env=pool_run task.runs=1" in status
+    assert "/run?p=edit/pool_run/" in _wait_text(browser, ".cobel-dashboard", "dashboard")
+    assert (workdir / "conf" / "task" / "pool_run.yaml").is_file()

@@ -43,6 +43,8 @@ class LoadedArena:
     source: Path | None
     origin: str
     loaded: ArenaDesign
+    task_doc: Any = None
+    task_source: Path | None = None
 
 
 def _from_text(text: str, where: str, source: Path | None) -> LoadedArena:
@@ -72,6 +74,9 @@ def load_arena(folder: Path | None, name: str) -> LoadedArena:
             [ec._builtin()],
         )
     if task is not None:
+        loaded.task_doc = task
+        if folder is not None and (folder / "task" / f"{name}.yaml").is_file():
+            loaded.task_source = folder / "task" / f"{name}.yaml"
         proto = ec._task_protocol(task, dirs) or {}
         for d in (loaded.design, loaded.loaded):
             d.phases = [dict(p) for p in proto.get("phases") or [] if isinstance(p, dict)]
@@ -124,7 +129,10 @@ def _flow_map(d: dict[str, Any]) -> Any:
     return m
 
 
-def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign) -> Path:
+def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign, *,
+               with_task: bool = False) -> Path:  # fmt: skip
+    """Write ``env/NAME.yaml`` (and, ``with_task``, ``task/NAME.yaml``: the task that came
+    with the arena, its env and name set to NAME) after the checks; the env file written."""
     from cobelrun.targets import check_config
 
     ec.check_name(name)
@@ -132,20 +140,29 @@ def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign
     if problems:
         raise ConfigError(f"not saved: {problems[0][0]}")
     path = ec._inside(folder, folder / "env" / f"{name}.yaml")
-    text = arena_text(loaded, design)
-    ours = loaded.source is not None and path.resolve() == loaded.source.resolve()
-    if path.exists() and not ours and path.read_text(encoding="utf-8") != text:
-        raise CobelError(f"{path} exists; pick another name (or load it to edit it)")
-    check_config(ec.plain(ec._yaml().load(text)), "env")
-    ec._write(path, text)
+    outputs = [(path, arena_text(loaded, design), loaded.source)]
+    if with_task:
+        if loaded.task_doc is None:
+            raise ConfigError("no task came with this arena (a template with a protocol, such "
+                              "as water_maze, or the folder's task/NAME.yaml); write one yourself")  # fmt: skip
+        outputs.append((ec._inside(folder, folder / "task" / f"{name}.yaml"),
+                        ec.task_file_text(loaded.task_doc, name), loaded.task_source))  # fmt: skip
+    for out, text, source in outputs:
+        ours = source is not None and out.resolve() == source.resolve()
+        if out.exists() and not ours and out.read_text(encoding="utf-8") != text:
+            raise CobelError(f"{out} exists; pick another name (or load it to edit it)")
+        check_config(ec.plain(ec._yaml().load(text)), "env" if out == path else "task")
+    for out, text, _ in outputs:
+        ec._write(out, text)
     return path
 
 
 class ArenaPage:
     """One browser tab's arena editor."""
 
-    def __init__(self, folder: Path, env: str = "") -> None:
-        self.folder = folder
+    def __init__(self, editor: Any, env: str = "") -> None:
+        self.editor = editor
+        folder = self.folder = editor.folder
         self.error = ""
         self.loaded = load_arena(None, "arena")
         self.name0 = "my_arena"
@@ -213,7 +230,11 @@ class ArenaPage:
                 self.info = ui.label().classes("text-sm text-gray-700 cobel-info")
             with ui.column().classes("w-96 gap-1"):
                 self.name = ui.input("env name", value=self.name0).classes("w-64 cobel-name")
-                ui.button("save", on_click=self._save).classes("cobel-save")
+                self.with_task = ui.checkbox("also write task/NAME.yaml (the protocol's task)")
+                self.with_task.classes("cobel-with-task")
+                with ui.row():
+                    ui.button("save", on_click=self._save).classes("cobel-save")
+                    ui.button("run it", on_click=self._run_it).classes("cobel-run")
                 with ui.row():
                     ui.button("export PNG", on_click=lambda: self._export("png")).props(
                         "dense outline"
@@ -222,6 +243,9 @@ class ArenaPage:
                         "dense outline"
                     ).classes("cobel-export-svg")
                 self.status = ui.label(self.error).classes("text-sm cobel-status")
+                from cobelrun.web.editor import RunPanel
+
+                self.runner = RunPanel(self.editor)
                 ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")
                 self.yaml = ui.code("", language="yaml").classes("w-96 text-xs cobel-yaml")
         self.refresh()
@@ -332,18 +356,32 @@ class ArenaPage:
             except CobelError as exc:
                 self.status.text = str(exc)
 
-    def _save(self) -> None:
+    def _save(self) -> Path | None:
         name = str(self.name.value or "").strip()
         try:
-            path = save_arena(self.folder, name, self.loaded, self.design)
+            path = save_arena(self.folder, name, self.loaded, self.design,
+                              with_task=bool(self.with_task.value))  # fmt: skip
             self.loaded = load_arena(self.folder, name)
         except CobelError as exc:
             self.status.text = str(exc)
-            return
+            return None
         self.design = self.loaded.design.copy()
         self.existing.set_options(arena_env_names(self.folder))
-        self.status.text = f"saved {path}"
+        self.status.text = f"saved {path}" + (" and its task" if self.with_task.value else "")
         self.refresh()
+        return path
+
+    def _run_it(self) -> None:
+        """Save, then ``cobel run -cd DIR task=NAME env=NAME`` (one run: an arena's trials
+        are long), for arenas whose task is written or in the folder."""
+        name = str(self.name.value or "").strip()
+        has_task = (self.folder / "task" / f"{name}.yaml").is_file()
+        if not (self.with_task.value or has_task):
+            self.status.text = ("run it needs a task: tick 'also write task/NAME.yaml' (an arena "
+                                "that came with a protocol), or write task/NAME.yaml")  # fmt: skip
+            return
+        if self._save() is not None:
+            self.runner.start(name, name, runs=1)
 
     def _export(self, fmt: str) -> None:
         from nicegui import ui

@@ -363,6 +363,28 @@ def _env_part(design: GridDesign) -> Any:
     return d
 
 
+def task_file_text(task_doc: Any, name: str) -> str:
+    """A task file: ``task_doc`` (a task's data, comments kept) with ``override /env: NAME``
+    and ``task.name: NAME``."""
+    from ruamel.yaml.comments import CommentedMap
+
+    defaults = task_doc.get("defaults")
+    if defaults is None:
+        defaults = task_doc["defaults"] = _block([])
+    for entry in defaults:
+        if isinstance(entry, dict) and "override /env" in entry:
+            entry["override /env"] = name
+            break
+    else:
+        defaults.insert(0, CommentedMap({"override /env": name}))
+    task = task_doc.get("task")
+    if task is None:
+        task = task_doc["task"] = CommentedMap()
+    task["name"] = name
+    text = dump(task_doc)
+    return text if text.startswith("# @package _global_") else "# @package _global_\n" + text
+
+
 def task_text(loaded: Loaded, design: GridDesign, name: str) -> str:
     """``task/NAME.yaml``: the task that came with the env (a built-in one, or the folder's)
     with ``env`` set to NAME and the edited protocol inline; everything else kept."""

@@ -151,6 +151,54 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+class RunPanel:
+    """ "Run it": the run's status line, the dashboard link, and the timer that follows the
+    child process (shared by the gridworld and arena pages)."""
+
+    def __init__(self, editor: Editor) -> None:
+        from nicegui import ui
+
+        self.editor = editor
+        self.run: Child | None = None
+        self.status = ui.label().classes("text-sm cobel-run-status")
+        self.link = ui.link("", "#", new_tab=True).classes("cobel-dashboard")
+        self.link.set_visibility(False)
+        self.timer = ui.timer(1.0, self.poll, active=False)
+
+    def start(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> None:
+        try:
+            self.run = self.editor.start_run(env, task, runs)
+        except (OSError, CobelError) as exc:
+            self.status.text = f"cannot start the run: {exc}"
+            return
+        self.status.text = f"running: {self.run.what} -> {self.run.out}"
+        self.link.set_visibility(False)
+        self.timer.activate()
+
+    def poll(self) -> None:
+        run = self.run
+        if run is None:
+            self.timer.deactivate()
+            return
+        rc = run.proc.poll()
+        url = self.editor.dashboard_url(run) if rc == 0 or rc is None else None
+        if url and not self.link.visible:
+            self.link.text = f"open the run in the dashboard ({url})"
+            self.link.props(f'href="{url}"')
+            self.link.set_visibility(True)
+        if rc is None:
+            return
+        self.timer.deactivate()
+        if rc == 0:
+            self.status.text = f"finished: {run.what} -> {run.out}"
+        else:
+            tail = ""
+            if run.log is not None and run.log.is_file():
+                lines = run.log.read_text(errors="replace").strip().splitlines()
+                tail = lines[-1] if lines else ""
+            self.status.text = f"failed (exit {rc}): {tail}"
+
+
 class Page:
     """One browser tab's editor: its design, undo history, tool and the widgets."""
 
@@ -257,15 +305,12 @@ class Page:
             ui.button("save", on_click=self._save).classes("cobel-save")
             ui.button("run it", on_click=self._run_it).classes("cobel-run")
         self.status = ui.label(self.error).classes("text-sm cobel-status")
-        self.run_status = ui.label().classes("text-sm cobel-run-status")
-        self.dashboard = ui.link("", "#", new_tab=True).classes("cobel-dashboard")
-        self.dashboard.set_visibility(False)
+        self.runner = RunPanel(self.editor)
         with ui.row():
             ui.button("export PNG", on_click=lambda: self._export("png")).props("dense outline")
             ui.button("export SVG", on_click=lambda: self._export("svg")).props("dense outline")
         ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")
         self.yaml = ui.code("", language="yaml").classes("w-96 text-xs cobel-yaml")
-        self.timer = ui.timer(1.0, self._poll_run, active=False)
 
     # ------------------------------------------------------------------ drawing
     def refresh(self) -> None:
@@ -444,42 +489,10 @@ class Page:
         return written
 
     def _run_it(self) -> None:
-        written = self._save()
-        if written is None:
+        if self._save() is None:
             return
         name = str(self.name.value).strip()
-        task = name if self.with_task.value else "gridworld"
-        try:
-            self.run = self.editor.start_run(name, task)
-        except (OSError, CobelError) as exc:
-            self.run_status.text = f"cannot start the run: {exc}"
-            return
-        self.run_status.text = f"running: {self.run.what} -> {self.run.out}"
-        self.dashboard.set_visibility(False)
-        self.timer.activate()
-
-    def _poll_run(self) -> None:
-        run = getattr(self, "run", None)
-        if run is None:
-            self.timer.deactivate()
-            return
-        rc = run.proc.poll()
-        url = self.editor.dashboard_url(run) if rc == 0 or rc is None else None
-        if url and not self.dashboard.visible:
-            self.dashboard.text = f"open the run in the dashboard ({url})"
-            self.dashboard.props(f'href="{url}"')
-            self.dashboard.set_visibility(True)
-        if rc is None:
-            return
-        self.timer.deactivate()
-        if rc == 0:
-            self.run_status.text = f"finished: {run.what} -> {run.out}"
-        else:
-            tail = ""
-            if run.log is not None and run.log.is_file():
-                lines = run.log.read_text(errors="replace").strip().splitlines()
-                tail = lines[-1] if lines else ""
-            self.run_status.text = f"failed (exit {rc}): {tail}"
+        self.runner.start(name, name if self.with_task.value else "gridworld")
 
     def _export(self, fmt: str) -> None:
         from nicegui import ui
@@ -514,7 +527,7 @@ def build(editor: Editor) -> None:
 
     @ui.page("/arena", title="cobel edit: arena")
     def arena(env: str = "") -> None:
-        ArenaPage(editor.folder, env).build()
+        ArenaPage(editor, env).build()
 
     app.on_shutdown(editor.stop)
 

@@ -527,8 +527,11 @@ def test_load_the_tmaze_see_extinction_save_unchanged(server: str, browser, work
     _press(browser, ".cobel-tool-goal")
     _click_cell(browser, 0, 0)
     _wait_text(browser, ".cobel-phase-hint", r"sets rewards right_arm: 0.0, left_arm: 2.0")
-    _press(browser, ".cobel-save")
-    _wait_text(browser, ".cobel-status", r"saved .*task/tmaze_copy\.yaml")
+    _press(browser, ".cobel-save")  # the status line reads as after the first save: watch the file
+    task_file, deadline = conf / "task" / "tmaze_copy.yaml", time.monotonic() + 20
+    while "trials: 50" not in task_file.read_text():
+        assert time.monotonic() < deadline, "the edited phase was not saved"
+        time.sleep(0.1)
     with composer(conf) as compose:
         mine = compose(["task=tmaze_copy"])
     ext = mine.task.protocol.phases[1]

@@ -332,6 +332,10 @@ from cobelrun.commands.replay import register as _register_replay  # noqa: E402
 
 _register_replay(app)
 
+from cobelrun.commands.edit import register as _register_edit  # noqa: E402
+
+_register_edit(app)
+
 
 @app.command("status")
 def status_cmd(

@@ -1,0 +1,763 @@
+"""``cobel edit``: the design and its checks (the code ``cobel run`` uses), saving configs that
+compose to the drawn world (unknown keys and comments kept, nothing outside the folder), the
+one-line refusals, and the page in a real headless Chromium (selenium): a plus-maze drawn from
+the open field by clicking cells, saved, run with "run it" (latency falls); the built-in T-maze
+loaded, its extinction goal shown, saved unchanged and composed to the same world.
+
+The browser tests need Debian's ``chromium`` and ``chromium-driver`` and are skipped, saying so,
+where they are absent. ``COBEL_DOCS_SCREENSHOTS=1`` writes their screenshots into ``docs/img/``
+(the "Editing mazes" page shows them).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cobelrun.envs.gridworld import GridWorldEnv
+from cobelrun.errors import CobelError
+from cobelrun.web import edit_config as ec
+from cobelrun.web.grid_design import GridDesign, same_world
+from tests import inprocess
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+DOCS_IMG = REPO / "docs" / "img"
+cli = inprocess.cli  # fixture: cobel in this process
+
+
+def _compose_world(folder: Path | None, env: str):
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(folder) as compose:
+        cfg = compose([f"env={env}", "task=gridworld"])
+    return instantiate("env", cfg.env).unwrapped.world
+
+
+# -- the design (no browser) -----------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(ec.TEMPLATES))
+def test_every_template_becomes_a_layout_of_the_same_world(name: str) -> None:
+    from cobelrun.config import instantiate
+
+    loaded = ec.load_template(name)
+    built = instantiate("env.world", ec.plain(loaded.doc["world"]))
+    assert same_world(loaded.design.world(), built)  # walls, doors, starts in order, places
+    assert loaded.design.problems() == []
+
+
+def test_problems_are_cobel_runs_messages_next_to_their_cells() -> None:
+    design = ec.load_template("dyna_maze").design
+    for r in range(6):  # a wall across column 6 cuts the goal (row 0, col 8) off
+        design.paint("wall", (r, 6))
+    (p,) = design.problems()
+    assert p.message.startswith("goal state 8 (row 0, col 8) is unreachable from every start")
+    assert p.cell == (0, 8)
+    tmaze = ec.load_template("tmaze_paper").design
+    assert tmaze.phase_names() == ["acquisition", "extinction"]
+    tmaze.phases[1]["starts"] = [[2, 0]]  # a wall cell, from the extinction phase on
+    (p,) = tmaze.problems()
+    assert p.message == ("task.protocol phase 'extinction': starts: state 14 (row 2, col 0) is a "
+                         "wall cell; starts must be free cells")  # fmt: skip
+    assert (p.cell, p.phase) == ((2, 0), "extinction")
+
+
+def test_the_env_is_checked_too_not_only_its_world() -> None:
+    d = ec.load_template("blodgett_onehot").design  # DiscreteGridWorldEnv, observations kept
+    d.env_extra["observations"] = [[0.0, 1.0]] * 40  # an (S, d) array for the 40 states
+    assert d.problems() == []
+    d.resize(4, 5)  # 20 states now: the array no longer fits, as cobel run would say
+    (p,) = d.problems()
+    assert p.message == "observations must have shape (S=20, d), got (40, 2); one row per state"
+
+
+def test_phases_show_and_edit_the_extinction_goal() -> None:
+    d = ec.load_template("tmaze_paper").design
+    left, right = d.state(d.places["left_arm"]), d.state(d.places["right_arm"])
+    acq, ext = d.phase_world(0), d.phase_world(1)
+    assert (acq.rewards[right], acq.rewards[left]) == (1.0, 0.0)
+    assert (ext.rewards[right], ext.rewards[left]) == (0.0, 1.0)
+    d.paint("goal", d.places["left_arm"], value=2.5, phase=1)
+    assert d.phases[1]["rewards"]["left_arm"] == 2.5  # by place name, as the protocol file
+    assert d.phase_world(1).rewards[left] == 2.5 and d.world().rewards[left] == 0.0
+
+
+def test_start_weights_are_start_probabilities() -> None:
+    d = GridDesign.blank(3, 1)
+    d.paint("start", (0, 2), weight=2)  # (0, 0) weight 1, (0, 2) weight 2
+    assert d.start_probabilities() == {(0, 0): pytest.approx(1 / 3), (0, 2): pytest.approx(2 / 3)}
+    env = GridWorldEnv(d.world())
+    env.reset(seed=0)
+    draws = [env.reset()[0] for _ in range(3000)]
+    assert np.mean(np.array(draws) == 2) == pytest.approx(2 / 3, abs=0.03)
+    d.paint("start", (0, 2), weight=1)  # lowered to 1
+    assert d.starts.count((0, 2)) == 1
+    d.paint("start", (0, 2), weight=1)  # the same weight again: no longer a start
+    assert (0, 2) not in d.starts
+
+
+def test_places_name_cells_that_phases_refer_to() -> None:
+    d = ec.load_template("tmaze_paper").design
+    d.paint("place", (0, 1), name="near_left")
+    d.phases[1]["rewards"]["near_left"] = 0.5  # a phase refers to the new name
+    assert d.phase_world(1).rewards[1] == 0.5 and d.world().places["near_left"] == 1
+    d.paint("place", (0, 2), name="near_left")  # the name moves
+    assert d.phase_world(1).rewards[2] == 0.5
+    with pytest.raises(CobelError, match="place name '2x' is not valid"):
+        d.paint("place", (0, 2), name="2x")
+    d.paint("place", (0, 2), name="")  # dropped: the phase's reference is now cobel run's error
+    assert "unknown place 'near_left'" in d.problems()[0].message
+
+
+def test_one_way_doors_and_walls_block_the_moves_they_should() -> None:
+    d = GridDesign.blank(3, 1)
+    d.paint("door", (0, 0), side="right")  # 0 -> 1 blocked, 1 -> 0 open
+    d.paint("edge", (0, 1), side="right")  # 1 <-> 2 blocked
+    ns = d.world().next_state
+    right, left = 2, 0
+    assert (ns[0, right], ns[1, left], ns[1, right], ns[2, left]) == (0, 0, 1, 2)
+    assert d.doors == {((0, 0), (0, 1))} and d.edges == {((0, 1), (0, 2))}
+    again = GridDesign.from_world(d.world())
+    assert (again.doors, again.edges) == (d.doors, d.edges)
+
+
+def test_save_keeps_keys_and_comments_and_composes_to_the_drawn_world(tmp_path: Path) -> None:
+    conf = tmp_path / "conf"
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "mine.yaml").write_text(
+        "# my maze: keep this comment\n"
+        "_target_: cobelrun.envs.GridWorldEnv\n"
+        "max_steps: 50   # a key the editor does not own\n"
+        "world:\n"
+        "  _target_: cobelrun.envs.world.from_layout\n"
+        "  layout: |\n"
+        "    S...\n"
+        "    ...G\n"
+        "  slip: 0.1     # kept too\n"
+    )
+    loaded = ec.load(conf, "mine")
+    assert loaded.design.extra == {"slip": 0.1}
+    assert ec.save(conf, "mine", loaded, loaded.design) == [conf / "env" / "mine.yaml"]
+    assert (conf / "env" / "mine.yaml").read_text() == loaded.text  # unchanged: byte for byte
+    d = loaded.design.copy()
+    d.paint("wall", (0, 2))
+    ec.save(conf, "mine", loaded, d)
+    text = (conf / "env" / "mine.yaml").read_text()
+    for kept in ("# my maze: keep this comment", "max_steps: 50   # a key the editor does not own",
+                 "slip: 0.1     # kept too", "S.#."):  # fmt: skip
+        assert kept in text
+    composed = _compose_world(conf, "mine")
+    assert same_world(composed, d.world()) and composed.next_state is None  # slip 0.1 kept
+
+
+def test_refusals_are_one_line_and_write_nothing(tmp_path: Path) -> None:
+    conf = tmp_path / "conf"
+    loaded = ec.load_template("open_field")
+    for bad in ("../evil", "a/b", "", "1abc", "x" * 70):
+        with pytest.raises(CobelError, match="is not a valid config name"):
+            ec.save(conf, bad, loaded, loaded.design)
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "other.yaml").write_text("_target_: cobelrun.envs.TwoAFCEnv\n")
+    with pytest.raises(CobelError, match="is not a gridworld env config"):
+        ec.load(conf, "other")
+    with pytest.raises(CobelError, match=r"other\.yaml exists; pick another name"):
+        ec.save(conf, "other", loaded, loaded.design)
+    big = "\n".join("." * 40 for _ in range(40))
+    (conf / "env" / "big.yaml").write_text(
+        "_target_: cobelrun.envs.GridWorldEnv\nworld:\n  _target_: cobelrun.envs.world.from_layout\n"
+        "  layout: |\n" + "".join(f"    {row}\n" for row in big.splitlines())
+    )
+    with pytest.raises(CobelError, match=r"too large to edit comfortably.*edit its YAML"):
+        ec.load(conf, "big")
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (conf / "task").symlink_to(outside)  # a folder that leads out of the config folder
+    with pytest.raises(CobelError, match="outside the config folder"):
+        ec.save(conf, "mine", loaded, loaded.design, with_task=True)
+    assert list(outside.iterdir()) == [] and not (conf / "env" / "mine.yaml").exists()
+    d = loaded.design.copy()
+    d.paint("wall", (0, 0))
+    d.starts = [(0, 0)]  # a start inside a wall: cobel run's message, nothing written
+    with pytest.raises(CobelError, match=r"not saved: .*row 0, col 0\) is a wall cell"):
+        ec.save(conf, "mine", loaded, d)
+
+
+def test_run_it_command_quotes_the_run_folder() -> None:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from cobelrun.web.editor import Editor
+
+    editor = Editor(folder=Path("/tmp/conf"), results=Path("/tmp/results"))
+    out = Path("/tmp/my results,a=b/it's")
+    cmd = editor.run_command("plus_maze", "gridworld", out, 3)
+    assert cmd[-6:-1] == ["-cd", "/tmp/conf", "task=gridworld", "env=plus_maze", "task.runs=3"]
+    (override,) = OverridesParser.create().parse_overrides([cmd[-1]])
+    assert override.key_or_group == "hydra.run.dir" and override.value() == str(out)
+
+
+def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
+    r = cli("edit", "env=../../etc")
+    assert r.returncode != 0 and "is not a valid config name" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("edit", "env=bandit")  # neither a gridworld, a topology graph nor an arena
+    assert r.returncode != 0 and "is not a gridworld env config" in r.stderr
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = cli("edit", "--port", str(port))
+    assert r.returncode != 0 and f"port {port} on 127.0.0.1 is in use" in r.stderr
+
+
+def test_export_png_and_svg() -> None:
+    d = ec.load_template("blodgett_onehot").design
+    png, svg = d.figure("png"), d.figure("svg")
+    assert png.startswith(b"\x89PNG") and len(png) > 5000
+    assert b"<svg" in svg[:500]
+    assert d.svg().count('class="cobel-door"') == 6  # the six one-way doors
+
+
+@pytest.mark.slow  # matplotlib draws 77 nodes and 196 edges: ~4 s
+def test_graph_and_arena_export_draw_the_env() -> None:
+    from cobelrun.web.arena_editor import load_arena
+    from cobelrun.web.graph_design import GraphDesign
+    from cobelrun.web.grid_design import geometry_figure
+
+    graph = GraphDesign.from_env_config(
+        ec.plain(ec.read_yaml(REPO / "conf/env/hex_3d.yaml")), "hex"
+    )
+    arena = load_arena(None, "arena").design
+    for design in (graph, arena):
+        assert geometry_figure(design.export_env(), "png").startswith(b"\x89PNG")
+        assert b"<svg" in geometry_figure(design.export_env(), "svg")[:500]
+    with pytest.raises(CobelError, match="export format 'gif' is unknown; allowed: png, svg"):
+        geometry_figure(arena.export_env(), "gif")
+
+
+# -- the page in Chromium ---------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("edit")
+
+
+@pytest.fixture(scope="module")
+def server(workdir: Path):
+    pytest.importorskip("nicegui", reason="cobel edit needs the web extra (NiceGUI)")
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
+    env.update(PYTHONPATH=str(REPO), COBEL_DEBUG="1")
+    code = "from cobelrun.cli import main; main()"
+    cmd = [sys.executable, "-c", code, "edit", "env=open_field", "-cd", str(workdir / "conf"),
+           "--port", str(port), "--results", str(workdir / "results")]  # fmt: skip
+    proc = subprocess.Popen(cmd, env=env, cwd=workdir, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                break
+        except OSError:
+            if proc.poll() is not None:
+                out = proc.stdout.read().decode() if proc.stdout else ""
+                pytest.fail(f"cobel edit exited: {out}")
+            time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail("cobel edit did not listen within 60 s")
+    yield f"http://127.0.0.1:{port}"
+    proc.terminate()
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
+        pytest.skip(f"needs Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}); "
+                    "`apt-get install chromium chromium-driver` (.ci/run does)")  # fmt: skip
+    webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (dev extra)")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1500,1000"):  # fmt: skip
+        opts.add_argument(arg)
+    service = webdriver.ChromeService(executable_path=str(CHROMEDRIVER))
+    driver = webdriver.Chrome(options=opts, service=service)
+    yield driver
+    driver.quit()
+
+
+def _wait_text(driver, css: str, pattern: str, timeout: float = 20.0) -> str:
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.common.by import By
+
+    deadline = time.monotonic() + timeout
+    text = ""
+    while time.monotonic() < deadline:
+        try:
+            text = " | ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, css))
+        except StaleElementReferenceException:  # redrawn while read: read again
+            continue
+        if re.search(pattern, text):
+            return text
+        time.sleep(0.1)
+    raise AssertionError(f"{css} never matched {pattern!r}; last text {text!r}")
+
+
+def _cell(driver, r: int, c: int):
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.CSS_SELECTOR, f"rect.cobel-cell[data-r='{r}'][data-c='{c}']")
+
+
+def _click_cell(driver, r: int, c: int, kind: str | None = None) -> None:
+    """Click a cell, then wait until the page has redrawn it (as ``kind``, if given)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    for _ in range(50):  # the grid is redrawn after every change: find the cell afresh
+        try:
+            _cell(driver, r, c).click()
+            break
+        except StaleElementReferenceException:
+            time.sleep(0.05)
+    deadline = time.monotonic() + 10
+    while kind is not None and time.monotonic() < deadline:
+        try:
+            if f"cobel-{kind}" in (_cell(driver, r, c).get_attribute("class") or ""):
+                return
+        except StaleElementReferenceException:
+            pass
+        time.sleep(0.05)
+    if kind is not None:
+        raise AssertionError(f"cell ({r}, {c}) did not become a {kind} cell")
+
+
+def _fill(driver, css: str, text: str) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    box = driver.find_element(By.CSS_SELECTOR, f"{css} input")
+    box.send_keys(Keys.CONTROL, "a")
+    box.send_keys(text)
+    box.send_keys(Keys.TAB)
+
+
+def _press(driver, css: str) -> None:
+    """Click the element ``css`` matches, found afresh until the click lands."""
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+    from selenium.webdriver.common.by import By
+
+    for _ in range(100):
+        try:
+            driver.find_element(By.CSS_SELECTOR, css).click()
+            return
+        except (StaleElementReferenceException, NoSuchElementException):
+            time.sleep(0.05)
+    raise AssertionError(f"could not click {css}")
+
+
+def _shot(driver, name: str) -> None:
+    if os.environ.get("COBEL_DOCS_SCREENSHOTS") == "1":
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(DOCS_IMG / name))
+
+
+def _attr(driver, css: str, name: str) -> str:
+    """An attribute of the element ``css`` matches, found afresh (the SVG is redrawn after
+    every change, so an element found a moment ago may be gone)."""
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+    from selenium.webdriver.common.by import By
+
+    for _ in range(100):
+        try:
+            return driver.find_element(By.CSS_SELECTOR, css).get_attribute(name) or ""
+        except (StaleElementReferenceException, NoSuchElementException):
+            time.sleep(0.05)
+    raise AssertionError(f"{css} kept changing or never appeared")
+
+
+def _fill_text(driver, cell: str) -> str:
+    r, c = cell.split(",")
+    return _attr(driver, f"rect.cobel-cell[data-r='{r}'][data-c='{c}']", "fill")
+
+
+def test_page_loads_nothing_from_outside(server: str) -> None:
+    import urllib.request
+
+    html = urllib.request.urlopen(server + "/", timeout=10).read().decode()
+    outside = re.findall(r"""(?:src|href)\s*=\s*["'](https?:)?//[^"']*""", html)
+    assert not outside, f"the editor loads from outside: {outside}"
+    assert "/_nicegui/" in html
+
+
+def test_draw_a_plus_maze_and_save(server: str, browser, workdir: Path) -> None:
+
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-origin", "template open_field")
+    _fill(browser, ".cobel-width", "5")
+    _fill(browser, ".cobel-height", "5")
+    _press(browser, ".cobel-resize")
+    _wait_text(browser, ".cobel-info", r"^5 x 5 cells")
+    _press(browser, ".cobel-tool-wall")
+    corners = [(r, c) for r in (0, 1, 3, 4) for c in (0, 1, 3, 4)]
+    for r, c in corners:  # a plus: the middle row and column stay open
+        _click_cell(browser, r, c, "wall")
+    _fill(browser, ".cobel-value", "1")
+    _press(browser, ".cobel-tool-goal")
+    _click_cell(browser, 0, 2)  # the north arm's end pays 1 and ends the trial
+    _wait_text(browser, ".cobel-yaml", r"G")
+    _press(browser, ".cobel-tool-start")  # one start: the south arm's end (the others removed)
+    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
+        _click_cell(browser, r, c)
+    _wait_text(browser, ".cobel-info", r"start probabilities: \(4,2\) 1\.00;")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    yaml_text = _wait_text(browser, ".cobel-yaml", "##G##")
+    assert "##.##\n....." in yaml_text.replace(" | ", "\n") or "....." in yaml_text
+    _shot(browser, "edit-plus-maze.png")
+    # a wall across the north arm: cobel run's message next to the goal cell
+    _press(browser, ".cobel-tool-wall")
+    _click_cell(browser, 1, 2, "wall")
+    msg = _wait_text(browser, ".cobel-problem-at", r"goal state 2 \(row 0, col 2\) is unreachable")
+    assert "open a path or move it" in msg
+    _shot(browser, "edit-problem.png")
+    _press(browser, ".cobel-undo")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    _fill(browser, ".cobel-name", "plus_maze")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/plus_maze\.yaml")
+    world = _compose_world(workdir / "conf", "plus_maze")  # as cobel run -cd DIR composes it
+    assert world.reachable().sum() == 9 and world.starts.tolist() == [22]
+    assert world.rewards[2] == 1.0 and world.terminal[2]
+    assert same_world(world, _plus_maze().world())
+
+
+def _plus_maze() -> GridDesign:
+    """The plus-maze the browser test draws, painted with the same calls its clicks make."""
+    d = ec.load_template("open_field").design
+    d.resize(5, 5)
+    for r, c in [(r, c) for r in (0, 1, 3, 4) for c in (0, 1, 3, 4)]:
+        d.paint("wall", (r, c))
+    d.paint("goal", (0, 2), value=1.0)
+    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
+        d.paint("start", (r, c))
+    return d
+
+
+@pytest.mark.slow
+def test_run_it_runs_the_maze_and_it_learns(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    import cobelrun
+
+    conf = workdir / "conf"
+    loaded = ec.load_template("open_field")
+    ec.save(conf, "plus_run", loaded, _plus_maze())
+    browser.get(server + "/?env=plus_run")
+    _wait_text(browser, ".cobel-origin", "env/plus_run.yaml")
+    _press(browser, ".cobel-run")  # saves, then cobel run -cd DIR task=gridworld env=plus_run
+    status = _wait_text(browser, ".cobel-run-status", r"^(finished|failed)", timeout=240)
+    assert status.startswith("finished"), status
+    link = _wait_text(browser, ".cobel-dashboard", r"dashboard", timeout=30)
+    assert "/run?p=edit/plus_run/" in link
+    href = browser.find_element(By.CSS_SELECTOR, ".cobel-dashboard").get_attribute("href")
+    assert href.startswith("http://127.0.0.1:") and "/run?p=edit/plus_run/" in href
+    _shot(browser, "edit-run-it.png")
+    run_dir = Path(re.search(r"-> (\S+)$", status).group(1))
+    trials = cobelrun.load(run_dir).trials
+    assert trials["run"].nunique() == 3
+    steps = trials.groupby("trial")["steps"].mean()  # escape latency over the 3 runs
+    first, last = steps.iloc[:2].mean(), steps.iloc[-20:].mean()
+    assert last < 0.5 * first and last < 8  # falls towards the 4-step shortest path
+
+
+def test_load_the_tmaze_see_extinction_save_unchanged(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-origin", "template")
+    _press(browser, ".cobel-template")
+    option = next(o for o in _wait_all(browser, ".q-menu .q-item")
+                  if o.text.startswith("T-maze (paper"))  # fmt: skip
+    option.click()
+    _press(browser, ".cobel-load-template")
+    _wait_text(browser, ".cobel-origin", "template tmaze_paper")
+    left, right = "0,0", "0,6"
+    assert _fill_text(browser, right) == "#fac83c" and _fill_text(browser, left) == "#f0bebe"
+    _press(browser, ".cobel-phase")
+    option = next(o for o in _wait_all(browser, ".q-menu .q-item") if "extinction" in o.text)
+    option.click()  # the extinction phase: the reward moved to the left arm
+    deadline = time.monotonic() + 10
+    while _fill_text(browser, left) != "#fac83c" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _fill_text(browser, left) == "#fac83c" and _fill_text(browser, right) == "#f0bebe"
+    _shot(browser, "edit-tmaze-extinction.png")
+    _fill(browser, ".cobel-name", "tmaze_copy")
+    browser.find_element(By.CSS_SELECTOR, ".cobel-with-task").click()
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/tmaze_copy\.yaml, .*task/tmaze_copy\.yaml")
+    conf = workdir / "conf"
+    assert same_world(_compose_world(conf, "tmaze_copy"), _compose_world(None, "tmaze_paper"))
+    from cobelrun.compose import composer
+
+    with composer(conf) as compose:
+        mine = compose(["task=tmaze_copy"])
+    with composer(None) as compose:
+        theirs = compose(["task=tmaze_extinction"])
+    assert mine.task.protocol == theirs.task.protocol and mine.agent == theirs.agent
+    # a per-phase change: 50 extinction trials and the left arm paying 2, saved with the task
+    _fill(browser, ".cobel-trials", "50")
+    _fill(browser, ".cobel-value", "2")
+    _press(browser, ".cobel-tool-goal")
+    _click_cell(browser, 0, 0)
+    _wait_text(browser, ".cobel-phase-hint", r"sets rewards right_arm: 0.0, left_arm: 2.0")
+    _press(browser, ".cobel-save")  # the status line reads as after the first save: watch the file
+    task_file, deadline = conf / "task" / "tmaze_copy.yaml", time.monotonic() + 20
+    while "trials: 50" not in task_file.read_text():
+        assert time.monotonic() < deadline, "the edited phase was not saved"
+        time.sleep(0.1)
+    with composer(conf) as compose:
+        mine = compose(["task=tmaze_copy"])
+    ext = mine.task.protocol.phases[1]
+    assert (ext.name, ext.trials, ext.rewards.left_arm) == ("extinction", 50, 2.0)
+    assert mine.task.protocol.phases[0] == theirs.task.protocol.phases[0]
+
+
+def _wait_all(driver, css: str, timeout: float = 10.0):
+    from selenium.webdriver.common.by import By
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        els = driver.find_elements(By.CSS_SELECTOR, css)
+        if els:
+            return els
+        time.sleep(0.1)
+    raise AssertionError(f"nothing matches {css}")
+
+
+# -- topology graphs ----------------------------------------------------------------------------
+def test_hex_graph_as_a_manual_topology_is_the_same_graph() -> None:
+    from cobelrun.config import instantiate
+    from cobelrun.web.graph_editor import load_graph_template
+
+    g = load_graph_template("hex_3d").design
+    assert (len(g.nodes), len(g.edges), g.n_directions) == (77, 196, 6)
+    assert g.rewards == {38: 1.0} and g.terminals == {38} and g.starts == "all"
+    manual = instantiate("env.topology", g.topology_node())
+    hexagonal = instantiate("env.topology", {"_target_": "cobelrun.envs.topology.hexagonal",
+                                             "width": 9, "height": 9})  # fmt: skip
+    assert np.array_equal(manual.neighbours, hexagonal.neighbours)
+    assert manual.places == hexagonal.places and g.problems() == []
+
+
+def test_graph_edits_renumber_and_unreachable_goals_are_named() -> None:
+    from cobelrun.web.graph_editor import load_graph_template
+
+    g = load_graph_template("grid").design  # 5 x 5, start 0, goal 24
+    assert g.problems() == []
+    for e in [(19, 24), (23, 24)]:
+        g.toggle_edge(*e)
+    assert g.problems() == ["goal node 24 is unreachable from every start; add an edge to it"]
+    g.toggle_edge(23, 24)
+    g.remove_node(0)  # the start goes, everything after it moves down one
+    assert g.rewards == {23: 1.0} and g.terminals == {23} and g.starts == []
+    assert g.problems() == ["starts: at least one start node is needed"]  # TopologyEnv's message
+    i = g.add_node(-1.2, 3.9)  # snapped to the grid
+    assert g.nodes[i] == (-1.0, 4.0) and g.add_node(-0.9, 4.1) == i
+
+
+def test_graph_save_keeps_keys_and_comments(tmp_path: Path) -> None:
+    from cobelrun.web.graph_editor import load_graph, load_graph_template, save_graph
+
+    conf = tmp_path / "conf"
+    loaded = load_graph_template("hex_3d")
+    path = save_graph(conf, "hex_copy", loaded, loaded.design)
+    assert path.read_text() == loaded.text  # unchanged: the built-in file as it is
+    d = loaded.design.copy()
+    d.paint("goal", 0, 2.0)
+    save_graph(conf, "hex_copy", load_graph(conf, "hex_copy"), d)
+    text = path.read_text()
+    assert "cobelrun.envs.topology.manual" in text and "fov: 240" in text
+    assert "# Fig. 8: 12 x 48 x 3 panorama" in text  # comments of kept keys stay
+    again = load_graph(conf, "hex_copy").design
+    assert again.rewards == {0: 2.0, 38: 1.0} and again.extra == d.extra
+
+
+@pytest.mark.slow
+def test_agents_view_is_the_runs_camera() -> None:
+    from cobelrun.web.graph_editor import load_graph_template
+
+    d = load_graph_template("hex_3d").design
+    img = d.agent_view(38, 90.0)  # the run's camera: 12 x 48 panorama, rendered by pybullet
+    assert img.shape == (12, 48, 3) and img.dtype == np.uint8 and img.std() > 5
+
+
+@pytest.mark.slow  # renders with pybullet: ~25 s on 2 loaded cores
+def test_graph_page_add_node_edge_and_preview_the_view(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/graph")
+    _wait_text(browser, ".cobel-origin", "template grid")
+    _wait_text(browser, ".cobel-ok", "no problems")
+    _press(browser, ".cobel-tool-node")
+    bg = browser.find_element(By.CSS_SELECTOR, "rect.cobel-bg")
+    top_right = browser.find_element(By.CSS_SELECTOR, "circle.cobel-node[data-node='4']")
+    # one spacing (48 px) right of node 4: a new node 25 at (5, 4)
+    ActionChains(browser).move_to_element_with_offset(top_right, 48, 0).click().perform()
+    _wait_all(browser, "circle.cobel-node[data-node='25']")
+    assert bg is not None
+    _wait_text(browser, ".cobel-yaml", r"- \[5\.0, 4\.0\]")
+    _press(browser, ".cobel-tool-edge")
+    for node in (4, 25):
+        _press(browser, f"circle.cobel-node[data-node='{node}']")
+        time.sleep(0.3)
+    _wait_text(browser, ".cobel-yaml", r"\[4, 25\]")
+    _press(browser, ".cobel-tool-view")
+    _press(browser, "circle.cobel-node[data-node='12']")
+    _wait_text(browser, ".cobel-view-label", r"agent's view at node 12, heading 90 degrees "
+               r"\(84 x 84 px", timeout=60)  # fmt: skip
+    img = _wait_all(browser, ".cobel-view img[src^='data:image/png']", timeout=20)[0]
+    assert browser.execute_script("return arguments[0].naturalWidth", img) == 84
+    _shot(browser, "edit-graph.png")
+    _fill(browser, ".cobel-name", "grid_plus")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/grid_plus\.yaml")
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(workdir / "conf") as compose:
+        cfg = compose(["env=grid_plus", "task=gridworld", "~env.observation"])
+    env = instantiate("env", cfg.env).unwrapped
+    assert env.topology.n_nodes == 26 and 25 in env.topology.neighbours[4]
+
+
+# -- 2D arenas ----------------------------------------------------------------------------------
+def test_arena_checks_are_the_envs_and_name_the_shape() -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    d = load_arena(None, "water_maze").design
+    assert d.problems() == []
+    assert d.svg().count("cobel-place-cell") == 493  # the env's own place-cell centres
+    d.node["goals"]["platform"]["x"] = 0.99  # the platform half out of the pool
+    assert d.problems() == [("goal 'platform' lies (partly) outside the arena", "platform")]
+    assert 'stroke="#d00000"' in d.svg(bad="platform")
+    d.node["goals"]["platform"]["x"] = 0.42
+    for x, y in [(-0.2, -0.2), (0.2, -0.2), (0.2, 0.2)]:
+        d.add_vertex(x, y)
+    d.finish("obstacle")
+    name = d.add_start(0.1, -0.1)  # inside the new obstacle
+    assert d.problems() == [(f"start '{name}' at [0.1, -0.1] lies inside an obstacle "
+                             "(obstacles[0])", name)]  # fmt: skip
+    assert d.erase(0.1, -0.1, 0.05) == name and d.problems() == []
+    assert d.erase(0.15, -0.1, 0.01) == "obstacles[0]" and "obstacles" in d.node
+
+
+def test_arena_phases_are_the_water_mazes_protocol() -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    d = load_arena(None, "water_maze").design
+    assert d.phase_names() == ["acquisition", "probe", "reversal"]
+    gold = 'class="cobel-goal cobel-goal-{}" points="[^"]*" fill="#fac83c"'
+    assert re.search(gold.format("platform"), d.svg(phase=0))  # the platform pays
+    assert not re.search(gold.format("platform"), d.svg(phase=2))  # moved in the reversal
+    assert re.search(gold.format("platform_reversal"), d.svg(phase=2))
+    del d.node["goals"]["platform_reversal"]  # the protocol still switches it on: run's message
+    ((msg, name),) = d.problems()
+    assert msg.startswith("task.protocol phase 'acquisition': rewards: unknown goal "
+                          "'platform_reversal'")  # fmt: skip
+    assert name == "platform_reversal"
+
+
+def test_arena_save_keeps_the_rest_and_composes(tmp_path: Path) -> None:
+    from cobelrun.web.arena_editor import load_arena, save_arena
+
+    conf = tmp_path / "conf"
+    loaded = load_arena(None, "water_maze")
+    path = save_arena(conf, "pool", loaded, loaded.design)
+    assert path.read_text() == loaded.text
+    d = loaded.design.copy()
+    d.add_goal(-0.3, 0.4, 0.08, 2.0)
+    save_arena(conf, "pool", load_arena(conf, "pool"), d)
+    text = path.read_text()
+    assert "speed: 0.3                  # m/s" in text and "start_order: shuffled" in text
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+
+    with composer(conf) as compose:
+        cfg = compose(["env=pool", "task=morris_water_maze"])
+    env = instantiate("env", cfg.env).unwrapped
+    assert set(env.arena.goals) == {"platform", "platform_reversal", "goal_0"}
+    assert env.arena.goals["goal_0"].reward == 2.0
+    # with its task: the water maze's protocol, agent and monitors, on this arena
+    loaded = load_arena(conf, "pool")
+    assert loaded.task_doc is None  # the folder has no task/pool.yaml yet
+    with pytest.raises(CobelError, match="no task came with this arena"):
+        save_arena(conf, "pool", loaded, loaded.design, with_task=True)
+    template = load_arena(None, "water_maze")
+    save_arena(conf, "pool2", template, template.design, with_task=True)
+    with composer(conf) as compose:
+        mine, theirs = compose(["task=pool2"]), compose(["task=morris_water_maze"])
+    assert mine.task.name == "pool2" and mine.task.protocol == theirs.task.protocol
+    assert mine.env == theirs.env and mine.agent == theirs.agent
+
+
+@pytest.mark.slow
+def test_arena_page_start_goal_and_rays(server: str, browser) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/arena?env=water_maze")
+    _wait_text(browser, ".cobel-origin", "template water_maze")
+    _wait_text(browser, ".cobel-ok", "no problems", timeout=30)
+    svg = browser.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
+    _press(browser, ".cobel-tool-rays")
+    ActionChains(browser).move_to_element_with_offset(svg, -60, 40).click().perform()
+    rays = _wait_all(browser, "polyline.cobel-ray", timeout=30)
+    assert len(rays) == 36  # boundary-vector rays at the pose, every 10 degrees
+    _press(browser, ".cobel-tool-start")
+    svg = browser.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
+    ActionChains(browser).move_to_element_with_offset(svg, 60, -60).click().perform()
+    _wait_text(browser, ".cobel-yaml", r"start_0: \[")
+    _press(browser, ".cobel-phase")  # the reversal: the platform moved to the SW quadrant
+    next(o for o in _wait_all(browser, ".q-menu .q-item") if "reversal" in o.text).click()
+    deadline = time.monotonic() + 20
+    css = "polygon.cobel-goal-platform_reversal"
+    while _attr(browser, css, "fill") != "#fac83c":
+        assert time.monotonic() < deadline, "the reversal phase did not show the moved platform"
+        time.sleep(0.2)
+    _shot(browser, "edit-arena.png")
+
+
+@pytest.mark.slow
+def test_arena_run_it_runs_the_water_maze_task(server: str, browser, workdir: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    browser.get(server + "/arena?env=water_maze")
+    _wait_text(browser, ".cobel-origin", "template water_maze")
+    _fill(browser, ".cobel-name", "pool_run")
+    _press(browser, ".cobel-run")  # no task yet: says what it needs
+    _wait_text(browser, ".cobel-status", "run it needs a task")
+    browser.find_element(By.CSS_SELECTOR, ".cobel-with-task").click()
+    _press(browser, ".cobel-run")
+    status = _wait_text(browser, ".cobel-run-status", r"^(finished|failed)", timeout=400)
+    assert status.startswith("finished"), status
+    assert "task=pool_run env=pool_run task.runs=1" in status
+    assert "/run?p=edit/pool_run/" in _wait_text(browser, ".cobel-dashboard", "dashboard")
+    assert (workdir / "conf" / "task" / "pool_run.yaml").is_file()

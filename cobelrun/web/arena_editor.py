@@ -243,7 +243,7 @@ class ArenaPage:
                         "dense outline"
                     ).classes("cobel-export-svg")
                 self.status = ui.label(self.error).classes("text-sm cobel-status")
-                from cobelrun.web.editor import RunPanel
+                from cobelrun.web.edit_runs import RunPanel
 
                 self.runner = RunPanel(self.editor)
                 ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")

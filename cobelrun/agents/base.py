@@ -346,6 +346,17 @@ class Agent(abc.ABC):
             trials.append(record)
         return TrialBatch.from_trials(trials)
 
+    def prepare(self) -> None:
+        """Load what this agent's trials will need, before its first trial (default: nothing).
+
+        Agents with compiled trials load their trial kernel here (numba's once-per-process
+        start included, ~0.5-1 s of CPU), so a run's set-up pays for it rather than its first
+        phase. Meant for the runner, after it builds a run's agent; building an agent loads
+        nothing (validation and a sweep's launcher build agents they never run). Trials run
+        the same, and draw the same, with or without it.
+        """
+        return None  # a hook: nothing by default
+
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         """Called after each ``env.reset()`` (default: nothing)."""
         return None  # a hook: nothing by default

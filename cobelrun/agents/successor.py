@@ -55,6 +55,8 @@ from cobelrun.agents.compiled_trials import (
     TrialBuffers,
     WorldTables,
     check_engine,
+    load_kernel,
+    may_compile,
     run_trial_by_trial,
     use_compiled,
 )
@@ -238,6 +240,10 @@ class _CompiledSR(TabularModelAgent):
 
     def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
         raise NotImplementedError
+
+    def prepare(self) -> None:
+        if may_compile(self.engine, self.env):
+            load_kernel(self._run_compiled)
 
 
 class SRTD(_CompiledSR):

@@ -414,6 +414,12 @@ class Agent(abc.ABC):
         """Checks across arrays beyond the schema; raise ValueError with what is wrong."""
         return None  # a hook: nothing by default
 
+    def migrate_state(self, arrays: dict[str, np.ndarray], version: int) -> bool:
+        """Bring arrays saved under an older schema ``version`` up to :attr:`state_version`,
+        in place (add, rename or convert arrays), before the usual checks; return True if
+        this agent knows how. Default: it does not (such a file is refused in one line)."""
+        return False
+
     def state_meta(self) -> dict[str, Any]:
         """JSON-ready state that is not an array (saved in ``__meta__["state"]``)."""
         return {}
@@ -561,10 +567,12 @@ class Agent(abc.ABC):
         """Every check of a saved state; raises ``fail(what)`` (a ConfigError)."""
         if meta.get("agent") != self.agent_name():
             raise fail(f"it holds agent {meta.get('agent')!r}, expected {self.agent_name()!r}")
-        if meta.get("schema_version") != self.state_version:
-            raise fail(
-                f"schema version {meta.get('schema_version')!r}, expected {self.state_version}"
-            )
+        version = meta.get("schema_version")
+        if version != self.state_version:
+            older = isinstance(version, int) and not isinstance(version, bool)
+            older = older and version < self.state_version
+            if not (older and self.migrate_state(raw, version)):
+                raise fail(f"schema version {version!r}, expected {self.state_version}")
         schema = self.state_schema()
         missing = [k for k in schema if k not in raw]
         if missing:

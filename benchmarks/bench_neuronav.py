@@ -27,7 +27,8 @@ both alike) it measures
 
 * the run loop: neuro-nav's episode loop (``time.perf_counter`` around it); cobel's phase
   loop, ``cobel run``'s manifest ``phase_wall_time_s`` (everything a run does per phase:
-  the simulation with numba's once-per-process kernel load, monitors and recording);
+  the simulation, monitors and recording; numba's once-per-process start too, unless the
+  runner calls the agent's ``prepare()`` before the phase: docs/speed.md);
 * the whole process: wall time of the subprocess, from start to exit.
 
 and reports medians, steps per second and the cobel / neuro-nav ratios, as a Markdown table

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -380,8 +381,12 @@ class FitResult:
         negative log-likelihood in the transformed space); ``None`` where it is not defined
         (an estimate on its bound, or a Hessian that is not positive definite).
     ci
-        95 % interval of each parameter: ``estimate ± 1.96 se`` in the transformed space
-        (logit / log), mapped back, so it stays inside the bounds; ``None`` like ``se``.
+        95 % interval of each parameter. ``interval="profile"`` (default): the profile
+        likelihood's, where the negative log-likelihood minimised over the other parameters
+        rises 1.92 (chi-square(1) 95 % / 2) above its minimum, or the bound where it never
+        does; right where the likelihood is flat or skewed. ``interval="wald"``:
+        ``estimate ± 1.96 se`` in the transformed space (logit / log), mapped back; ``None``
+        like ``se``.
     heldout
         Held-out log-likelihood of a session split (``ll``, ``n_train``, ``n_test``, ``split``),
         the model fitted to the training part only; ``None`` when not asked for.
@@ -389,6 +394,8 @@ class FitResult:
         Number of optimiser starts (the first from the config's values, then random ones).
     notes
         Why an ``se`` is missing, per parameter.
+    interval
+        How ``ci`` was computed: ``profile`` or ``wald``.
     """
 
     params: dict[str, float]
@@ -402,6 +409,7 @@ class FitResult:
     heldout: dict[str, Any] | None = None
     starts: int = 1
     notes: dict[str, str] = field(default_factory=dict)
+    interval: str = "profile"
 
     @property
     def k(self) -> int:
@@ -436,6 +444,7 @@ class FitResult:
             "heldout": self.heldout,
             "starts": self.starts,
             "method": self.method,
+            "interval": self.interval,
             "notes": self.notes,
         }
 
@@ -503,6 +512,53 @@ def hessian(f: Any, x: np.ndarray, step: float = 1e-3) -> np.ndarray:
     return H
 
 
+#: half the chi-square(1) 95 % quantile: the rise of the profile negative log-likelihood that
+#: bounds a 95 % profile-likelihood interval
+PROFILE_RISE = 1.920729410347062
+
+
+def profile_interval(
+    profile: Any, c0: float, f0: float, lo: float, hi: float, step: float
+) -> tuple[float, float]:
+    """95 % profile-likelihood interval of one parameter in the transformed space.
+
+    ``profile(c, warm)`` is the negative log-likelihood minimised over the other parameters
+    with this one at ``c`` (``warm``: a one-item list holding the last minimiser, a warm
+    start it updates); ``c0`` the estimate, ``f0`` the minimum, ``[lo, hi]`` the search range
+    and ``step`` a first step (the Wald standard error). Each side steps out from ``c0``
+    (steps growing 1.6-fold) until the profile rises :data:`PROFILE_RISE` above ``f0``, then
+    bisects to the crossing (to 1e-4); where it never rises that far the bound is the end.
+    """
+
+    def rise(c: float, warm: list[Any]) -> float:
+        v = profile(c, warm)
+        return v - f0 - PROFILE_RISE if math.isfinite(v) else 1e300
+
+    ends = []
+    for direction, bound in ((-1.0, lo), (1.0, hi)):
+        warm: list[Any] = [None]
+        inner, s, end = float(c0), max(float(step), 0.05), float(bound)
+        for _ in range(40):
+            outer = inner + direction * s
+            at_bound = (outer - bound) * direction >= 0
+            outer = float(bound) if at_bound else outer
+            if rise(outer, warm) > 0:  # bisect: the profile is below at inner, above here
+                a, b = inner, outer
+                while abs(b - a) > 1e-4:
+                    mid = 0.5 * (a + b)
+                    if rise(mid, warm) > 0:
+                        b = mid
+                    else:
+                        a = mid
+                end = 0.5 * (a + b)
+                break
+            if at_bound:
+                break
+            inner, s = outer, s * 1.6
+        ends.append(end)
+    return ends[0], ends[1]
+
+
 def heldout_split(table: ChoiceData) -> tuple[np.ndarray, str]:
     """Boolean mask of the held-out trials: every second session when there are several
     (sessions 2, 4, ... by order of appearance), else the second half of the trials (predicted
@@ -531,6 +587,7 @@ def fit_choices(
     heldout: bool = True,
     uncertainty: bool = True,
     polish: bool = True,
+    interval: str = "profile",
     seed: int = 0,
     source: str = "the data",
 ) -> FitResult:
@@ -568,6 +625,9 @@ def fit_choices(
         Compute standard errors and intervals (a numerical Hessian).
     polish
         Polish the best start with scipy's L-BFGS-B (``cobel recover`` skips it for speed).
+    interval
+        ``profile`` (default): 95 % profile-likelihood intervals; ``wald``: ``estimate ±
+        1.96 se`` in the transformed space (see :class:`FitResult`).
     seed
         Seed of the random starts / sampler.
     source
@@ -590,6 +650,8 @@ def fit_choices(
         raise ConfigError(f"unknown fit method {method!r}; allowed: 'scipy', 'optuna'")
     if n_starts < 1:
         raise ConfigError(f"starts must be >= 1, got {n_starts}")
+    if interval not in ("profile", "wald"):
+        raise ConfigError(f"unknown interval {interval!r}; allowed: 'profile', 'wald'")
     ranges: dict[str, tuple[float, float]] = {}
     for p in spec.params:
         lo, hi = map(float, (bounds or {}).get(p.key, p.bounds))
@@ -658,6 +720,24 @@ def fit_choices(
                 best = (np.asarray(res.x, np.float64), float(res.fun))
         return best
 
+    def profile(i: int, c: float, warm: list[Any]) -> float:
+        """The negative log-likelihood minimised over the other fitted parameters (the
+        compiled Newton search, warm-started) with fitted parameter ``i`` at ``c``."""
+        x = phi.copy()
+        x[i] = c
+        if len(phi) == 1:
+            return -float(logp(x).sum())
+        sel = np.array([j for j in range(len(phi)) if j != i], np.int64)
+        fixed = base.copy()
+        fixed[idx[i]] = space.to_natural(x)[i]
+        start = x[sel] if warm[0] is None else warm[0]
+        y, fy, _ = newton_fit(spec.code, np.asarray(start, np.float64), space.phi_lo[sel],
+                              space.phi_hi[sel], idx[sel], fixed, space.lo[sel], space.hi[sel],
+                              islog[sel], all_trials, spec.n_memory, *args, feats, 100)  # fmt: skip
+        if math.isfinite(fy):
+            warm[0] = np.asarray(y, np.float64)
+        return float(fy)
+
     all_trials = np.ones(len(table))
     phi, value = optimise(all_trials, np.random.default_rng(seed))
     estimate = space.to_natural(phi)
@@ -685,13 +765,20 @@ def fit_choices(
             sd = math.sqrt(cov[i, i]) if cov[i, i] > 0 else math.nan
             if edge[i]:
                 notes[key] = "estimate on its bound"
-            if math.isfinite(sd):
-                se[key] = float(abs(jac[i]) * sd)
+            se[key] = float(abs(jac[i]) * sd) if math.isfinite(sd) else None
+            if interval == "profile":
+                ends = profile_interval(partial(profile, i), float(phi[i]), value,
+                                        float(space.phi_lo[i]), float(space.phi_hi[i]),
+                                        sd if math.isfinite(sd) else 0.5)  # fmt: skip
+                lo_hi = space.to_natural(np.array([np.where(np.arange(len(phi)) == i, e, phi)
+                                                   for e in ends]))  # fmt: skip
+                ci[key] = (float(lo_hi[0][i]), float(lo_hi[1][i]))
+            elif math.isfinite(sd):
                 lo_hi = space.to_natural(np.array([phi - 1.96 * sd * np.eye(len(phi))[i],
                                                    phi + 1.96 * sd * np.eye(len(phi))[i]]))  # fmt: skip
                 ci[key] = (float(lo_hi[0][i]), float(lo_hi[1][i]))
             else:
-                se[key], ci[key] = None, None
+                ci[key] = None
     held: dict[str, Any] | None = None
     if heldout and len(table) >= 4:
         test, split = heldout_split(table)
@@ -711,6 +798,7 @@ def fit_choices(
         heldout=held,
         starts=n_starts,
         notes=notes,
+        interval=interval,
     )
 
 

@@ -118,6 +118,35 @@ def test_standard_errors_cover_the_truth(reversal):
     assert se_long["agent.learning_rate"] < se_short["agent.learning_rate"]
 
 
+def test_profile_intervals_end_where_the_profile_likelihood_rises_1_92(reversal):
+    """Each end of a 95 % profile interval: the likelihood maximised over the other parameter
+    with this one held there is 1.92 (chi-square(1) 95 % / 2) below the maximum, or the end is
+    the parameter's bound; the Wald interval is still there on request, and differs; an
+    unknown interval kind is one line."""
+    data = reversal.simulate(MODELS["q_learning"], np.array([0.6, 3.0]), 3)
+    fit = fit_choices(data, n_actions=2, n_states=1, heldout=False)
+    assert fit.interval == "profile" and fit.to_dict()["interval"] == "profile"
+    bounds = {p.key: p.bounds for p in MODELS["q_learning"].params}
+    pairs = (("agent.learning_rate", "agent.beta"), ("agent.beta", "agent.learning_rate"))
+    checked = 0
+    for key, other in pairs:
+        lo, hi = fit.ci[key]
+        assert lo < fit.params[key] < hi
+        for end in (lo, hi):
+            if min(abs(end - bounds[key][0]), abs(end - bounds[key][1])) < 1e-3:
+                continue  # the profile never rose 1.92 on that side: the bound is the end
+            held = fit_choices(data, params=[other], initial={**fit.params, key: end},
+                               n_actions=2, n_states=1, heldout=False, uncertainty=False)  # fmt: skip
+            assert held.nll - fit.nll == pytest.approx(1.9207, abs=0.02), (key, end)
+            checked += 1
+    assert checked >= 3
+    wald = fit_choices(data, n_actions=2, n_states=1, heldout=False, interval="wald")
+    assert wald.interval == "wald" and wald.ci != fit.ci
+    assert wald.se == fit.se
+    with pytest.raises(ConfigError, match=r"unknown interval 'bayes'; allowed: 'profile', 'wald'"):
+        fit_choices(data, n_actions=2, n_states=1, interval="bayes")
+
+
 def test_fit_reports_criteria_and_heldout(reversal):
     data = reversal.simulate(MODELS["q_learning"], np.array([0.3, 5.0]), 1)
     fit = fit_choices(data, n_actions=2, n_states=1)

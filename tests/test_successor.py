@@ -353,3 +353,47 @@ def test_bad_engine_is_one_line_config_error():
         SRTD(GridWorldEnv(revaluation_world()), engine="fast")
     with pytest.raises(ConfigError, match=r"agent.replay_reward must be true or false"):
         SRDyna(GridWorldEnv(revaluation_world()), replay_reward="yes")
+
+
+def _v1_sr_dyna():
+    """An SR-Dyna agent trained a little, its state as schema 1 wrote it (no model_reward)."""
+    env = GridWorldEnv(open_field(4, 4, starts=[0], goal=15))
+    agent = SRDyna(env, seed=0, replay_batch=2)
+    agent.train(5, 50)
+    state = {k: v.copy() for k, v in agent.get_state().items() if k != "model_reward"}
+    meta = {**agent.saved_meta(), "schema_version": 1}
+    return env, state, meta
+
+
+def test_sr_dyna_loads_schema_1_files_and_archives(tmp_path):
+    """Schema 1 (before model_reward) is migrated on load, from a file and from a run's
+    agents.npz: the learned arrays as saved, model_reward = w[model_next] where experienced;
+    a newer schema than this cobel knows is refused in one line."""
+    import json
+
+    from cobelrun.agents.base import META_KEY, check_load_from
+    from cobelrun.io.agents_archive import AgentArchive
+    from cobelrun.runner import load_saved_agent
+
+    env, state, meta = _v1_sr_dyna()
+    seen = state["model_next"] >= 0
+    assert seen.any()
+    expected = np.where(seen, state["w"][np.maximum(state["model_next"], 0)], 0.0)
+    path = tmp_path / "v1.npz"
+    np.savez(path, **{META_KEY: np.array(json.dumps(meta))}, **state)
+    run_dir = tmp_path / "run"
+    archive = AgentArchive(run_dir / "agents.npz", run_dir / ".parts-agents")
+    archive.add(0, state, meta)
+    archive.close()
+    for load in (lambda a: a.load(path), lambda a: load_saved_agent(a, str(run_dir), 0)):
+        fresh = SRDyna(env, seed=1, replay_batch=2)
+        load(fresh)
+        for key in ("M", "w", "model_next"):
+            np.testing.assert_array_equal(fresh.get_state()[key], state[key], err_msg=key)
+        np.testing.assert_array_equal(fresh.model_reward, expected)
+    check_load_from(SRDyna(env, seed=1), str(path), 1)
+    check_load_from(SRDyna(env, seed=1), str(run_dir), 1)
+    newer = tmp_path / "v3.npz"
+    np.savez(newer, **{META_KEY: np.array(json.dumps({**meta, "schema_version": 3}))}, **state)
+    with pytest.raises(ConfigError, match=r"v3.npz: schema version 3, expected 2$"):
+        SRDyna(env, seed=1).load(newer)

@@ -346,6 +346,17 @@ class Agent(abc.ABC):
             trials.append(record)
         return TrialBatch.from_trials(trials)
 
+    def prepare(self) -> None:
+        """Load what this agent's trials will need, before its first trial (default: nothing).
+
+        Agents with compiled trials load their trial kernel here (numba's once-per-process
+        start included, ~0.5-1 s of CPU), so a run's set-up pays for it rather than its first
+        phase. Meant for the runner, after it builds a run's agent; building an agent loads
+        nothing (validation and a sweep's launcher build agents they never run). Trials run
+        the same, and draw the same, with or without it.
+        """
+        return None  # a hook: nothing by default
+
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         """Called after each ``env.reset()`` (default: nothing)."""
         return None  # a hook: nothing by default
@@ -402,6 +413,12 @@ class Agent(abc.ABC):
     def check_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         """Checks across arrays beyond the schema; raise ValueError with what is wrong."""
         return None  # a hook: nothing by default
+
+    def migrate_state(self, arrays: dict[str, np.ndarray], version: int) -> bool:
+        """Bring arrays saved under an older schema ``version`` up to :attr:`state_version`,
+        in place (add, rename or convert arrays), before the usual checks; return True if
+        this agent knows how. Default: it does not (such a file is refused in one line)."""
+        return False
 
     def state_meta(self) -> dict[str, Any]:
         """JSON-ready state that is not an array (saved in ``__meta__["state"]``)."""
@@ -550,10 +567,12 @@ class Agent(abc.ABC):
         """Every check of a saved state; raises ``fail(what)`` (a ConfigError)."""
         if meta.get("agent") != self.agent_name():
             raise fail(f"it holds agent {meta.get('agent')!r}, expected {self.agent_name()!r}")
-        if meta.get("schema_version") != self.state_version:
-            raise fail(
-                f"schema version {meta.get('schema_version')!r}, expected {self.state_version}"
-            )
+        version = meta.get("schema_version")
+        if version != self.state_version:
+            older = isinstance(version, int) and not isinstance(version, bool)
+            older = older and version < self.state_version
+            if not (older and self.migrate_state(raw, version)):
+                raise fail(f"schema version {version!r}, expected {self.state_version}")
         schema = self.state_schema()
         missing = [k for k in schema if k not in raw]
         if missing:

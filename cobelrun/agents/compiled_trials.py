@@ -59,6 +59,25 @@ def use_compiled(engine: str, callbacks: Sequence[TrialCallback], env: gym.Env) 
     return True
 
 
+def may_compile(engine: str, env: gym.Env) -> bool:
+    """Whether this agent's trials can run in compiled code at all (not ``engine="python"``,
+    exact rewards of a tabular world): then :meth:`prepare` has a kernel to load."""
+    return engine != "python" and env.unwrapped.world.reward_sd == 0.0
+
+
+def load_kernel(run_compiled: Callable[[int, int, bool], Any]) -> None:
+    """Load a compiled trial kernel now (an agent's :meth:`~cobelrun.agents.base.Agent.prepare`)
+    by running zero trials with it: the argument types of the agent's next trials, so numba
+    loads that signature's cached machine code.
+
+    The first call of the first numba kernel in a process pays numba's once-per-process start
+    (its import, ~0.3-0.5 s, and its first dispatch, ~0.2-0.4 s: typing and lowering
+    registries, LLVM), then ~10-30 ms for the kernel's cached machine code. Zero trials make
+    no draw and change nothing.
+    """
+    run_compiled(0, 1, True)
+
+
 class WorldTables:
     """The world's tables as a compiled kernel takes them, cached per agent.
 

@@ -35,6 +35,7 @@ from cobelrun.agents.base import (
     state_indices,
 )
 from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
+from cobelrun.agents.compiled_trials import load_kernel, may_compile
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.schema import AgentArgs, at_least, interval, number_at_least, validate_args
 from cobelrun.envs.base import TabularModel, require, supports
@@ -225,6 +226,10 @@ class DynaQ(Agent):
         self._loop_mask = self._mask()
         self._loop_params = self._params()
         return super()._run(n_trials, max_steps, learn, callbacks)
+
+    def prepare(self) -> None:
+        if self.tabular and may_compile(self.engine, self.env):
+            load_kernel(self._run_compiled)
 
     def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
         from cobelrun.agents.kernels import run_trials  # numba: imported on first use

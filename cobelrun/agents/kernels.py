@@ -73,6 +73,30 @@ else:  # pragma: no cover
 
 
 @njit(cache=True, inline="always")
+def draw_start(env_rng, starts):
+    """A trial's start state, as the env's ``reset`` draws it:
+    ``starts[env_rng.integers(0, len(starts))]``; ``starts[0]`` without drawing when
+    ``env_rng`` is None (a deterministic world with one start state). Shared by every trial
+    kernel."""
+    if env_rng is None:
+        return starts[0]
+    return starts[randint(env_rng, starts.shape[0])]
+
+
+@njit(cache=True, inline="always")
+def draw_next(env_rng, deterministic, next_state, T_cum, s, a):
+    """The state after action ``a`` in ``s``, as the env's ``step`` draws it: the next-state
+    table of a deterministic world (no draw), else the first ``s'`` whose cumulative
+    probability ``T_cum[s, a, s']`` exceeds one uniform draw (the last state if rounding
+    leaves the draw above them all). Shared by every trial kernel."""
+    if env_rng is None or deterministic:
+        return next_state[s, a]
+    n = T_cum.shape[2]
+    s2 = np.searchsorted(T_cum[s, a], env_rng.random(), side="right")
+    return s2 if s2 < n else n - 1
+
+
+@njit(cache=True, inline="always")
 def _nth_allowed(mask_row, masked, j):
     """The ``j``-th allowed action (all actions allowed unless ``masked``)."""
     if not masked:
@@ -282,13 +306,9 @@ def run_trials(
     """
     n_actions = Q.shape[1]
     n_pairs = Q.shape[0] * n_actions
-    n_states_env = T_cum.shape[2]
     k = 0
     for trial in range(n_trials):
-        if env_rng is None:
-            s = starts[0]
-        else:
-            s = starts[randint(env_rng, starts.shape[0])]
+        s = draw_start(env_rng, starts)
         out_start[trial] = s
         done = False
         n = 0
@@ -358,14 +378,7 @@ def run_trials(
             if a < 0:
                 a = n_actions - 1
             # -- transition(env_rng, ...)
-            if env_rng is None:
-                s2 = next_state[s, a]
-            elif deterministic:
-                s2 = next_state[s, a]
-            else:
-                s2 = np.searchsorted(T_cum[s, a], env_rng.random(), side="right")
-                if s2 >= n_states_env:
-                    s2 = n_states_env - 1
+            s2 = draw_next(env_rng, deterministic, next_state, T_cum, s, a)
             r = R[s2]
             done = terminal[s2]
             if learn:

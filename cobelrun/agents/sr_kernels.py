@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from cobelrun.agents import kernels as _kernels  # noqa: F401  (numba import without scipy probe)
-from cobelrun.agents.kernels import randint, select_action
+from cobelrun.agents.kernels import draw_next, draw_start, randint, select_action
 
 
 @njit(cache=True, inline="always")
@@ -126,16 +126,12 @@ def run_sr_trials(
     Makes exactly the draws of the Python step loop, in the same order.
     """
     n_actions = M.shape[1]
-    n_states_env = T_cum.shape[2]
     q = np.empty(n_actions)
     q2 = np.empty(n_actions)
     nomask = np.ones(1, np.bool_)
     k = 0
     for trial in range(n_trials):
-        if env_rng is None:
-            s = starts[0]
-        else:
-            s = starts[randint(env_rng, starts.shape[0])]
+        s = draw_start(env_rng, starts)
         out_start[trial] = s
         done = False
         n = 0
@@ -143,14 +139,7 @@ def run_sr_trials(
         while n < max_steps:
             sr_q(M, w, s, q)
             a = select_action(rng, q, nomask, False, policy, epsilon, beta)
-            if env_rng is None:
-                s2 = next_state[s, a]
-            elif deterministic:
-                s2 = next_state[s, a]
-            else:
-                s2 = np.searchsorted(T_cum[s, a], env_rng.random(), side="right")
-                if s2 >= n_states_env:
-                    s2 = n_states_env - 1
+            s2 = draw_next(env_rng, deterministic, next_state, T_cum, s, a)
             r = R[s2]
             done = terminal[s2]
             if learn:

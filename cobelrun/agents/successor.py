@@ -55,6 +55,8 @@ from cobelrun.agents.compiled_trials import (
     TrialBuffers,
     WorldTables,
     check_engine,
+    load_kernel,
+    may_compile,
     run_trial_by_trial,
     use_compiled,
 )
@@ -275,6 +277,10 @@ class _CompiledSR(TabularModelAgent):
     def _run_compiled(self, n_trials: int, max_steps: int, learn: bool) -> TrialBatch:
         raise NotImplementedError
 
+    def prepare(self) -> None:
+        if may_compile(self.engine, self.env):
+            load_kernel(self._run_compiled)
+
 
 class SRTD(_CompiledSR):
     """SR-TD (Russek et al. 2017): ``M`` and ``w`` learned by TD from experience only.
@@ -411,6 +417,23 @@ class SRDyna(SRTD):
 
     def _replay_args(self) -> tuple[int, bool]:
         return self.replay_batch, self.replay_reward
+
+    def migrate_state(self, arrays: dict[str, np.ndarray], version: int) -> bool:
+        """Schema 1 (``M``, ``w``, ``model_next``; written before ``replay_reward``) -> 2: the
+        replayed reward of each experienced pair is the agent's reward estimate of its last
+        outcome, ``model_reward[s, a] = w[model_next[s, a]]`` (0 where never experienced).
+        Schema-1 agents never replayed rewards, so with ``replay_reward`` false (the default)
+        the loaded agent behaves exactly as it was saved."""
+        if version != 1 or "model_reward" in arrays:
+            return False
+        nxt, w = arrays.get("model_next"), arrays.get("w")
+        if nxt is None or w is None or w.ndim != 1 or nxt.ndim != 2 or nxt.dtype.kind not in "iu":
+            return False  # the usual checks name what is wrong
+        seen = (nxt >= 0) & (nxt < w.shape[0])
+        reward = np.zeros(nxt.shape)
+        reward[seen] = w[nxt[seen]]
+        arrays["model_reward"] = reward
+        return True
 
     def get_state(self) -> dict[str, np.ndarray]:
         return {**super().get_state(), "model_next": self.model_next,

@@ -41,6 +41,8 @@ from cobelrun.agents.compiled_trials import (
     TrialBuffers,
     WorldTables,
     check_engine,
+    load_kernel,
+    may_compile,
     run_trial_by_trial,
     use_compiled,
 )
@@ -202,6 +204,10 @@ class TabularControl(Agent):
                 n_trials, max_steps, learn, *out.args(),
             )  # fmt: skip
         return out.batch(total)
+
+    def prepare(self) -> None:
+        if self.tabular and may_compile(self.engine, self.env):
+            load_kernel(self._run_compiled)
 
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         self.E[...] = 0.0

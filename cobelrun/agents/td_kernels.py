@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from cobelrun.agents import kernels as _kernels  # noqa: F401  (numba import without scipy probe)
-from cobelrun.agents.kernels import randint, select_action
+from cobelrun.agents.kernels import draw_next, draw_start, randint, select_action
 from cobelrun.agents.sr_kernels import add_pair
 
 SARSA = 0
@@ -177,15 +177,11 @@ def run_td_trials(
     then (learning) :func:`td_step` and the Dyna replay; Monte-Carlo control backs the trial
     up at its end (:func:`mc_update`).
     """
-    n_states_env = T_cum.shape[2]
     seen = np.zeros(Q.shape, np.bool_)
     G = np.empty(max_steps)
     k = 0
     for trial in range(n_trials):
-        if env_rng is None:
-            s = starts[0]
-        else:
-            s = starts[randint(env_rng, starts.shape[0])]
+        s = draw_start(env_rng, starts)
         out_start[trial] = s
         E[:, :] = 0.0
         k0 = k
@@ -194,14 +190,7 @@ def run_td_trials(
         rsum = 0.0
         a = td_act(rng, Q, s, policy, epsilon, beta)
         while n < max_steps:
-            if env_rng is None:
-                s2 = next_state[s, a]
-            elif deterministic:
-                s2 = next_state[s, a]
-            else:
-                s2 = np.searchsorted(T_cum[s, a], env_rng.random(), side="right")
-                if s2 >= n_states_env:
-                    s2 = n_states_env - 1
+            s2 = draw_next(env_rng, deterministic, next_state, T_cum, s, a)
             r = R[s2]
             done = terminal[s2]
             a2 = -1 if done else td_act(rng, Q, s2, policy, epsilon, beta)

@@ -150,11 +150,9 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"model {result.model}, {result.n_trials} trials, {result.starts} starts")
         for key, value in result.params.items():
             se, ci = result.se.get(key), result.ci.get(key)
-            extra = (
-                ""
-                if se is None or ci is None
-                else f" ± {se:.3g}  (95 % {ci[0]:.4g} .. {ci[1]:.4g})"
-            )
+            extra = "" if se is None else f" ± {se:.3g}"
+            if ci is not None:
+                extra += f"  (95 % {result.interval} {ci[0]:.4g} .. {ci[1]:.4g})"
             note = result.notes.get(key)
             typer.echo(f"{key} = {value:.4g}{extra}" + (f"  [{note}]" if note else ""))
         typer.echo(f"nll = {result.nll:.4f}  aic = {result.aic:.2f}  bic = {result.bic:.2f}")

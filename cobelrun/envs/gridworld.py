@@ -1,7 +1,10 @@
-"""Gymnasium environments over a tabular :class:`~cobelrun.envs.world.World`."""
+"""Gymnasium environments over a tabular :class:`~cobelrun.envs.world.World`, with the
+allocentric (left, up, right, down) or the egocentric (turn left, turn right, forward) action
+set (:class:`EgocentricWorld`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -16,13 +19,118 @@ from cobelrun.envs.base import (
     headings_of_moves,
 )
 from cobelrun.envs.world import World, tmaze_paper
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError, LayoutError, allowed_list, suggest
+from cobelrun.safety import check_allocation
 
 _ARROWS = ("<", "^", ">", "v")
 #: heading (radians, CCW from +x) of the moves left, up, right, down
 ACTION_HEADING = np.array([np.pi, np.pi / 2, 0.0, -np.pi / 2])
 #: heading at trial start: facing up
 START_HEADING = np.pi / 2
+
+#: the action sets of :class:`GridWorldEnv` (``actions``)
+ACTION_SETS = ("allocentric", "egocentric")
+ALLOCENTRIC_ACTIONS = ("left", "up", "right", "down")
+#: the egocentric actions (neuro-nav's ``GridOrientation.variable``, same order)
+EGOCENTRIC_ACTIONS = ("turn_left", "turn_right", "forward")
+#: egocentric headings 0 = up, 1 = right, 2 = down, 3 = left (turning right adds 1): the
+#: allocentric move a step forward makes, and the heading in radians (CCW from +x)
+HEADING_MOVE = np.array([1, 2, 3, 0])
+HEADING_ANGLE = ACTION_HEADING[HEADING_MOVE]
+N_HEADINGS = 4
+
+
+class EgocentricWorld(World):
+    """A :class:`World` whose state includes the heading and whose actions turn or go forward.
+
+    Built by :func:`egocentric` from an allocentric world of ``S`` cells: four copies of the
+    grid stacked top to bottom, one per heading (0 = facing up, 1 = right, 2 = down,
+    3 = left), so ``state = heading * S + cell`` (neuro-nav's numbering) and the grid is
+    ``width x 4 height``. Actions: 0 = turn left (counter-clockwise), 1 = turn right
+    (clockwise), both in place and certain; 2 = forward, the allocentric world's move in the
+    heading's direction (with its walls, doors, warps and slip). Every cell's reward and
+    terminal flag hold in all four headings (turning on a rewarded cell, like bumping into a
+    wall there, arrives there again); start states face up (the top copy).
+
+    Places keep their names on the top copy. :meth:`set_rewards` and :meth:`set_terminal`
+    change a cell in all four headings (a protocol phase's changes keep their meaning);
+    :meth:`set_starts` takes the states given (a place or ``[row, col]`` of the top copy
+    faces up).
+    """
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "T":
+            value = np.array(value, dtype=np.float64)
+            n = int(self.width) * int(self.height)
+            shape = (n, len(EGOCENTRIC_ACTIONS), n)
+            if value.shape != shape:
+                raise LayoutError(f"T must have shape {shape}, got {value.shape}")
+            if np.any(value < 0) or not np.allclose(value.sum(axis=2), 1.0, atol=1e-9):
+                raise LayoutError("T must hold probabilities: non-negative, each T[s, a] sums to 1")
+            value.setflags(write=False)
+            object.__setattr__(self, "_next_state_known", False)
+            object.__setattr__(self, "_next_state", None)
+        object.__setattr__(self, name, value)
+
+    @property
+    def n_actions(self) -> int:
+        """Number of actions (3: turn left, turn right, forward)."""
+        return len(EGOCENTRIC_ACTIONS)
+
+    @property
+    def n_cells(self) -> int:
+        """Cells of the allocentric grid (a quarter of the states)."""
+        return self.n_states // N_HEADINGS
+
+    def heading_of(self, states: Any) -> np.ndarray:
+        """Heading index (0 up, 1 right, 2 down, 3 left) of each state."""
+        return np.asarray(states, np.int64) // self.n_cells
+
+    def copy(self) -> EgocentricWorld:
+        new = super().copy()
+        new.__class__ = EgocentricWorld
+        return new  # type: ignore[return-value]
+
+    def _all_headings(self, mapping: Any, what: str) -> list[list[Any]]:
+        from cobelrun.envs.world import _pairs
+
+        S = self.n_cells
+        return [[h * S + self._index(ref, what) % S, value]
+                for ref, value in _pairs(mapping, what) for h in range(N_HEADINGS)]  # fmt: skip
+
+    def set_rewards(self, mapping: Mapping[Any, float]) -> None:
+        """As :meth:`World.set_rewards`, for each state's cell in all four headings."""
+        super().set_rewards(self._all_headings(mapping, "rewards"))  # type: ignore[arg-type]
+
+    def set_terminal(self, mapping: Mapping[Any, bool]) -> None:
+        """As :meth:`World.set_terminal`, for each state's cell in all four headings."""
+        super().set_terminal(self._all_headings(mapping, "terminals"))  # type: ignore[arg-type]
+
+
+def egocentric(world: World) -> EgocentricWorld:
+    """The egocentric version of an allocentric ``world`` (see :class:`EgocentricWorld`)."""
+    if isinstance(world, EgocentricWorld):
+        return world
+    S, w, h = world.n_states, world.width, world.height
+    n = N_HEADINGS * S
+    check_allocation("env.actions", n * len(EGOCENTRIC_ACTIONS) * n * 8 * 2,
+                     f"the egocentric transition table ({n:,} x 3 x {n:,} float64)",
+                     "use a smaller world")  # fmt: skip
+    T = np.zeros((n, len(EGOCENTRIC_ACTIONS), n))
+    cells = np.arange(S)
+    for hd in range(N_HEADINGS):
+        rows = hd * S + cells
+        T[rows, 0, ((hd - 1) % N_HEADINGS) * S + cells] = 1.0  # turn left
+        T[rows, 1, ((hd + 1) % N_HEADINGS) * S + cells] = 1.0  # turn right
+        T[hd * S : (hd + 1) * S, 2, hd * S : (hd + 1) * S] = world.T[:, HEADING_MOVE[hd], :]
+    rows, cols = np.divmod(np.arange(n), w)
+    return EgocentricWorld(
+        width=w, height=N_HEADINGS * h, T=T, rewards=np.tile(world.rewards, N_HEADINGS),
+        terminal=np.tile(world.terminal, N_HEADINGS), starts=world.starts.copy(),
+        coords=np.stack([cols, N_HEADINGS * h - 1 - rows], axis=1).astype(np.float64),
+        blocked=np.tile(world.blocked, N_HEADINGS), places=dict(world.places),
+        reward_sd=world.reward_sd,
+    )  # fmt: skip
 
 
 class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
@@ -37,11 +145,14 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
 
     Action Space
     ------------
-    ``Discrete(4)``: 0 = left, 1 = up, 2 = right, 3 = down.
+    ``Discrete(4)``: 0 = left, 1 = up, 2 = right, 3 = down. With ``actions="egocentric"``
+    ``Discrete(3)``: 0 = turn left, 1 = turn right, 2 = forward (the heading is part of the
+    state; :class:`EgocentricWorld`).
 
     Observation Space
     -----------------
-    ``Discrete(S)`` with ``S = width * height``: the index of the current state.
+    ``Discrete(S)`` with ``S = width * height``: the index of the current state
+    (egocentric: ``4 * width * height``, ``heading * width * height + cell``).
 
     Rewards
     -------
@@ -68,8 +179,13 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         Steps per episode before truncation (None: no limit).
     render_mode : {"ansi", "rgb_array", None}
         ``"ansi"`` renders the grid as text, ``"rgb_array"`` as a top-down image.
+    actions : {"allocentric", "egocentric"}
+        The action set: compass moves (default), or turn left / turn right / forward with the
+        heading in the state (the world becomes :func:`egocentric` of ``world``: four copies of
+        the grid, one per heading, stacked top to bottom, as ``cobel show`` draws it).
 
-    ``info`` (from ``reset`` and ``step``) holds ``state``, ``x`` and ``y``.
+    ``info`` (from ``reset`` and ``step``) holds ``state``, ``x`` and ``y`` (egocentric: and
+    ``heading``, 0 = up, 1 = right, 2 = down, 3 = left).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
@@ -81,6 +197,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         world: World | None = None,
         max_steps: int | None = None,
         render_mode: str | None = None,
+        actions: str = "allocentric",
     ) -> None:
         if world is None:
             world = tmaze_paper()
@@ -88,9 +205,18 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             raise ConfigError(
                 f"world must be a cobelrun World (e.g. _target_: cobelrun.envs.world.tmaze_paper), got {type(world).__name__}"
             )
+        if actions not in ACTION_SETS:
+            raise ConfigError(
+                f"env.actions {actions!r} is not known{suggest(str(actions), ACTION_SETS)}; "
+                f"allowed: {allowed_list(ACTION_SETS)}"
+            )
         max_steps, render_mode = episode_options(
             max_steps, render_mode, self.metadata["render_modes"]
         )
+        if actions == "egocentric":
+            world = egocentric(world)
+        #: the world's states include the heading (turn / forward actions)
+        self.egocentric = isinstance(world, EgocentricWorld)
         self._base_world = world.copy()
         self._world = world.copy()
         self.max_steps = max_steps
@@ -144,7 +270,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
             cum = np.cumsum(world.T[s, a])
             s2 = min(int(np.searchsorted(cum, u, side="right")), world.n_states - 1)
         self._state = s2
-        self._heading = float(ACTION_HEADING[a])
+        self._heading = self._heading_after(s2, a)
         self._steps += 1
         reward = float(world.rewards[s2])
         if world.reward_sd > 0.0 and reward != 0.0:  # Mattar & Daw's noisy reward
@@ -154,9 +280,15 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         truncated = self.max_steps is not None and self._steps >= self.max_steps
         return self._observe(s2), reward, terminated, truncated, self._info(s2)
 
+    def _heading_after(self, s2: int, a: int) -> float:
+        if self.egocentric:
+            return float(HEADING_ANGLE[s2 // self._world.n_cells])
+        return float(ACTION_HEADING[a])
+
     def render(self) -> str | np.ndarray | None:
-        """``render_mode="ansi"``: the grid as text (``A`` agent, ``#`` wall, ``G`` rewarded
-        terminal, ``E`` other terminal, ``+`` rewarded state). ``render_mode="rgb_array"``: a
+        """``render_mode="ansi"``: the grid as text (``A`` agent, or egocentric ``^ > v <``
+        by heading, ``#`` wall, ``G`` rewarded terminal, ``E`` other terminal, ``+`` rewarded
+        state). ``render_mode="rgb_array"``: a
         top-down image (height x 16, width x 16, 3) uint8 in the same colours as ``cobel show``
         (walls dark, rewarded terminal gold, other terminal pink, rewarded state green, agent
         a blue disc), row 0 at the top as in the text."""
@@ -168,7 +300,7 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         chars = []
         for s in range(w.n_states):
             if s == self._state:
-                ch = "A"
+                ch = "^>v<"[s // w.n_cells] if self.egocentric else "A"
             elif w.blocked[s]:
                 ch = "#"
             elif w.terminal[s]:
@@ -211,6 +343,9 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         states = np.asarray(states, np.int64)
         out = np.empty((states.shape[0], 3))
         out[:, :2] = self._world.coords[states]
+        if self.egocentric:  # the heading is the state's
+            out[:, 2] = HEADING_ANGLE[states // self._world.n_cells]
+            return out
         acts = np.full(states.shape, -1) if actions is None else actions
         out[:, 2] = headings_of_moves(acts, ACTION_HEADING, START_HEADING)
         return out
@@ -224,6 +359,12 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         xy = w.coords[free]
         intended = np.argmax(w.T[free], axis=2)  # (k, A): the move's main outcome
         stays = intended == free[:, None]
+        if self.egocentric:  # each heading's copy: the walls a forward move meets in any copy
+            S = w.n_cells
+            cell, heading = free % S, free // S
+            blocked_dir = np.zeros((S, len(ALLOCENTRIC_ACTIONS)), bool)
+            blocked_dir[cell, HEADING_MOVE[heading]] = stays[:, 2]
+            stays = blocked_dir[cell]
         # wall side of each action (left, up, right, down) relative to the cell centre
         side = np.array([[-0.5, -0.5, -0.5, 0.5], [-0.5, 0.5, 0.5, 0.5],
                          [0.5, -0.5, 0.5, 0.5], [-0.5, -0.5, 0.5, -0.5]])  # fmt: skip
@@ -252,10 +393,14 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
 
     def _info(self, s: int) -> dict[str, Any]:
         x, y = self._world.coords[s]
+        if self.egocentric:
+            return {"state": int(s), "x": float(x), "y": float(y),
+                    "heading": int(s // self._world.n_cells)}  # fmt: skip
         return {"state": int(s), "x": float(x), "y": float(y)}
 
     def _check_action(self, action: Any) -> int:
-        return check_action(action, self._world.n_actions, ("left", "up", "right", "down"))
+        names = EGOCENTRIC_ACTIONS if self.egocentric else ALLOCENTRIC_ACTIONS
+        return check_action(action, self._world.n_actions, names)
 
 
 class DiscreteGridWorldEnv(GridWorldEnv):

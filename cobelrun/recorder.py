@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -159,6 +160,11 @@ class WriterThread:
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(self._timed, fn, *args))
 
+    def drain(self) -> None:
+        """Wait until every submitted call has run (raising the first error)."""
+        while self._pending:
+            self._pending.popleft().result()
+
     def close(self) -> None:
         """Wait for pending calls (raising the first error) and stop the thread."""
         try:
@@ -282,6 +288,8 @@ class RunRecorder:
         background: bool = True,
         geometry: Any = None,
         save_agents: bool = False,
+        resume: Mapping[str, Any] | None = None,
+        checkpoints: bool = False,
     ) -> None:
         self.folder = folder
         self.env = env
@@ -307,8 +315,19 @@ class RunRecorder:
         self._joined_steps = 0
         self._mcap_tables: list[tuple[Any, ...]] = []  # trial tables awaiting the MCAP
         self._last_pending = time.monotonic()
-        self.start_ns = time.time_ns()
+        self.start_ns = time.time_ns() if resume is None else int(resume["start_ns"])
         self.mcap = None
+        #: the MCAP written before a resume, joined with this one's at close (trimmed to
+        #: the checkpoint's clock)
+        self._mcap_before: tuple[Path, int] | None = None
+        if record.mcap and resume is not None and folder.mcap.is_file():
+            from cobelrun.io.mcap_repair import repair_mcap
+
+            before = folder.mcap_before_resume
+            if not before.is_file():  # a resume that was stopped itself moved it already
+                folder.mcap.replace(before)
+            repair_mcap(before)
+            self._mcap_before = (before, self.start_ns + int(resume.get("clock_ns", 0)))
         if record.mcap:
             from cobelrun.io.mcap import McapRecorder
 
@@ -328,8 +347,11 @@ class RunRecorder:
         self._agents_merge: Future | None = None
         self._steps: StepWriterProcess | None = None
         joined = sorted({t.name for m in self._joinable for t in m.tables()})
-        if joined and self._step_process(background):
+        # a run with checkpoints writes its step rows on the thread: durable() waits for it
+        if joined and not checkpoints and self._step_process(background):
             self._steps = StepWriterProcess(joined, self._write_forked, self._finish_table)
+        if resume is not None:
+            self._resume(resume)
 
     def _write_forked(self, batch: TrialBatch, info: BatchInfo) -> None:
         """In the step writer process: build and write a joined flush's step rows."""
@@ -385,6 +407,42 @@ class RunRecorder:
             for t in m.tables():
                 writers.setdefault(t.name, set()).add(id(m))
         return [m for m in candidates if all(writers[t.name] <= ids for t in m.tables())]
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def durable(self) -> dict[str, Any]:
+        """Hand everything recorded so far to disk, wait until it is written and return the
+        watermarks a checkpoint keeps: the rows of every table and the agents in the
+        agents archive (all in complete parts), the MCAP clock."""
+        assert self._steps is None, "a recorder with checkpoints writes steps on its thread"
+        with self.guard.critical():
+            for table in self._sinks:
+                self._flush(table)
+            self._flush_pending()
+            if self.agents is not None:
+                self._writer.submit(self.agents.write_batch, self.agents.take())
+            self._writer.drain()
+            if self.mcap is not None:
+                self.mcap.flush()
+        return {
+            "tables": {name: int(sink.writer.rows_written) for name, sink in self._sinks.items()},
+            "agents": 0 if self.agents is None else self.agents.durable,
+            "clock_ns": int(self._clock),
+            "start_ns": int(self.start_ns),
+        }
+
+    def _resume(self, marks: Mapping[str, Any]) -> None:
+        """Take up the rows a checkpoint's watermarks say are durable (:meth:`durable`)."""
+        tables = marks.get("tables")
+        if not isinstance(tables, Mapping) or set(tables) != set(self._sinks):
+            raise ValueError(
+                f"recorder: the checkpoint has the tables {sorted(tables or {})}, this run "
+                f"writes {sorted(self._sinks)}"
+            )
+        for name, sink in self._sinks.items():
+            sink.writer.resume(int(tables[name]))
+        if self.agents is not None:
+            self.agents.resume(int(marks.get("agents", 0)))
+        self._clock = int(marks.get("clock_ns", 0))
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start_run(self, run: int, agent: Any) -> None:
@@ -671,6 +729,8 @@ class RunRecorder:
                        if name not in child)]  # fmt: skip
             if self.mcap is not None:
                 steps.append(self.mcap.close)
+                if self._mcap_before is not None:
+                    steps.append(self._join_mcap)
             if self.agents is not None:
                 steps.append(self._agents_closed)
             first: BaseException | None = None
@@ -681,6 +741,15 @@ class RunRecorder:
                     first = first or exc
             if first is not None:
                 raise first
+
+    def _join_mcap(self) -> None:
+        """After a resume: the MCAP up to the checkpoint, then this process's, as one file."""
+        from cobelrun.io.mcap_repair import join_mcap
+
+        assert self._mcap_before is not None
+        before, until_ns = self._mcap_before
+        join_mcap(before, self.folder.mcap, self.folder.mcap, until_ns)
+        before.unlink()
 
     def _close_agents(self) -> None:
         """Start merging the agents' batches into ``agents.npz`` on a thread of its own, while

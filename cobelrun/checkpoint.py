@@ -136,6 +136,8 @@ class CheckpointConfig:
         ``checkpoint_by_default`` is true (the deep and episodic agents: their runs last
         minutes to hours) and not at all for the others (tabular runs take milliseconds; their
         phases are cheaper to run again than to save). ``false``/``null`` switches a key off."""
+        if hasattr(node, "model_dump"):  # a validated cobelrun.schema.CheckpointSpec
+            node = node.model_dump()  # type: ignore[union-attr]
         node = dict(node or {})
         unknown = sorted(set(node) - {"every_trials", "every_minutes", "keep"})
         if unknown:
@@ -428,3 +430,142 @@ def restore_env(env: Any, state: Mapping[str, Any]) -> None:
 def now() -> float:
     """The clock of ``every_minutes`` (monotonic seconds)."""
     return time.monotonic()
+
+
+# -- a run's checkpoints (the run loop's side) -------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Position:
+    """Where a run goes on: run ``run``, phase index ``phase`` (its trial ``k``, 0-based) whose
+    first trial is trial ``first`` of the run (1-based). ``k = phase = 0``: the run's start."""
+
+    run: int
+    phase: int = 0
+    k: int = 0
+    first: int = 1
+
+    def to_json(self) -> dict[str, int]:
+        return {"run": self.run, "phase": self.phase, "k": self.k, "first": self.first}
+
+    @classmethod
+    def from_json(cls, data: Any, protocol: Any, runs: int) -> Position:
+        """Checked against the task: a position outside its runs, phases or trials is a
+        ValueError."""
+        if not isinstance(data, dict) or set(data) != {"run", "phase", "k", "first"}:
+            raise ValueError("position: expected {run, phase, k, first}")
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in data.values()):
+            raise ValueError("position: expected integers")
+        pos = cls(**data)
+        phases = protocol.phases
+        if not 0 <= pos.run < runs or not 0 <= pos.phase < len(phases):
+            raise ValueError(f"position {pos.to_json()} is outside the task's runs and phases")
+        first = 1 + sum(p.trials for p in phases[: pos.phase])
+        if pos.first != first or not 0 <= pos.k < phases[pos.phase].trials:
+            raise ValueError(f"position {pos.to_json()} is outside the phase's trials")
+        return pos
+
+
+class RunCheckpoints:
+    """A run folder's checkpoints, as the run loop writes and reads them.
+
+    Parameters
+    ----------
+    folder
+        The run folder (:class:`~cobelrun.io.run_folder.RunFolder`).
+    config
+        When to write them.
+    config_hash
+        The run's config hash (a checkpoint of another config is refused).
+    guard
+        The run's :class:`~cobelrun.signals.SignalGuard`: a stop it was asked for is carried
+        out at the next boundary (:meth:`boundary`).
+    """
+
+    def __init__(self, folder: Any, config: CheckpointConfig, config_hash: str,
+                 guard: Any = None) -> None:  # fmt: skip
+        self.folder, self.config, self.config_hash = folder, config, config_hash
+        self.guard = guard
+        self._last = now()
+        self._trials = 0
+        #: the checkpoint a resumed run started from (its header; None for a new run)
+        self.resumed: dict[str, Any] | None = None
+        #: sizes (bytes) of the checkpoints written by this process
+        self.sizes: list[int] = []
+
+    # -- resuming ------------------------------------------------------------------------------
+    def open_resume(self) -> dict[str, Any]:
+        """The header of the run folder's checkpoint, checked (format, version, config)."""
+        path = self.folder.checkpoint
+        if not path.is_file():
+            raise CheckpointError(
+                f"cannot resume {self.folder.path}: it has no checkpoint ({path.name}); "
+                "task.checkpoint.every_trials/every_minutes write one"
+            )
+        header = read_header(path)
+        check_header(header, path, config_hash=self.config_hash)
+        self.resumed = header
+        return header
+
+    def restore(self, agent: Any, env: Any, monitors: list[Any], run: int) -> bool:
+        """Restore ``run``'s agent, environment generator and monitors from the checkpoint
+        the run resumes from, if it holds that run's state (True), else False (the run starts
+        afresh). A CheckpointError line if it does not fit."""
+        header = self.resumed
+        if header is None or header.get("agent") is None or header["position"]["run"] != run:
+            return False
+        path = self.folder.checkpoint
+        found = read_checkpoint(path, agent_specs(agent), config_hash=self.config_hash)
+        restore_agent(agent, found, path)
+        states = header.get("monitors")
+        try:
+            restore_env(env, header.get("env") or {})
+            if not isinstance(states, list) or len(states) != len(monitors):
+                raise ValueError(f"monitors: expected {len(monitors)} states")
+            for m, state in zip(monitors, states, strict=True):
+                m.resume_run(run, agent, state)
+        except ValueError as exc:
+            raise CheckpointError(f"cannot resume from {path}: {exc}") from None
+        return True
+
+    # -- writing -------------------------------------------------------------------------------
+    def due(self, trials: int) -> bool:
+        """Whether a checkpoint is due after ``trials`` more trials (or a stop was asked for)."""
+        self._trials += trials
+        if self.guard is not None and self.guard.stop_requested is not None:
+            return True
+        c = self.config
+        return (c.every_trials is not None and self._trials >= c.every_trials) or (
+            c.every_minutes is not None and now() - self._last >= 60.0 * c.every_minutes
+        )
+
+    def save(self, position: Position, recorder: Any, *, agent: Any = None, env: Any = None,
+             monitors: list[Any] | None = None) -> int:  # fmt: skip
+        """Write the checkpoint of ``position``: the recorder's watermarks (after making its
+        rows durable) and, inside a run, the agent, the env's generator and the monitors.
+        Returns its size in bytes."""
+        arrays: dict[str, np.ndarray] = {}
+        header: dict[str, Any] = {"config_hash": self.config_hash,
+                                  "position": position.to_json(), "agent": None}  # fmt: skip
+        if agent is not None:
+            arrays, header["agent"] = agent_entry(agent)
+            header["env"] = env_state(env)
+            header["monitors"] = [m.checkpoint_state() for m in monitors or []]
+        header["recorder"] = recorder.durable()
+        header["written_unix"] = time.time()
+        size = write_checkpoint(self.folder.checkpoint, header, arrays)
+        self.sizes.append(size)
+        self._last, self._trials = now(), 0
+        return size
+
+    def stop_if_asked(self) -> None:
+        """After a checkpoint: stop the run if a signal asked for it (:class:`Stopped`)."""
+        if self.guard is not None and self.guard.stop_requested is not None:
+            from cobelrun.signals import Stopped
+
+            raise Stopped(self.guard.stop_requested, self.folder.checkpoint)
+
+    def finish(self) -> None:
+        """The run completed: remove its checkpoint unless ``keep``."""
+        if not self.config.keep:
+            self.folder.checkpoint.unlink(missing_ok=True)

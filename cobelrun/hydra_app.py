@@ -43,8 +43,10 @@ def job(cfg: DictConfig, task: Any = None) -> str:
     already built from ``cfg`` by the up-front validation of a single run)."""
     from hydra.core.hydra_config import HydraConfig
 
+    from cobelrun.checkpoint import REQUEUE_EXIT
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
+    from cobelrun.signals import Stopped
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -60,6 +62,11 @@ def job(cfg: DictConfig, task: Any = None) -> str:
         LOG.info("failed: %s", exc)
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except Stopped as exc:  # a run with checkpoints, stopped by a signal: resumable
+        LOG.info("stopped by signal %s; checkpoint written", exc.signum)
+        print(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue with "
+              f"`cobel resume {run_dir}`", file=sys.stderr)  # fmt: skip
+        sys.exit(REQUEUE_EXIT)
     except KeyboardInterrupt:
         LOG.info("interrupted")
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)

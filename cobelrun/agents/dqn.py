@@ -773,7 +773,9 @@ class DQNAgent(Agent):
         meta["numpy"] = {"kind": str(kind), "pos": int(pos), "has_gauss": int(has_gauss),
                          "cached_gaussian": float(gauss)}  # fmt: skip
         meta["action_space"] = generator_state(m.action_space.np_random)
-        meta["sb3"] = {"n_updates": int(m._n_updates), "episode_num": int(m._episode_num)}
+        meta["sb3"] = {"n_updates": int(m._n_updates), "episode_num": int(m._episode_num),
+                       "exploration_rate": float(m.exploration_rate),
+                       "progress_remaining": float(m._current_progress_remaining)}  # fmt: skip
         meta["replay"] = {"pos": int(buf.pos), "full": bool(buf.full)}
         if isinstance(buf, PrioritizedReplayBuffer):
             arrays["per.sums"] = buf.tree.sums
@@ -811,6 +813,10 @@ class DQNAgent(Agent):
             isinstance(sb3.get(k), int) and sb3[k] >= 0 for k in ("n_updates", "episode_num")
         ):
             raise ValueError("sb3: expected counters n_updates and episode_num >= 0")
+        for key in ("exploration_rate", "progress_remaining"):
+            value = sb3.get(key)
+            if not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"sb3.{key}: expected a number in [0, 1]")
         probe = np.random.Generator(np.random.PCG64())
         set_generator_state(probe, meta.get("action_space"), "action space generator")
         per = meta.get("per") if isinstance(buf, PrioritizedReplayBuffer) else None
@@ -840,6 +846,10 @@ class DQNAgent(Agent):
         self._torch_state = torch_state
         set_generator_state(m.action_space.np_random, meta["action_space"], "action space")
         m._n_updates, m._episode_num = sb3["n_updates"], sb3["episode_num"]
+        # the rate of a call's first step is the one the last step left (SB3 sets it after
+        # each step): a fresh model's is 0 until its first step
+        m.exploration_rate = float(sb3["exploration_rate"])
+        m._current_progress_remaining = float(sb3["progress_remaining"])
         if isinstance(buf, PrioritizedReplayBuffer):
             assert per is not None
             buf.tree.sums[...] = arrays["per.sums"]

@@ -1,0 +1,121 @@
+"""Resume (issue 35): a run stopped after a checkpoint and resumed from it writes the same
+tables, row for row, as the same run without the stop, for every kind of agent (tiny
+settings, in-process: the stop is a KeyboardInterrupt raised in the middle of a later piece,
+so the stopped run's tables hold rows past the checkpoint that the resume must drop)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from cobelrun import api, runner
+from cobelrun.checkpoint import CheckpointError, read_header
+
+#: fast pieces: the pacer's first piece of a phase is 8 trials, then ~flush_seconds worth
+FAST = ["task.record.flush_seconds=0.001", "task.checkpoint.every_trials=4"]
+
+CASES = {
+    "dyna_q": ("tmaze_extinction", ["task.runs=2"]),
+    "dqn": ("two_afc", ["agent=dqn", "task.runs=2", "task.batch_runs=false",
+                        "task.protocol.phases.0.trials=20", "agent.net_arch=[8]"]),
+    "per_dqn": ("two_afc", ["agent=per_dqn", "task.runs=2", "task.batch_runs=false",
+                            "task.protocol.phases.0.trials=20", "agent.net_arch=[8]",
+                            "agent.learning_starts=2", "agent.batch_size=4"]),
+    "dyna_dqn": ("latent_learning", ["agent=dyna_dqn", "task.runs=1", "task.batch_runs=false",
+                                     "task.monitors.activity.layers=[q/output]",
+                                     "task.monitors.activity.every=3",
+                                     "task.protocol.phases.0.trials=6",
+                                     "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
+                                     "agent.replay_batch=4", "task.protocol.max_steps=30"]),
+    "dyna_dsr": ("latent_learning", ["task.runs=1", "task.batch_runs=false",
+                                     "task.monitors.activity.every=3",
+                                     "task.protocol.phases.0.trials=6",
+                                     "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
+                                     "agent.replay_batch=4", "task.protocol.max_steps=30"]),
+    "mfec": ("gridworld", ["agent=mfec", "task.runs=2", "task.protocol.phases.0.trials=20",
+                           "agent.projection_dim=8"]),
+    "pma": ("dyna_maze", ["task.runs=1", "task.protocol.phases.0.trials=12",
+                          "task.protocol.max_steps=200"]),
+    "actor_critic": ("morris_water_maze", ["task.runs=1", "task.protocol.phases.0.trials=10",
+                                           "task.protocol.max_steps=100",
+                                           "task.protocol.phases.1.max_steps=50"]),
+}  # fmt: skip
+
+
+def stop_at(monkeypatch: pytest.MonkeyPatch, piece: int, cls: Any = runner.OneRun) -> None:
+    """KeyboardInterrupt (as Ctrl-C) right after the ``piece``-th piece of the run was
+    recorded, before the loop could checkpoint it: the stopped run's tables then hold rows
+    past its checkpoint."""
+    orig, calls = cls.piece, {"n": 0}
+
+    def patched(self: Any, *args: Any, **kwargs: Any) -> None:
+        orig(self, *args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == piece:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cls, "piece", patched)
+
+
+def tables(folder: Path) -> dict[str, pd.DataFrame]:
+    return {p.stem: pd.read_parquet(p) for p in sorted(folder.glob("*.parquet"))}
+
+
+def assert_same_tables(a: Path, b: Path) -> None:
+    ta, tb = tables(a), tables(b)
+    assert ta.keys() == tb.keys()
+    for name in ta:
+        pd.testing.assert_frame_equal(ta[name], tb[name], obj=name)
+
+
+def stopped_and_resumed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, task: str,
+                        overrides: list[str], piece: int = 3, cls: Any = runner.OneRun) -> Path:  # fmt: skip
+    cfg = api.compose(task, [*overrides, *FAST])
+    folder = tmp_path / "stopped"
+    with monkeypatch.context() as m:
+        stop_at(m, piece, cls)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run(cfg, folder)
+    assert (folder / "checkpoint.npz").is_file()
+    before = {name: len(t) for name, t in tables(folder).items()}
+    header = read_header(folder / "checkpoint.npz")
+    marks = header["recorder"]["tables"]
+    assert marks["trials"] < before["trials"]  # rows past the checkpoint, dropped on resume
+    runner.run(OmegaConf.load(folder / "config.yaml"), folder, resume=True)
+    assert not (folder / "checkpoint.npz").exists()  # removed once the run completed
+    assert (folder / ".done").is_file()
+    return folder
+
+
+@pytest.mark.parametrize("agent", sorted(CASES))
+def test_resumed_tables_equal_uninterrupted(agent: str, tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
+    task, overrides = CASES[agent]
+    ref = runner.run(api.compose(task, [*overrides, *FAST]), tmp_path / "ref")
+    folder = stopped_and_resumed(tmp_path, monkeypatch, task, overrides)
+    assert_same_tables(ref, folder)
+
+
+def test_resume_refuses_other_config_and_missing_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    task, overrides = CASES["dyna_q"]
+    cfg = api.compose(task, [*overrides, *FAST])
+    folder = tmp_path / "stopped"
+    with monkeypatch.context() as m:
+        stop_at(m, 2)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run(cfg, folder)
+    other = OmegaConf.load(folder / "config.yaml")
+    other.agent.epsilon = 0.2
+    before = sorted(p.name for p in folder.iterdir())
+    with pytest.raises(CheckpointError, match="written for another config"):
+        runner.run(other, folder, resume=True)
+    assert sorted(p.name for p in folder.iterdir()) == before  # nothing touched
+    done = runner.run(api.compose(task, [*overrides, *FAST]), tmp_path / "done")
+    with pytest.raises(CheckpointError, match=r"has no checkpoint \(checkpoint.npz\)"):
+        runner.run(OmegaConf.load(done / "config.yaml"), done, resume=True)

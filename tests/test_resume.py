@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 
 from cobelrun import api, runner
 from cobelrun.checkpoint import CheckpointError, read_header
+from cobelrun.errors import CobelError
 
 #: fast pieces: the pacer's first piece of a phase is 8 trials, then ~flush_seconds worth
 FAST = ["task.record.flush_seconds=0.001", "task.checkpoint.every_trials=4"]
@@ -117,5 +118,12 @@ def test_resume_refuses_other_config_and_missing_checkpoint(
         runner.run(other, folder, resume=True)
     assert sorted(p.name for p in folder.iterdir()) == before  # nothing touched
     done = runner.run(api.compose(task, [*overrides, *FAST]), tmp_path / "done")
-    with pytest.raises(CheckpointError, match=r"has no checkpoint \(checkpoint.npz\)"):
+    with pytest.raises(CobelError, match="the run completed already"):
         runner.run(OmegaConf.load(done / "config.yaml"), done, resume=True)
+    plain = tmp_path / "plain"  # a tabular run: no checkpoints unless asked for
+    with monkeypatch.context() as m:
+        stop_at(m, 1)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run(api.compose(task, overrides), plain)
+    with pytest.raises(CheckpointError, match=r"has no checkpoint \(checkpoint.npz\)"):
+        runner.run(OmegaConf.load(plain / "config.yaml"), plain, resume=True)

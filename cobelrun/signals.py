@@ -77,7 +77,9 @@ class SignalGuard:
         global _ACTIVE
         try:
             # SIGUSR1: what SLURM sends ahead of a time limit (sbatch --signal=USR1@90)
-            extra = (signal.SIGUSR1,) if self.defer and hasattr(signal, "SIGUSR1") else ()
+            # SIGUSR2: submitit's preemption signal (SUBMITIT_PREEMPT_SIGNAL)
+            names = ("SIGUSR1", "SIGUSR2") if self.defer else ()
+            extra = tuple(getattr(signal, n) for n in names if hasattr(signal, n))
             for sig in (signal.SIGINT, signal.SIGTERM, *extra):
                 self._previous[sig] = signal.signal(sig, self._handler)
         except ValueError:  # not the main thread

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from cobelrun import api, runner
 from cobelrun.checkpoint import CheckpointError, read_header
 from cobelrun.errors import CobelError
+from tests.inprocess import cli  # noqa: F401 (fixture)
 
 #: fast pieces: the pacer's first piece of a phase is 8 trials, then ~flush_seconds worth
 FAST = ["task.record.flush_seconds=0.001", "task.checkpoint.every_trials=4"]
@@ -127,3 +128,37 @@ def test_resume_refuses_other_config_and_missing_checkpoint(
             runner.run(api.compose(task, overrides), plain)
     with pytest.raises(CheckpointError, match=r"has no checkpoint \(checkpoint.npz\)"):
         runner.run(OmegaConf.load(plain / "config.yaml"), plain, resume=True)
+
+
+def test_sweep_command_again_resumes_a_stopped_job(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    cli: Any,  # noqa: F811
+) -> None:
+    """``cobel run -m`` again after a job was stopped: the job goes on from its checkpoint
+    (not from trial 1) and ends with the tables of an uninterrupted single run."""
+    args = ["task=tmaze_extinction", "task.runs=2", *FAST, "hydra/launcher=basic"]
+    with monkeypatch.context() as m:
+        stop_at(m, 3)
+        first = cli("run", "-m", *args, "seed=4,5")
+    assert first.returncode != 0
+    sweep = next((tmp_path / "results" / "tmaze_extinction" / "sweeps").iterdir())
+    job = sweep / "0"
+    assert (job / "checkpoint.npz").is_file()
+    saved = read_header(job / "checkpoint.npz")["position"]
+    resumed_from: list[Any] = []
+    orig = runner.RunCheckpoints.open_resume
+
+    def spy(self: Any) -> Any:
+        header = orig(self)
+        resumed_from.append(header["position"])
+        return header
+
+    monkeypatch.setattr(runner.RunCheckpoints, "open_resume", spy)
+    again = cli("run", "-m", *args, "seed=4,5")
+    assert again.returncode == 0, again.stderr
+    assert resumed_from == [saved]  # job 0 went on from its checkpoint
+    assert not (job / "checkpoint.npz").exists()
+    single = runner.run(api.compose("tmaze_extinction", ["task.runs=2", *FAST, "seed=4"]),
+                        tmp_path / "single")  # fmt: skip
+    assert_same_tables(single, job)

@@ -137,3 +137,32 @@ def test_slurm_requeues_a_preempted_job_which_resumes(tmp_path: Path) -> None:
     _check_requeued_sweep(tmp_path, proc)
     (requeues,) = state.glob("requeues_*")  # submitit called `scontrol requeue` once
     assert requeues.read_text() == "1\n"
+
+
+@pytest.mark.slow
+def test_sigkill_after_a_checkpoint_resumes_from_the_parts(tmp_path: Path, cli) -> None:  # noqa: F811
+    """SIGKILL (no chance to write anything): the tables are left in parts, past the last
+    checkpoint; ``cobel resume`` takes the parts up to the checkpoint and finishes the run."""
+    out = tmp_path / "run"
+    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
+    env.pop("HYDRA_FULL_ERROR", None)
+    args = [*ARGS, "task.checkpoint.every_trials=40"]
+    proc = subprocess.Popen([*cobel_exe(), "run", *args, f"hydra.run.dir={out}", "--quiet"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if (out / "checkpoint.npz").is_file():
+            break
+        time.sleep(0.02)
+    time.sleep(0.3)  # more trials recorded after it
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert (out / ".parts" / "trials").is_dir() and not (out / "trials.parquet").exists()
+    result = cli("resume", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    ref = runner.run(api.compose(None, args), tmp_path / "ref")
+    got, want = tables(out), tables(ref)
+    assert got.keys() == want.keys()
+    for name in want:
+        pd.testing.assert_frame_equal(got[name], want[name], obj=name)

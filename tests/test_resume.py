@@ -162,3 +162,21 @@ def test_sweep_command_again_resumes_a_stopped_job(
     single = runner.run(api.compose("tmaze_extinction", ["task.runs=2", *FAST, "seed=4"]),
                         tmp_path / "single")  # fmt: skip
     assert_same_tables(single, job)
+
+
+@pytest.mark.parametrize("agent", ["dqn", "dyna_dqn"])
+def test_batched_runs_resume_at_their_chunk(
+    agent: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Batched runs (task.batch_runs=2 of 4 runs): a chunk is checkpointed at its start; a
+    stop inside the second chunk resumes there, with the tables of the uninterrupted run."""
+    from cobelrun.batched import BatchedRuns
+
+    task, overrides = CASES[agent]
+    overrides = [o for o in overrides if not o.startswith(("task.runs", "task.batch_runs"))]
+    overrides += ["task.runs=4", "task.batch_runs=2"]
+    ref = runner.run(api.compose(task, [*overrides, *FAST]), tmp_path / "ref")
+    pieces = len(api.compose(task, [*overrides, *FAST]).task.protocol.phases)
+    folder = stopped_and_resumed(tmp_path, monkeypatch, task, overrides, piece=pieces + 2,
+                                 cls=BatchedRuns)  # fmt: skip
+    assert_same_tables(ref, folder)

@@ -93,6 +93,19 @@ def stopped_and_resumed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, task: s
     return folder
 
 
+def mcap_messages(path: Path) -> list[tuple[str, int]]:
+    """(topic, log time from the first message) of every message of an MCAP, in log order;
+    ``/trials`` left out (one message per piece of a phase: pieces follow the clock)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        found = [
+            (ch.topic, m.log_time) for _, ch, m in make_reader(f).iter_messages(log_time_order=True)
+        ]
+    t0 = min(t for _, t in found)
+    return sorted((topic, t - t0) for topic, t in found if topic != "/trials")
+
+
 @pytest.mark.parametrize("agent", sorted(CASES))
 def test_resumed_tables_equal_uninterrupted(agent: str, tmp_path: Path,
                                             monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
@@ -100,6 +113,8 @@ def test_resumed_tables_equal_uninterrupted(agent: str, tmp_path: Path,
     ref = runner.run(api.compose(task, [*overrides, *FAST]), tmp_path / "ref")
     folder = stopped_and_resumed(tmp_path, monkeypatch, task, overrides)
     assert_same_tables(ref, folder)
+    if (ref / "run.mcap").is_file():  # the stream before the resume joined with the rest
+        assert mcap_messages(folder / "run.mcap") == mcap_messages(ref / "run.mcap")
 
 
 def test_resume_refuses_other_config_and_missing_checkpoint(

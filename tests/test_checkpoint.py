@@ -41,7 +41,10 @@ def assert_same_state(a: Any, b: Any) -> None:
     assert json.dumps(sa[1], sort_keys=True) == json.dumps(sb[1], sort_keys=True)
 
 
-@pytest.mark.parametrize("name", AGENT_CONFIGS)
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(n, marks=[pytest.mark.slow] if n == "dqn_fig8" else []) for n in AGENT_CONFIGS],
+)
 def test_round_trip_goes_on_exactly(name: str, tmp_path: Path) -> None:
     """Train, checkpoint, go on; a differently seeded fresh agent and env restored from the
     file give the same trials (learning and test) and end in the same state."""

@@ -21,7 +21,8 @@ from tests.inprocess import cli  # noqa: F401 (fixture)
 FAST = ["task.record.flush_seconds=0.001", "task.checkpoint.every_trials=4"]
 
 CASES = {
-    "dyna_q": ("tmaze_extinction", ["task.runs=2"]),
+    "dyna_q": ("tmaze_extinction", ["task.runs=2", "task.protocol.phases.0.trials=20",
+                                    "task.protocol.phases.1.trials=20"]),
     "dqn": ("two_afc", ["agent=dqn", "task.runs=2", "task.batch_runs=false",
                         "task.protocol.phases.0.trials=20", "agent.net_arch=[8]"]),
     "per_dqn": ("two_afc", ["agent=per_dqn", "task.runs=2", "task.batch_runs=false",
@@ -106,7 +107,14 @@ def mcap_messages(path: Path) -> list[tuple[str, int]]:
     return sorted((topic, t - t0) for topic, t in found if topic != "/trials")
 
 
-@pytest.mark.parametrize("agent", sorted(CASES))
+#: in the default run (the rest are ``-m slow``: each costs seconds)
+DEFAULT = {"dyna_q", "per_dqn", "pma"}
+
+
+@pytest.mark.parametrize(
+    "agent",
+    [pytest.param(a, marks=[] if a in DEFAULT else [pytest.mark.slow]) for a in sorted(CASES)],
+)
 def test_resumed_tables_equal_uninterrupted(agent: str, tmp_path: Path,
                                             monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
     task, overrides = CASES[agent]
@@ -145,6 +153,7 @@ def test_resume_refuses_other_config_and_missing_checkpoint(
         runner.run(OmegaConf.load(plain / "config.yaml"), plain, resume=True)
 
 
+@pytest.mark.slow
 def test_sweep_command_again_resumes_a_stopped_job(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
@@ -179,6 +188,7 @@ def test_sweep_command_again_resumes_a_stopped_job(
     assert_same_tables(single, job)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("agent", ["dqn", "dyna_dqn"])
 def test_batched_runs_resume_at_their_chunk(
     agent: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch

@@ -19,7 +19,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from cobelrun._version import __version__
-from cobelrun.checkpoint import CheckpointConfig, Position, RunCheckpoints
+from cobelrun.checkpoint import CheckpointConfig, CheckpointError, Position, RunCheckpoints
 from cobelrun.config import factory, instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
@@ -383,11 +383,16 @@ def execute(
         _write_json_atomic(folder.world, geometry.to_dict())
     monitors = [TrialKeysMonitor(), *task.monitors.values()]
     resumed = None if checkpoints is None else checkpoints.resumed
-    recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
-                           background=background_writes, geometry=geometry,
-                           save_agents=bool(task.save_agents),
-                           resume=None if resumed is None else resumed["recorder"],
-                           checkpoints=checkpoints is not None)  # fmt: skip
+    try:
+        recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata,
+                               guard=guard, background=background_writes, geometry=geometry,
+                               save_agents=bool(task.save_agents),
+                               resume=None if resumed is None else resumed["recorder"],
+                               checkpoints=checkpoints is not None)  # fmt: skip
+    except (ValueError, KeyError, TypeError) as exc:  # watermarks the folder cannot meet
+        if resumed is None:
+            raise
+        raise CheckpointError(f"cannot resume from {folder.checkpoint}: {exc}") from None
     cpu0 = time.thread_time()
     try:
         run_phases(task, recorder, folder, progress, phase_times, checkpoints)
@@ -482,7 +487,6 @@ def cohorts(task: Task, recorder: RunRecorder, folder: RunFolder, start: int = 0
         for first in range(start, task.runs, task.batch):
             runs = list(range(first, min(first + task.batch, task.runs)))
             if checkpoints is not None:
-                checkpoints.due(0)
                 checkpoints.save(Position(first), recorder)
                 checkpoints.stop_if_asked()
             yield BatchedRuns(task, recorder, runs, run_seed)
@@ -587,11 +591,13 @@ def _boundary(checkpoints: RunCheckpoints, cohort: Cohort, protocol: TaskProtoco
     if not isinstance(cohort, OneRun):
         checkpoints.stop_if_asked()
         return
-    phase = protocol.phases[p]
-    if k >= phase.trials:
-        if p + 1 == len(protocol.phases):
+    phases = protocol.phases
+    if k >= phases[p].trials:  # the next trial is the next phase's (with trials) first
+        first, p, k = first + phases[p].trials, p + 1, 0
+        while p < len(phases) and phases[p].trials == 0:
+            p += 1
+        if p == len(phases):
             return  # the run is over: its end is written first (cohorts() goes on)
-        p, k, first = p + 1, 0, first + phase.trials
     if due:
         cohort.save(checkpoints, Position(cohort.run, p, k, first))
         checkpoints.stop_if_asked()

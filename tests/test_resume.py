@@ -125,6 +125,16 @@ def test_resumed_tables_equal_uninterrupted(agent: str, tmp_path: Path,
         assert mcap_messages(folder / "run.mcap") == mcap_messages(ref / "run.mcap")
 
 
+def test_resume_across_an_empty_phase(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A checkpoint at the end of a phase points at the next phase with trials (an empty
+    phase in between is skipped) and the resumed run rebuilds the world up to it."""
+    overrides = ["task.runs=2", "task.protocol.phases.0.trials=8",
+                 "task.protocol.phases.1.trials=0", "task.protocol.phases.2.trials=12"]  # fmt: skip
+    ref = runner.run(api.compose("renewal", [*overrides, *FAST]), tmp_path / "ref")
+    folder = stopped_and_resumed(tmp_path, monkeypatch, "renewal", overrides, piece=2)
+    assert_same_tables(ref, folder)
+
+
 def test_resume_refuses_other_config_and_missing_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

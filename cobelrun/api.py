@@ -29,7 +29,8 @@ from cobelrun.io.run_folder import RunFolder
 from cobelrun.run_summary import LAST_TRIALS, summary  # noqa: F401 (re-exported)
 
 __all__ = [
-    "Run", "compose", "default_run_dir", "load", "load_sweep", "make_env", "rerun", "run",
+    "Run", "compose", "default_run_dir", "load", "load_sweep", "make_env", "rerun", "resume",
+    "run",
     "summary",
 ]  # fmt: skip
 
@@ -316,6 +317,29 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
     except ConfigError as exc:
         raise ConfigError(f"{folder.config}: {exc}") from None
     return cfg
+
+
+def resume(run_dir: str | os.PathLike[str], *, progress: bool = False) -> Run:
+    """Continue a stopped run from its checkpoint (:mod:`cobelrun.checkpoint`) in its own
+    folder, with its saved config: the finished tables equal those of the run without the stop.
+
+    Raises a one-line :class:`~cobelrun.checkpoint.CheckpointError` when the folder has no
+    checkpoint, completed already, or its checkpoint was written by another cobel version or
+    for another config.
+    """
+    from cobelrun.runner import build_task
+    from cobelrun.runner import run as run_task
+
+    cfg = rerun_config(run_dir)  # the saved config through the target gate
+    task = build_task(cfg)
+    if progress:
+        from cobelrun.progress import run_progress
+
+        with run_progress(str(cfg.task.name)) as bar:
+            run_task(cfg, Path(run_dir), progress=bar, task=task, resume=True)
+    else:
+        run_task(cfg, Path(run_dir), task=task, resume=True)
+    return Run(Path(run_dir))
 
 
 def rerun(

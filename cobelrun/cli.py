@@ -312,6 +312,10 @@ from cobelrun.commands.rerun import register as _register_rerun  # noqa: E402
 
 _register_rerun(app)
 
+from cobelrun.commands.resume import register as _register_resume  # noqa: E402
+
+_register_resume(app)
+
 from cobelrun.commands.show import register as _register_show  # noqa: E402
 
 _register_show(app)

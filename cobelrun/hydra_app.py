@@ -43,8 +43,10 @@ def job(cfg: DictConfig, task: Any = None) -> str:
     already built from ``cfg`` by the up-front validation of a single run)."""
     from hydra.core.hydra_config import HydraConfig
 
+    from cobelrun.checkpoint import REQUEUE_EXIT
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
+    from cobelrun.signals import Stopped
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -60,6 +62,11 @@ def job(cfg: DictConfig, task: Any = None) -> str:
         LOG.info("failed: %s", exc)
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except Stopped as exc:  # a run with checkpoints, stopped by a signal: resumable
+        LOG.info("stopped by signal %s; checkpoint written", exc.signum)
+        print(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue with "
+              f"`cobel resume {run_dir}`", file=sys.stderr)  # fmt: skip
+        sys.exit(REQUEUE_EXIT)
     except KeyboardInterrupt:
         LOG.info("interrupted")
         print(f"cobel: interrupted; partial results in {run_dir}", file=sys.stderr)
@@ -134,9 +141,11 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
     import traceback
 
     import cobelrun.sweep as sweep
+    from cobelrun.checkpoint import REQUEUE_EXIT
     from cobelrun.io.sweep_folder import clear_outputs, is_complete, job_config_hash, one_line
     from cobelrun.io.sweep_folder import write_job_status as status
     from cobelrun.runner import run
+    from cobelrun.signals import Stopped
     from cobelrun.targets import check_config
 
     try:
@@ -149,10 +158,23 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
                    **fields)  # fmt: skip
             return float("nan") if wants_number else "interrupted"
         with RunLock(run_dir, "the sweep job's folder"):  # one writer, also across sweeps
-            clear_outputs(run_dir)
+            resume = resumable(cfg, run_dir)
+            if not resume:
+                clear_outputs(run_dir)
             status(run_dir, "running", config_hash=chash, **fields)
-            # jobs in parallel already fill the cores; a job reruns its own folder
-            run(cfg, run_dir, background_writes=False, replace=True)
+            # jobs in parallel already fill the cores; a job reruns its own folder, or goes on
+            # from its checkpoint (a stopped or requeued job: cobelrun.checkpoint)
+            run(cfg, run_dir, background_writes=False, replace=True, resume=resume)
+    except Stopped as exc:
+        # stopped by a signal after writing its checkpoint: the next sweep command (or the
+        # cluster's requeue) resumes it; under submitit its own preemption handler requeues
+        status(run_dir, "interrupted", error=f"stopped by signal {exc.signum}; checkpoint "
+               "written (the sweep resumes it)", **fields)  # fmt: skip
+        _hand_to_submitit(exc.signum)
+        sweep.request_stop(sweep_dir, "a job was stopped")
+        if sweep.launcher_gone():
+            os._exit(REQUEUE_EXIT)
+        return float("nan") if wants_number else "interrupted"
     except KeyboardInterrupt:
         # the files are closed and the manifest says interrupted; later jobs must not start
         # (in-process launchers run them in this process), and the launcher reports it
@@ -167,6 +189,43 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
         return float("nan") if wants_number else "failed"
     status(run_dir, "completed", **fields)
     return job_result(run_dir, wants_number)
+
+
+def resumable(cfg: DictConfig, run_dir: Path) -> bool:
+    """Whether a sweep job's folder holds a checkpoint this job can go on from: same cobel
+    version and config, the run not completed. Another one is dropped with the folder (the job
+    runs again from its start), with a log line saying why."""
+    from cobelrun.checkpoint import CheckpointError, check_header, read_header
+    from cobelrun.io.manifest import config_hash
+    from cobelrun.io.run_folder import RunFolder
+
+    folder = RunFolder(run_dir)
+    if not folder.checkpoint.is_file() or folder.done.exists():
+        return False
+    try:
+        resolved = OmegaConf.to_container(cfg, resolve=True)
+        check_header(read_header(folder.checkpoint), folder.checkpoint,
+                     config_hash=config_hash(resolved))  # type: ignore[arg-type]  # fmt: skip
+    except CheckpointError as exc:
+        LOG.warning("%s; the job runs again from its start", exc)
+        return False
+    return True
+
+
+def _hand_to_submitit(signum: int) -> None:
+    """Inside a submitit job, after the checkpoint: submitit's own handler of its preemption
+    signal (SUBMITIT_PREEMPT_SIGNAL, USR2 by default) requeues the job (``scontrol requeue``,
+    or a restart under submitit_local) and exits; the requeued job resumes the checkpoint."""
+    import signal
+
+    name = "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")
+    if getattr(signal, name, None) != signum:
+        return
+    handler = signal.getsignal(signum)
+    if callable(handler) and getattr(handler, "__self__", None).__class__.__module__.startswith(
+        "submitit"
+    ):
+        handler(signum, None)
 
 
 def job_result(run_dir: Path, objective: bool) -> Any:

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -181,6 +182,11 @@ class WriterThread:
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(self._timed, fn, *args))
 
+    def drain(self) -> None:
+        """Wait until every submitted call has run (raising the first error)."""
+        while self._pending:
+            self._pending.popleft().result()
+
     def close(self) -> None:
         """Wait for pending calls (raising the first error) and stop the thread."""
         try:
@@ -304,6 +310,8 @@ class RunRecorder:
         background: bool = True,
         geometry: Any = None,
         save_agents: bool = False,
+        resume: Mapping[str, Any] | None = None,
+        checkpoints: bool = False,
     ) -> None:
         self.folder = folder
         self.env = env
@@ -329,7 +337,22 @@ class RunRecorder:
         self._joined_steps = 0
         self._mcap_tables: list[tuple[Any, ...]] = []  # trial tables awaiting the MCAP
         self._last_pending = time.monotonic()
-        self.start_ns = time.time_ns()
+        self.start_ns = time.time_ns() if resume is None else int(resume["start_ns"])
+        #: the MCAP written before a resume, joined with this one's at close (trimmed to
+        #: the checkpoint's clock)
+        self._mcap_before: tuple[Path, int] | None = None
+        if record.mcap and resume is not None and folder.mcap.is_file():
+            from cobelrun.io.mcap_repair import repair_mcap
+
+            before = folder.mcap_before_resume
+            if not before.is_file():  # a resume that was stopped itself moved it already
+                folder.mcap.replace(before)
+            repair_mcap(before)
+            # mcap_timeline=per_run: the runs' times overlap, so nothing can be cut by time;
+            # the file keeps what the stopped process wrote after its checkpoint
+            per_run = record.mcap_timeline == "per_run"
+            until = 2**63 - 1 if per_run else self.start_ns + int(resume.get("clock_ns", 0))
+            self._mcap_before = (before, until)
         self.mcap = self._foxglove_stream(record, geometry, metadata)
         self._active: dict[bool, list[Monitor]] = {}
         self._clock = 0  # simulated ns since the start
@@ -346,8 +369,11 @@ class RunRecorder:
         self._agents_merge: Future | None = None
         self._steps: StepWriterProcess | None = None
         joined = sorted({t.name for m in self._joinable for t in m.tables()})
-        if joined and self._step_process(background):
+        # a run with checkpoints writes its step rows on the thread: durable() waits for it
+        if joined and not checkpoints and self._step_process(background):
             self._steps = StepWriterProcess(joined, self._write_forked, self._finish_table)
+        if resume is not None:
+            self._resume(resume)
 
     def _foxglove_stream(
         self, record: RecordConfig, geometry: Any, metadata: Mapping[str, str] | None
@@ -432,6 +458,46 @@ class RunRecorder:
             for t in m.tables():
                 writers.setdefault(t.name, set()).add(id(m))
         return [m for m in candidates if all(writers[t.name] <= ids for t in m.tables())]
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def durable(self) -> dict[str, Any]:
+        """Hand everything recorded so far to disk, wait until it is written and return the
+        watermarks a checkpoint keeps: the rows of every table and the agents in the
+        agents archive (all in complete parts), the MCAP clock."""
+        assert self._steps is None, "a recorder with checkpoints writes steps on its thread"
+        with self.guard.critical():
+            for table in self._sinks:
+                self._flush(table)
+            self._flush_pending()
+            if self.agents is not None:
+                self._writer.submit(self.agents.write_batch, self.agents.take())
+            self._writer.drain()
+            if self.mcap is not None:
+                self.mcap.flush()
+        return {
+            "tables": {name: int(sink.writer.rows_written) for name, sink in self._sinks.items()},
+            "agents": 0 if self.agents is None else self.agents.durable,
+            "clock_ns": int(self._clock),
+            "run_clocks_ns": {str(run): int(ns) for run, ns in self._clocks.items()},
+            "start_ns": int(self.start_ns),
+        }
+
+    def _resume(self, marks: Mapping[str, Any]) -> None:
+        """Take up the rows a checkpoint's watermarks say are durable (:meth:`durable`)."""
+        tables = marks.get("tables")
+        if not isinstance(tables, Mapping) or set(tables) != set(self._sinks):
+            raise ValueError(
+                f"recorder: the checkpoint has the tables {sorted(tables or {})}, this run "
+                f"writes {sorted(self._sinks)}"
+            )
+        for name, sink in self._sinks.items():
+            sink.writer.resume(int(tables[name]))
+        if self.agents is not None:
+            self.agents.resume(int(marks.get("agents", 0)))
+        self._clock = int(marks.get("clock_ns", 0))
+        clocks = marks.get("run_clocks_ns") or {}
+        if isinstance(clocks, Mapping):
+            self._clocks = {int(run): int(ns) for run, ns in clocks.items()}
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start_run(self, run: int, agent: Any) -> None:
@@ -758,6 +824,8 @@ class RunRecorder:
                        if name not in child)]  # fmt: skip
             if self.mcap is not None:
                 steps.append(self.mcap.close)
+                if self._mcap_before is not None:
+                    steps.append(self._join_mcap)
             if self.agents is not None:
                 steps.append(self._agents_closed)
             first: BaseException | None = None
@@ -768,6 +836,15 @@ class RunRecorder:
                     first = first or exc
             if first is not None:
                 raise first
+
+    def _join_mcap(self) -> None:
+        """After a resume: the MCAP up to the checkpoint, then this process's, as one file."""
+        from cobelrun.io.mcap_repair import join_mcap
+
+        assert self._mcap_before is not None
+        before, until_ns = self._mcap_before
+        join_mcap(before, self.folder.mcap, self.folder.mcap, until_ns)
+        before.unlink()
 
     def _close_agents(self) -> None:
         """Start merging the agents' batches into ``agents.npz`` on a thread of its own, while

@@ -11,7 +11,7 @@ import logging
 import shlex
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -19,6 +19,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from cobelrun._version import __version__
+from cobelrun.checkpoint import CheckpointConfig, CheckpointError, Position, RunCheckpoints
 from cobelrun.config import factory, instantiate
 from cobelrun.envs.base import Changeable, HasGeometry, supports
 from cobelrun.errors import CobelError, ConfigError
@@ -66,6 +67,8 @@ class Task:
     batch: int = 0
     #: why the runs are not batched (None when they are)
     batch_note: str | None = None
+    #: when the run writes checkpoints (``task.checkpoint``, :mod:`cobelrun.checkpoint`)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
 
 
 def build_task(cfg: DictConfig, *, probe_agent: bool = False) -> Task:
@@ -150,6 +153,9 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
         save_agents=agents_to_save(spec.task.save_agents, spec.task.runs),
         objective=objective,
         make_env=factory("env", cfg.env),
+        checkpoint=CheckpointConfig.resolve(
+            spec.task.checkpoint, getattr(make_agent, "func", None)
+        ),
     )
     _plan_batches(task, spec.task.batch_runs, probe)
     return task
@@ -355,8 +361,12 @@ def execute(
     metadata: Mapping[str, str] | None = None,
     phase_times: dict[str, float] | None = None,
     cpu_times: dict[str, float] | None = None,
+    checkpoints: RunCheckpoints | None = None,
 ) -> Any:
     """Run every (run, phase) of ``task`` and stream the records into ``run_dir``.
+
+    ``checkpoints`` (:class:`cobelrun.checkpoint.RunCheckpoints`) writes checkpoints as the
+    run goes, and, when it holds the checkpoint the run resumes from, the run goes on there.
 
     ``phase_times``, when given, is filled with each phase's wall time in seconds (summed over
     runs; recording included); ``cpu_times`` with the CPU seconds of the simulation thread
@@ -372,12 +382,20 @@ def execute(
     if geometry is not None:
         _write_json_atomic(folder.world, geometry.to_dict())
     monitors = [TrialKeysMonitor(), *task.monitors.values()]
-    recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata, guard=guard,
-                           background=background_writes, geometry=geometry,
-                           save_agents=bool(task.save_agents))  # fmt: skip
+    resumed = None if checkpoints is None else checkpoints.resumed
+    try:
+        recorder = RunRecorder(folder, env, monitors, task.record, metadata=metadata,
+                               guard=guard, background=background_writes, geometry=geometry,
+                               save_agents=bool(task.save_agents),
+                               resume=None if resumed is None else resumed["recorder"],
+                               checkpoints=checkpoints is not None)  # fmt: skip
+    except (ValueError, KeyError, TypeError) as exc:  # watermarks the folder cannot meet
+        if resumed is None:
+            raise
+        raise CheckpointError(f"cannot resume from {folder.checkpoint}: {exc}") from None
     cpu0 = time.thread_time()
     try:
-        run_phases(task, recorder, folder, progress, phase_times)
+        run_phases(task, recorder, folder, progress, phase_times, checkpoints)
     finally:
         recorder.close()
         if cpu_times is not None:
@@ -417,7 +435,8 @@ class Cohort(Protocol):
 class OneRun:
     """One run of the sequential path: the task's env re-seeded, a fresh agent."""
 
-    def __init__(self, task: Task, recorder: RunRecorder, folder: RunFolder, run: int) -> None:
+    def __init__(self, task: Task, recorder: RunRecorder, folder: RunFolder, run: int,
+                 checkpoints: RunCheckpoints | None = None) -> None:  # fmt: skip
         agent_seed, env_seed = run_seed(task.seed, run)
         base = task.env.unwrapped
         if supports(base, Changeable):
@@ -432,7 +451,13 @@ class OneRun:
                 LOG.warning(note)  # e.g. TensorBoard skipped: once per task, not per run
         if task.load_from is not None:
             load_saved_agent(agent, task.load_from, run)
-        recorder.start_run(run, agent)
+        if checkpoints is None or not checkpoints.restore(agent, task.env, recorder.monitors, run):
+            recorder.start_run(run, agent)
+
+    def save(self, checkpoints: RunCheckpoints, position: Position) -> None:
+        """Write the checkpoint of ``position`` inside this run."""
+        checkpoints.save(position, self.recorder, agent=self.agent, env=self.task.env,
+                         monitors=self.recorder.monitors)  # fmt: skip
 
     def piece(self, phase: Phase, max_steps: int, first: int, k: int, n: int) -> None:
         go = self.agent.train if phase.learning else self.agent.test
@@ -449,18 +474,28 @@ class OneRun:
         """Nothing held back: the pieces were recorded as they ended."""
 
 
-def cohorts(task: Task, recorder: RunRecorder, folder: RunFolder) -> Iterator[Cohort]:
-    """The task's runs in the order they are trained: one at a time, or ``task.batch`` at a
-    time as one computation (``task.batch_runs``)."""
+def cohorts(task: Task, recorder: RunRecorder, folder: RunFolder, start: int = 0,
+            checkpoints: RunCheckpoints | None = None) -> Iterator[Cohort]:  # fmt: skip
+    """The task's runs from run ``start`` on, in the order they are trained: one at a time, or
+    ``task.batch`` at a time as one computation (``task.batch_runs``). With ``checkpoints``,
+    a checkpoint is written before a cohort when one is due (before every batched cohort:
+    a batched chunk is checkpointed at its start), and a stop asked for by a signal happens
+    there."""
     if task.batch:
         from cobelrun.batched import BatchedRuns
 
-        for start in range(0, task.runs, task.batch):
-            runs = list(range(start, min(start + task.batch, task.runs)))
+        for first in range(start, task.runs, task.batch):
+            runs = list(range(first, min(first + task.batch, task.runs)))
+            if checkpoints is not None:
+                checkpoints.save(Position(first), recorder)
+                checkpoints.stop_if_asked()
             yield BatchedRuns(task, recorder, runs, run_seed)
     else:
-        for run in range(task.runs):
-            yield OneRun(task, recorder, folder, run)
+        for run in range(start, task.runs):
+            if checkpoints is not None and run > start and checkpoints.due(0):
+                checkpoints.save(Position(run), recorder)
+                checkpoints.stop_if_asked()
+            yield OneRun(task, recorder, folder, run, checkpoints)
 
 
 def run_phases(
@@ -469,32 +504,52 @@ def run_phases(
     folder: RunFolder,
     progress: Any = None,
     phase_times: dict[str, float] | None = None,
+    checkpoints: RunCheckpoints | None = None,
 ) -> None:
     """The run loop: every cohort of runs through every phase of the protocol, each phase in
     pieces (:class:`PhasePacer`; one trial at a time where the phase has a per-trial cycle),
     the protocol's changes applied to every env of the cohort. Sequential and batched runs
-    differ only in their :class:`Cohort`."""
+    differ only in their :class:`Cohort`.
+
+    With ``checkpoints`` a sequential run writes a checkpoint after a piece when one is due
+    (and stops there when a signal asked it to); a resumed run starts at its checkpoint's
+    position: the runs before it are done, the world of its run is rebuilt by applying the
+    protocol's changes up to it."""
     protocol = task.protocol
     per_run = protocol.n_trials
     total = task.runs * per_run
     trimmed = time.monotonic()
     pacer = PhasePacer(task.record.flush_seconds)
-    for cohort in cohorts(task, recorder, folder):
+    at = Position(0)
+    if checkpoints is not None and checkpoints.resumed is not None:
+        try:
+            at = Position.from_json(checkpoints.resumed.get("position"), protocol, task.runs)
+        except ValueError as exc:
+            raise CobelError(f"cannot resume from {folder.checkpoint}: {exc}") from None
+    for cohort in cohorts(task, recorder, folder, at.run, checkpoints):
         runs = cohort.runs
+        resume = at if runs[0] == at.run else Position(runs[0])
 
         def report(done: int, runs: list[int] = runs) -> None:  # trials over all runs
             if progress is not None:
                 progress(runs[0] * per_run + len(runs) * done, total, run=runs[-1],
                          runs=task.runs)  # fmt: skip
 
-        first = 1
+        first = resume.first
         try:
-            for phase in protocol.phases:
+            for p, phase in enumerate(protocol.phases):
+                if p < resume.phase:
+                    for env in cohort.envs:  # a resumed run: the world as it was
+                        protocol.apply(phase, env)
+                    continue
                 for env in cohort.envs:
                     protocol.apply(phase, env)
                 max_steps = phase.max_steps or protocol.max_steps
                 t_phase = time.perf_counter()
-                k = 0
+                k = resume.k if p == resume.phase else 0
+                for j in range(max(0, k - len(phase.cycle)), k):  # the cycle's last changes
+                    for env in cohort.envs:
+                        protocol.apply_trial(phase, j, env)
                 while k < phase.trials:
                     # a phase with a per-trial cycle runs (and records) one trial at a time; a
                     # long one in pieces of ~flush_seconds
@@ -505,6 +560,8 @@ def run_phases(
                     cohort.piece(phase, max_steps, first, k, n)
                     pacer.observe(phase.name, n, time.perf_counter() - t_piece)
                     k += n
+                    if checkpoints is not None:
+                        _boundary(checkpoints, cohort, protocol, p, k, first, n)
                     if k < phase.trials:
                         report(first - 1 + k)
                 if phase_times is not None:
@@ -523,6 +580,29 @@ def run_phases(
             trimmed = time.monotonic()
 
 
+def _boundary(checkpoints: RunCheckpoints, cohort: Cohort, protocol: TaskProtocol, p: int,
+              k: int, first: int, n: int) -> None:  # fmt: skip
+    """After a piece: a sequential run writes its checkpoint when one is due (at the next
+    trial: the end of a phase is the start of the next); the run's last piece leaves it to
+    the boundary before the next run. A batched chunk was checkpointed at its start: a stop
+    asked for by a signal ends it here (the rows after that checkpoint are dropped when it
+    resumes)."""
+    due = checkpoints.due(n)
+    if not isinstance(cohort, OneRun):
+        checkpoints.stop_if_asked()
+        return
+    phases = protocol.phases
+    if k >= phases[p].trials:  # the next trial is the next phase's (with trials) first
+        first, p, k = first + phases[p].trials, p + 1, 0
+        while p < len(phases) and phases[p].trials == 0:
+            p += 1
+        if p == len(phases):
+            return  # the run is over: its end is written first (cohorts() goes on)
+    if due:
+        cohort.save(checkpoints, Position(cohort.run, p, k, first))
+        checkpoints.stop_if_asked()
+
+
 #: seconds between two :func:`trim_memory` calls (between runs). Every 50 runs, as before,
 #: was ~20 times a second for Fig. 6B: each call hands back the pages the writer thread freed,
 #: which the next runs fault in again
@@ -537,8 +617,13 @@ def run(
     background_writes: bool = True,
     task: Task | None = None,
     replace: bool = False,
+    resume: bool = False,
 ) -> Path:
     """Build and execute a task into ``run_dir``; write config, manifest and done marker.
+
+    ``resume``: go on from the run folder's checkpoint (:mod:`cobelrun.checkpoint`; one
+    CheckpointError line if it has none or it was written by another cobel version or for
+    another config).
 
     Returns the run folder. On Ctrl-C or SIGTERM the files written so far are closed properly,
     the manifest says ``interrupted`` and :class:`KeyboardInterrupt` propagates.
@@ -555,12 +640,20 @@ def run(
     assert isinstance(resolved, Mapping)
     if task is None:
         task = build_task(cfg)  # everything is checked before the folder is touched
-    if not replace:
+    if not (replace or resume):
         _check_new(run_dir)
     with RunLock(run_dir):
-        if not replace:
+        if not (replace or resume):
             _check_new(run_dir)  # again, now that no one else can write it
-        return _run(cfg, run_dir, resolved, task, progress, background_writes)
+        checkpoints = None
+        if task.job is None and (task.checkpoint.enabled or resume):
+            checkpoints = RunCheckpoints(RunFolder(run_dir), task.checkpoint,
+                                         config_hash(resolved))  # fmt: skip
+            if resume:
+                if RunFolder(run_dir).done.exists():
+                    raise CobelError(f"cannot resume {run_dir}: the run completed already")
+                checkpoints.open_resume()  # checked before anything is written
+        return _run(cfg, run_dir, resolved, task, progress, background_writes, checkpoints)
 
 
 def _check_new(run_dir: Path) -> None:
@@ -570,15 +663,21 @@ def _check_new(run_dir: Path) -> None:
 
 
 def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task,
-         progress: Any, background_writes: bool) -> Path:  # fmt: skip
+         progress: Any, background_writes: bool,
+         checkpoints: RunCheckpoints | None = None) -> Path:  # fmt: skip
     folder = RunFolder(run_dir)
     manifest = Manifest(run_dir)
     extra = (
         {"job": str(cfg.task.job._target_)}
         if task.job is not None
         else {"runs": task.runs, "trials": task.protocol.n_trials, "kept": kept(task),
-              "batch_runs": {"runs_at_once": task.batch, "why_not": task.batch_note}}
+              "batch_runs": {"runs_at_once": task.batch, "why_not": task.batch_note},
+              "checkpoint": {"every_trials": task.checkpoint.every_trials,
+                             "every_minutes": task.checkpoint.every_minutes,
+                             "keep": task.checkpoint.keep}}
     )  # fmt: skip
+    if checkpoints is not None and checkpoints.resumed is not None:
+        extra["resumed_from"] = checkpoints.resumed.get("position")
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(folder.config, OmegaConf.to_yaml(OmegaConf.create(resolved)))
@@ -588,17 +687,19 @@ def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task
     metadata = {"cobel.version": __version__, "cobel.seed": str(task.seed),
                 "cobel.config_hash": config_hash(resolved)}  # fmt: skip
     t0 = time.perf_counter()
-    guard = SignalGuard()
+    guard = SignalGuard(defer=checkpoints is not None)
+    if checkpoints is not None:
+        checkpoints.guard = guard
     phase_times: dict[str, float] = {}
     cpu_times: dict[str, float] = {}
     with guard.installed():
         try:
             result = execute(task, run_dir, progress=progress, background_writes=background_writes,
                              guard=guard, metadata=metadata, phase_times=phase_times,
-                             cpu_times=cpu_times)  # fmt: skip
+                             cpu_times=cpu_times, checkpoints=checkpoints)  # fmt: skip
         except KeyboardInterrupt:
             with guard.closing():
-                manifest.finish("interrupted")
+                manifest.finish("interrupted", **_checkpoint_note(checkpoints))
             raise
         except BaseException as exc:
             disk = is_disk_error(exc)
@@ -622,6 +723,9 @@ def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task
                         task.objective(pd.read_parquet(folder.table("trials")))
                     )
                     summary["objective_name"] = str(getattr(task.objective, "name", "objective"))
+                if checkpoints is not None:
+                    summary.update(_checkpoint_note(checkpoints))
+                    checkpoints.finish()
                 manifest.finish(
                     "completed", wall_time_s=round(time.perf_counter() - t0, 3), **summary
                 )
@@ -632,6 +736,15 @@ def _run(cfg: DictConfig, run_dir: Path, resolved: Mapping[str, Any], task: Task
                 _finish_failed(manifest, error)
             raise CobelError(f"{error}; {_kept(folder)}") from exc
     return run_dir
+
+
+def _checkpoint_note(checkpoints: RunCheckpoints | None) -> dict[str, Any]:
+    """For the manifest: the checkpoints this process wrote (how many, the largest)."""
+    if checkpoints is None or not checkpoints.sizes:
+        return {}
+    return {"checkpoints": {"written": len(checkpoints.sizes),
+                            "largest_bytes": max(checkpoints.sizes),
+                            "file": checkpoints.folder.checkpoint.name}}  # fmt: skip
 
 
 def _finish_failed(manifest: Manifest, error: str) -> None:

@@ -34,6 +34,7 @@ from pydantic_core import PydanticCustomError
 from cobelrun.errors import ConfigError, allowed_list, suggest
 
 __all__ = [
+    "CheckpointSpec",
     "PhaseSpec",
     "ProtocolSpec",
     "RecordSpec",
@@ -171,6 +172,21 @@ class RecordSpec(Spec):
     ] = 0.0
 
 
+class CheckpointSpec(Spec):
+    """When a run writes checkpoints (``task.checkpoint``; see
+    :class:`cobelrun.checkpoint.CheckpointConfig`)."""
+
+    every_trials: Annotated[
+        Literal["auto"] | Annotated[int, Field(ge=1, le=INT32_MAX)] | None,
+        Expect("auto, null or an integer >= 1"),
+    ] = "auto"
+    every_minutes: Annotated[
+        Literal["auto"] | Annotated[float, Field(gt=0, allow_inf_nan=False)] | None,
+        Expect("auto, null or a number > 0"),
+    ] = "auto"
+    keep: Flag = False
+
+
 class TaskSpec(Spec):
     """A task (``task.*``): name, runs, protocol, monitors, record, save_agents, job."""
 
@@ -194,6 +210,8 @@ class TaskSpec(Spec):
         Literal["auto"] | bool | Annotated[int, Field(ge=1, le=INT32_MAX)],
         Expect("auto, true, false or a number of runs >= 1"),
     ] = "auto"
+    #: checkpoints inside a run (cobelrun.checkpoint): every N trials and/or M minutes
+    checkpoint: CheckpointSpec = CheckpointSpec()
     #: a custom job (``_target_`` node) that replaces the protocol loop
     job: Annotated[dict[str, Any] | None, Expect("a config node with a _target_")] = None
     #: the run's objective (``_target_`` node, see :mod:`cobelrun.objectives`), in the manifest

@@ -16,7 +16,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["Interrupted", "SignalGuard", "critical"]
+__all__ = ["Interrupted", "SignalGuard", "Stopped", "critical"]
 
 _ACTIVE: SignalGuard | None = None
 
@@ -41,7 +41,13 @@ class SignalGuard:
     guard installs nothing (signals go to the main thread anyway).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, defer: bool = False) -> None:
+        #: a run with checkpoints: the first SIGINT/SIGTERM/SIGUSR1 only asks the run to stop
+        #: at its next trial boundary (:attr:`stop_requested`), where it writes a checkpoint
+        #: (cobelrun.checkpoint); a second one stops it at once
+        self.defer = bool(defer)
+        #: the signal that asked a deferring run to stop (None: none yet)
+        self.stop_requested: int | None = None
         self._depth = 0
         self._stopped = False
         self._pending: int | None = None
@@ -55,6 +61,9 @@ class SignalGuard:
                 self._noticed = True
                 print("cobel: finishing the run's files, please wait", file=sys.stderr)
             return
+        if self.defer and self.stop_requested is None:
+            self.stop_requested = signum  # the run stops at its next trial boundary
+            return
         if self._depth:
             self._pending = signum
             return
@@ -67,7 +76,11 @@ class SignalGuard:
         :func:`critical` for the duration."""
         global _ACTIVE
         try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            # SIGUSR1: what SLURM sends ahead of a time limit (sbatch --signal=USR1@90)
+            # SIGUSR2: submitit's preemption signal (SUBMITIT_PREEMPT_SIGNAL)
+            names = ("SIGUSR1", "SIGUSR2") if self.defer else ()
+            extra = tuple(getattr(signal, n) for n in names if hasattr(signal, n))
+            for sig in (signal.SIGINT, signal.SIGTERM, *extra):
                 self._previous[sig] = signal.signal(sig, self._handler)
         except ValueError:  # not the main thread
             self._previous.clear()
@@ -113,3 +126,13 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int = signal.SIGINT) -> None:
         super().__init__(f"received signal {signum}")
         self.signum = signum
+
+
+class Stopped(Interrupted):
+    """A run with checkpoints stopped on a signal after writing its checkpoint: it can be
+    resumed (``cobel resume RUN_DIR``); the CLI exits with
+    :data:`cobelrun.checkpoint.REQUEUE_EXIT`."""
+
+    def __init__(self, signum: int, checkpoint: Any) -> None:
+        super().__init__(signum)
+        self.checkpoint = checkpoint

@@ -261,6 +261,10 @@ class Agent(abc.ABC):
     #: Whether the agent can train many runs as one batched computation (``task.batch_runs``,
     #: :mod:`cobelrun.batched`): it then implements :meth:`batch_learner`.
     batchable: ClassVar[bool] = False
+    #: Whether ``task.checkpoint`` ``auto`` writes checkpoints of this agent's runs
+    #: (:mod:`cobelrun.checkpoint`): the deep and episodic agents, whose runs take minutes to
+    #: hours; tabular runs are cheaper to run again.
+    checkpoint_by_default: ClassVar[bool] = False
 
     def __init__(self, env: gym.Env, *, seed: SeedLike = None) -> None:
         self.check_spaces(env)
@@ -428,6 +432,35 @@ class Agent(abc.ABC):
         """Check (ValueError) and keep :meth:`state_meta` of a file; called by :meth:`load`
         before :meth:`set_state`, and it must not change the agent yet."""
         return None  # a hook: nothing by default
+
+    # -- checkpoints (cobelrun.checkpoint) ---------------------------------------------------
+    # Everything the agent needs to go on as if it had never stopped: the learned state of
+    # get_state (checked against state_schema) plus the agent's generator. Agents that carry
+    # more between train/test calls (replay memories, optimiser moments, counters, generators
+    # of a library) extend these three methods.
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        """Every array of :meth:`checkpoint_state` and what it must look like."""
+        return dict(self.state_schema())
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The agent's arrays and JSON state at a trial boundary (between ``train``/``test``
+        calls): :meth:`get_state`, :meth:`state_meta` and the generator's state."""
+        from cobelrun.checkpoint import generator_state
+
+        return dict(self.get_state()), {"state": self.state_meta(),
+                                        "rng": generator_state(self.rng)}  # fmt: skip
+
+    def restore_checkpoint(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> None:
+        """Restore :meth:`checkpoint_state` (arrays already checked against
+        :meth:`checkpoint_schema`); ValueError, with nothing changed, if the rest does not fit."""
+        from cobelrun.checkpoint import set_generator_state
+
+        self.check_state(arrays)
+        self.set_state_meta(meta.get("state") or {})
+        probe = np.random.Generator(type(self.rng.bit_generator)())
+        set_generator_state(probe, meta.get("rng"), "agent generator")
+        self.set_state(arrays)
+        set_generator_state(self.rng, meta.get("rng"), "agent generator")
 
     @classmethod
     def agent_name(cls) -> str:

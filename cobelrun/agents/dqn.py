@@ -327,6 +327,7 @@ class DQNAgent(Agent):
     observation_spaces = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.Dict)
     action_spaces = (gym.spaces.Discrete,)
     batchable = True
+    checkpoint_by_default = True
 
     def __init__(
         self,
@@ -726,3 +727,137 @@ class DQNAgent(Agent):
         self._pending_groups = None
         m.num_timesteps = int(arrays["num_timesteps"])
         m._n_calls = int(arrays["n_calls"])
+
+    # -- checkpoints (cobelrun.checkpoint) ------------------------------------------------------
+    # Besides the learned state (weights, Adam): the replay memory (its filled rows, position
+    # and PER sum tree), the numpy and torch generator states the agent swaps in around SB3,
+    # the private action space's generator, and SB3's counters. Between train/test calls
+    # nothing else carries over (each call starts a fresh trial with its own reset).
+    def _replay_arrays(self) -> dict[str, np.ndarray]:
+        """The replay memory's filled rows, by ``FIELD`` or ``FIELD.KEY`` (Dict observations)."""
+        buf = self.model.replay_buffer
+        n = buf.buffer_size if buf.full else buf.pos
+        out: dict[str, np.ndarray] = {}
+        for field in _REPLAY_FIELDS:
+            value = getattr(buf, field, None)
+            if isinstance(value, dict):
+                out.update({f"{field}.{k}": v[:n] for k, v in value.items()})
+            elif value is not None:
+                out[field] = value[:n]
+        return out
+
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        schema = super().checkpoint_schema()
+        buf = self.model.replay_buffer
+        for key, arr in self._replay_arrays().items():
+            finite = arr.dtype.kind == "f"
+            schema[f"replay.{key}"] = ArraySpec((None, *arr.shape[1:]), arr.dtype.kind,
+                                                finite=finite)  # fmt: skip
+        schema["rng.numpy_keys"] = ArraySpec((624,), "u")
+        schema["rng.torch"] = ArraySpec((int(self._torch_state.numel()),), "u")
+        if isinstance(buf, PrioritizedReplayBuffer):
+            width = 2 * buf.tree.size
+            schema["per.sums"] = ArraySpec((width,), "f", low=0)
+            schema["per.mins"] = ArraySpec((width,), "f", low=0, finite=False)
+        return schema
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        from cobelrun.checkpoint import generator_state
+
+        arrays, meta = super().checkpoint_state()
+        m, buf = self.model, self.model.replay_buffer
+        arrays.update({f"replay.{k}": v for k, v in self._replay_arrays().items()})
+        kind, keys, pos, has_gauss, gauss = self._np_state
+        arrays["rng.numpy_keys"] = np.asarray(keys, np.uint32)
+        arrays["rng.torch"] = self._torch_state.numpy().copy()
+        meta["numpy"] = {"kind": str(kind), "pos": int(pos), "has_gauss": int(has_gauss),
+                         "cached_gaussian": float(gauss)}  # fmt: skip
+        meta["action_space"] = generator_state(m.action_space.np_random)
+        meta["sb3"] = {"n_updates": int(m._n_updates), "episode_num": int(m._episode_num),
+                       "exploration_rate": float(m.exploration_rate),
+                       "progress_remaining": float(m._current_progress_remaining)}  # fmt: skip
+        meta["replay"] = {"pos": int(buf.pos), "full": bool(buf.full)}
+        if isinstance(buf, PrioritizedReplayBuffer):
+            arrays["per.sums"] = buf.tree.sums
+            arrays["per.mins"] = buf.tree.mins
+            meta["per"] = {"max_priority": float(buf.max_priority),
+                           "n_sampled": int(buf.n_sampled), "rng": generator_state(buf.rng)}  # fmt: skip
+        return arrays, meta
+
+    def restore_checkpoint(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> None:
+        from cobelrun.checkpoint import set_generator_state
+
+        m, buf = self.model, self.model.replay_buffer
+        replay = meta.get("replay")
+        if not isinstance(replay, dict):
+            raise ValueError("replay: expected {pos, full}")
+        pos, full = replay.get("pos"), replay.get("full")
+        if not isinstance(full, bool) or not isinstance(pos, int) or not 0 <= pos < buf.buffer_size:
+            raise ValueError(f"replay: pos must be in [0, {buf.buffer_size}) and full a bool")
+        n = buf.buffer_size if full else pos
+        for key in self._replay_arrays():
+            if len(arrays[f"replay.{key}"]) != n:
+                raise ValueError(f"replay.{key}: expected {n} rows, got "
+                                 f"{len(arrays[f'replay.{key}'])}")  # fmt: skip
+        numpy = meta.get("numpy")
+        if not isinstance(numpy, dict) or numpy.get("kind") != "MT19937":
+            raise ValueError("numpy: expected an MT19937 state")
+        np_state = ("MT19937", np.asarray(arrays["rng.numpy_keys"], np.uint32),
+                    int(numpy["pos"]), int(numpy["has_gauss"]), float(numpy["cached_gaussian"]))  # fmt: skip
+        try:
+            np.random.RandomState().set_state(np_state)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"numpy: not a valid MT19937 state ({exc})") from None
+        sb3 = meta.get("sb3")
+        if not isinstance(sb3, dict) or not all(
+            isinstance(sb3.get(k), int) and sb3[k] >= 0 for k in ("n_updates", "episode_num")
+        ):
+            raise ValueError("sb3: expected counters n_updates and episode_num >= 0")
+        for key in ("exploration_rate", "progress_remaining"):
+            value = sb3.get(key)
+            if not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"sb3.{key}: expected a number in [0, 1]")
+        probe = np.random.Generator(np.random.PCG64())
+        set_generator_state(probe, meta.get("action_space"), "action space generator")
+        per = meta.get("per") if isinstance(buf, PrioritizedReplayBuffer) else None
+        if isinstance(buf, PrioritizedReplayBuffer):
+            if not isinstance(per, dict):
+                raise ValueError("per: expected the prioritized replay state")
+            set_generator_state(np.random.Generator(np.random.PCG64()), per.get("rng"),
+                                "replay generator")  # fmt: skip
+            if not isinstance(per.get("n_sampled"), int) or per["n_sampled"] < 0:
+                raise ValueError("per.n_sampled: expected an integer >= 0")
+            mp = per.get("max_priority")
+            if not isinstance(mp, int | float) or not np.isfinite(mp) or mp <= 0:
+                raise ValueError("per.max_priority: expected a number > 0")
+        torch_state = torch.from_numpy(np.array(arrays["rng.torch"], np.uint8))
+        try:
+            torch.Generator().set_state(torch_state)
+        except RuntimeError as exc:
+            raise ValueError(f"torch generator: not a valid state ({exc})") from None
+        super().restore_checkpoint(arrays, meta)  # weights, Adam, counters, agent generator
+        for key in self._replay_arrays():
+            field, _, sub = key.partition(".")
+            target = getattr(buf, field)
+            target = target[sub] if sub else target
+            target[:n] = arrays[f"replay.{key}"]
+        buf.pos, buf.full = pos, full
+        self._np_state = np_state
+        self._torch_state = torch_state
+        set_generator_state(m.action_space.np_random, meta["action_space"], "action space")
+        m._n_updates, m._episode_num = sb3["n_updates"], sb3["episode_num"]
+        # the rate of a call's first step is the one the last step left (SB3 sets it after
+        # each step): a fresh model's is 0 until its first step
+        m.exploration_rate = float(sb3["exploration_rate"])
+        m._current_progress_remaining = float(sb3["progress_remaining"])
+        if isinstance(buf, PrioritizedReplayBuffer):
+            assert per is not None
+            buf.tree.sums[...] = arrays["per.sums"]
+            buf.tree.mins[...] = arrays["per.mins"]
+            buf.max_priority = float(per["max_priority"])
+            buf.n_sampled = int(per["n_sampled"])
+            set_generator_state(buf.rng, per["rng"], "replay generator")
+
+
+#: the arrays of SB3's replay memory a checkpoint keeps (filled rows only)
+_REPLAY_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")

@@ -318,6 +318,32 @@ class DynaDeepAgent(Agent):
         }
         return {**arrays, **self.memory.state_dict()}
 
+    # -- checkpoints: the learned state plus the trained networks' Adam moments ---------------
+    checkpoint_by_default = True
+
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        schema = super().checkpoint_schema()
+        for name, net in self.networks().items():
+            for key, (shape, non_negative) in net.optimizer_schema().items():
+                schema[f"optim.{name}.{key}"] = ArraySpec(
+                    shape, "f", low=0 if non_negative else None
+                )
+        return schema
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays, meta = super().checkpoint_state()
+        for name, net in self.networks().items():
+            arrays.update({f"optim.{name}.{k}": v for k, v in net.optimizer_state().items()})
+        return arrays, meta
+
+    def restore_checkpoint(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> None:
+        super().restore_checkpoint(arrays, meta)
+        for name, net in self.networks().items():
+            prefix = f"optim.{name}."
+            net.set_optimizer_state(
+                {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+            )
+
     def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         for name, net in self._all_networks().items():
             prefix = f"{name}."

@@ -186,6 +186,8 @@ class MFEC(Agent):
 
     observation_spaces = (gym.spaces.Box, gym.spaces.Discrete)
     action_spaces = (gym.spaces.Discrete,)
+    #: a checkpoint is its buffers (get_state) and generator; the memos are exact, rebuilt
+    checkpoint_by_default = True
 
     def __init__(
         self,

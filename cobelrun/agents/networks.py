@@ -90,6 +90,18 @@ class Network(abc.ABC):
     def set_weights(self, weights: dict[str, np.ndarray]) -> None:
         """Restore parameters written by :meth:`get_weights`."""
 
+    def optimizer_state(self) -> dict[str, np.ndarray]:
+        """The optimiser's state as named arrays (checkpoints; default: none)."""
+        return {}
+
+    def optimizer_schema(self) -> dict[str, tuple[tuple[int, ...], bool]]:
+        """Shape and non-negativity of every array of :meth:`optimizer_state`."""
+        return {}
+
+    def set_optimizer_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore :meth:`optimizer_state` (shapes already checked)."""
+        return None  # a hook: nothing by default
+
     @abc.abstractmethod
     def layer_names(self) -> list[str]:
         """Names accepted by :meth:`activations`."""
@@ -243,6 +255,44 @@ class TorchMLP(Network):
             for i, b in enumerate(self.biases):
                 if b is not None:
                     b.copy_(torch.as_tensor(weights[f"b{i}"]))
+
+    # -- optimiser state (checkpoints) ----------------------------------------------------
+    # Adam's step count and moments per parameter, in parameters() order. A parameter Adam has
+    # not stepped yet is saved as step 0 with zero moments: the state Adam starts from.
+    def optimizer_schema(self) -> dict[str, tuple[tuple[int, ...], bool]]:
+        out: dict[str, tuple[tuple[int, ...], bool]] = {}
+        for i, p in enumerate(self.parameters()):
+            out[f"{i}.step"] = ((), True)
+            out[f"{i}.exp_avg"] = (tuple(p.shape), False)
+            out[f"{i}.exp_avg_sq"] = (tuple(p.shape), True)
+        return out
+
+    def optimizer_state(self) -> dict[str, np.ndarray]:
+        state = self.optimizer.state_dict()["state"]
+        out: dict[str, np.ndarray] = {}
+        for i, p in enumerate(self.parameters()):
+            st = state.get(i, {})
+            out[f"{i}.step"] = np.array(float(st.get("step", 0.0)), np.float32)
+            for key in ("exp_avg", "exp_avg_sq"):
+                value = st.get(key)
+                out[f"{i}.{key}"] = (
+                    np.zeros(tuple(p.shape), np.float32)
+                    if value is None
+                    else value.detach().numpy().copy()
+                )
+        return out
+
+    def set_optimizer_state(self, arrays: dict[str, np.ndarray]) -> None:
+        state = {
+            i: {
+                "step": torch.tensor(float(arrays[f"{i}.step"]), dtype=torch.float32),
+                "exp_avg": torch.tensor(np.asarray(arrays[f"{i}.exp_avg"], np.float32)),
+                "exp_avg_sq": torch.tensor(np.asarray(arrays[f"{i}.exp_avg_sq"], np.float32)),
+            }
+            for i in range(len(self.parameters()))
+        }
+        groups = self.optimizer.state_dict()["param_groups"]
+        self.optimizer.load_state_dict({"state": state, "param_groups": groups})
 
     # -- introspection --------------------------------------------------------------------
     def layer_names(self) -> list[str]:

@@ -84,6 +84,7 @@ class AgentArchive:
         self._bytes = 0
         self._last = time.monotonic()
         self._n_parts = 0
+        self._n_agents = 0
         self._closed = False
         self._meta: dict[str, Any] = {}
         self._meta_json: str | None = None
@@ -118,6 +119,61 @@ class AgentArchive:
             np.savez(fh, **_pack(batch))
         os.replace(tmp, path)
         self._n_parts += 1
+        self._n_agents += len(batch)
+
+    @property
+    def durable(self) -> int:
+        """Agents written in parts so far (buffered ones not counted)."""
+        return self._n_agents
+
+    def resume(self, agents: int) -> None:
+        """Start from the first ``agents`` agents the run folder already holds (a checkpoint's
+        watermark): the finished archive of a stopped job (written again as the first part)
+        or the parts of a killed one (kept; later ones removed). ValueError if it holds
+        fewer."""
+        agents = int(agents)
+        files = sorted(self.parts_dir.glob("part-*.npz")) if self.parts_dir.is_dir() else []
+        if self.path.is_file() and len(runs_in(self.path)) >= agents:
+            if self.parts_dir.is_dir():
+                shutil.rmtree(self.parts_dir)
+            if agents:
+                with np.load(self.path, allow_pickle=False) as npz:
+                    first = _first_agents({k: npz[k] for k in npz.files}, agents)
+                self._write_packed(first, agents)
+            return
+        for k, f in enumerate(files):
+            if self._n_agents >= agents:
+                f.unlink()
+                continue
+            if f.name != f"part-{k:06d}.npz":
+                raise ValueError(f"{self.parts_dir}: part {f.name} is out of sequence")
+            with np.load(f, allow_pickle=False) as npz:
+                n = len(npz[RUNS])
+                if self._n_agents + n > agents:
+                    packed = _first_agents({k: npz[k] for k in npz.files}, agents - self._n_agents)
+                else:
+                    packed = None
+            if packed is not None:
+                f.unlink()
+                self._write_packed(packed, agents - self._n_agents)
+            else:
+                self._n_parts += 1
+                self._n_agents += n
+        if self._n_agents < agents:
+            raise ValueError(
+                f"{self.path.name}: the run folder holds {self._n_agents} agents, the "
+                f"checkpoint {agents}"
+            )
+
+    def _write_packed(self, packed: Mapping[str, np.ndarray], n: int) -> None:
+        self.parts_dir.mkdir(parents=True, exist_ok=True)
+        path = self.parts_dir / f"part-{self._n_parts:06d}.npz"
+        tmp = path.with_name(f".{path.name}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **packed)
+        os.replace(tmp, path)
+        self._n_parts += 1
+        self._n_agents += n
 
     def close(self) -> None:
         """Write what is buffered and merge every batch into the archive (idempotent)."""
@@ -126,6 +182,19 @@ class AgentArchive:
         self._closed = True
         self.write_batch(self.take())
         merge_agent_parts(self.parts_dir, self.path)
+
+
+def _first_agents(packed: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """The first ``n`` agents of arrays in the archive layout (:func:`_pack`)."""
+    out = {RUNS: packed[RUNS][:n], META: packed[META][:n]}
+    for key, value in packed.items():
+        if key in (RUNS, META) or key.endswith(SHAPE):
+            continue
+        shapes = packed[key + SHAPE][:n]
+        size = int(np.prod(shapes, axis=1).sum()) if len(shapes) else 0
+        out[key] = value[:size]
+        out[key + SHAPE] = shapes
+    return out
 
 
 def merge_agent_parts(parts_dir: str | os.PathLike[str], path: str | os.PathLike[str]) -> int:

@@ -16,7 +16,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any
 
-__all__ = ["repair_mcap"]
+__all__ = ["join_mcap", "repair_mcap"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 
@@ -224,3 +224,68 @@ def _partial_chunk(data: bytes, body_start: int) -> Iterator[Any]:
 
 
 # ---------------------------------------------------------------------------- transitional
+
+
+def join_mcap(
+    first: str | os.PathLike[str],
+    second: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    until_ns: int,
+) -> None:
+    """Write one MCAP of ``first``'s messages logged before ``until_ns`` and all of
+    ``second``'s (a run resumed from a checkpoint: the stream up to the checkpoint, then the
+    resumed process's). Metadata and attachments are taken from ``first`` (``second`` repeats
+    them); schemas and channels of both are kept. ``out`` may be ``second``: the result is
+    written to a temporary file and renamed."""
+    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
+    from mcap.writer import CompressionType, Writer
+
+    out = Path(out)
+    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".join", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            writer: Any = None
+            for source, index in ((Path(first), 0), (Path(second), 1)):
+                schema_ids: dict[int, int] = {0: 0}
+                channel_ids: dict[int, int] = {}
+                for rec in _complete_records(source.read_bytes()):
+                    if isinstance(rec, Header):
+                        if writer is None:
+                            writer = Writer(fh, compression=CompressionType.ZSTD)
+                            writer.start(profile=rec.profile, library=rec.library)
+                        continue
+                    if writer is None:
+                        writer = Writer(fh, compression=CompressionType.ZSTD)
+                        writer.start(profile="", library="")
+                    if isinstance(rec, Schema) and rec.id not in schema_ids:
+                        schema_ids[rec.id] = writer.register_schema(
+                            rec.name, rec.encoding, rec.data
+                        )
+                    elif isinstance(rec, Channel):
+                        if rec.id not in channel_ids and rec.schema_id in schema_ids:
+                            channel_ids[rec.id] = writer.register_channel(
+                                rec.topic, rec.message_encoding, schema_ids[rec.schema_id],
+                                dict(rec.metadata),
+                            )  # fmt: skip
+                    elif isinstance(rec, Message):
+                        cid = channel_ids.get(rec.channel_id)
+                        if cid is None or (index == 0 and rec.log_time >= until_ns):
+                            continue
+                        if index == 1 and rec.log_time < until_ns:
+                            continue  # the scene the resumed process logs again at the start
+                        writer.add_message(cid, rec.log_time, rec.data, rec.publish_time,
+                                           rec.sequence)  # fmt: skip
+                    elif index == 0 and isinstance(rec, Metadata):
+                        writer.add_metadata(rec.name, dict(rec.metadata))
+                    elif index == 0 and isinstance(rec, Attachment):
+                        writer.add_attachment(rec.create_time, rec.log_time, rec.name,
+                                              rec.media_type, rec.data)  # fmt: skip
+            if writer is None:
+                raise ValueError(f"{first} and {second} hold no MCAP records")
+            writer.finish()
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

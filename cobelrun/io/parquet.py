@@ -428,6 +428,56 @@ class PartedTableWriter:
         if self._n_pending >= self.row_group_rows:
             self._write_row_groups()
 
+    def resume(self, rows: int) -> None:
+        """Start from the first ``rows`` rows the run folder already holds for this table (a
+        checkpoint's watermark), before anything else is written: the finished file of a
+        stopped run, or the parts of a killed one; rows after them belong to trials the
+        resumed run does again and are dropped.
+
+        The parts that hold those rows are kept as they are (a kill during the resumed run
+        still leaves every row in parts); from a finished file they are written again as
+        parts. ValueError if the folder holds fewer rows than ``rows``.
+        """
+        if self.rows_written or self._n_parts:
+            raise RuntimeError(f"resume {self.path.name} before writing to it")
+        rows = int(rows)
+        parts = _part_files(self.parts_dir)
+        if self.path.is_file() and _rows_of(self.path) >= rows:
+            _remove_parts(self.parts_dir)  # left by a resume that was stopped itself
+            source = pq.ParquetFile(self.path)
+            taken = 0
+            for batch in source.iter_batches(batch_size=self.row_group_rows):
+                if taken >= rows:
+                    break
+                table = pa.Table.from_batches([batch]).slice(0, rows - taken)
+                taken += table.num_rows
+                self.write_part(table.cast(self.schema))
+            source.close()
+            return
+        taken = 0
+        for k, part in enumerate(parts):
+            if taken >= rows:
+                part.unlink()  # rows of trials the resumed run does again
+                continue
+            with pa.OSFile(str(part), "rb") as src:
+                table = pa.ipc.open_file(src).read_all()
+            if part.name != f"part-{k:06d}{PART_SUFFIX}":
+                raise ValueError(f"{self.parts_dir}: part {part.name} is out of sequence")
+            if taken + table.num_rows > rows:  # a part across the watermark: cut it
+                table = table.slice(0, rows - taken)
+                _write_part(table, part)
+            taken += table.num_rows
+            self._n_parts += 1
+            self.rows_written += table.num_rows
+            self._pending.append(table.cast(self.schema))
+            self._n_pending += table.num_rows
+            if self._n_pending >= self.row_group_rows:
+                self._write_row_groups()
+        if taken < rows:
+            raise ValueError(
+                f"{self.path.name}: the run folder holds {taken} rows of it, the checkpoint {rows}"
+            )
+
     def _write_row_groups(self) -> None:
         if self._pq is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -459,6 +509,18 @@ class PartedTableWriter:
             self._tmp.unlink(missing_ok=True)
             raise
         _remove_parts(self.parts_dir)
+
+
+def _part_files(parts_dir: Path) -> list[Path]:
+    return sorted(parts_dir.glob(f"part-*{PART_SUFFIX}")) if parts_dir.is_dir() else []
+
+
+def _rows_of(path: Path) -> int:
+    """Rows of a finished Parquet file (-1 if it cannot be read: no footer, damaged)."""
+    try:
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    except Exception:
+        return -1
 
 
 def merge_parts(

@@ -15,6 +15,8 @@
                            the end; left behind only by a killed run, see :mod:`cobelrun.io.repair`)
       training/run_0007/   deep agents' training curves (record.training_log: SB3 CSV/TensorBoard)
       .parts-agents/       batches of agents while a run is going (merged into agents.npz)
+      checkpoint.npz       the last checkpoint of a run that is going or stopped (removed when it
+                           completes unless task.checkpoint.keep; cobelrun.checkpoint)
       .done                written last, only when the run completed
 
 Readers and writers ask :class:`RunFolder` for paths; no other module spells a file name.
@@ -84,6 +86,16 @@ class RunFolder:
         return self.path / self.MCAP
 
     @property
+    def checkpoint(self) -> Path:
+        """The run's last checkpoint (:mod:`cobelrun.checkpoint`), while it runs or stopped."""
+        return self.path / "checkpoint.npz"
+
+    @property
+    def mcap_before_resume(self) -> Path:
+        """A resumed run's MCAP from before the resume, until it is joined with the new one."""
+        return self.path / ".run-before-resume.mcap"
+
+    @property
     def done(self) -> Path:
         return self.path / self.DONE
 
@@ -148,6 +160,7 @@ class RunFolder:
         to the sweep). A rerun removes exactly these."""
         fixed = [self.config, self.manifest, self.world, self.mcap, self.agents, self.training, self.done,
                  self.agents_archive, self.agent_parts, self.path / self.PARTS,
+                 self.checkpoint, self.mcap_before_resume,
                  *(self.path / p for p in self.PLOTS)]  # fmt: skip
         seen = set()
         for p in [*fixed, *(self.table(t) for t in self.tables()),

@@ -15,7 +15,7 @@ means the per-step Python path.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 import pyarrow as pa
@@ -50,6 +50,9 @@ class ActivityMonitor(Monitor, TrialCallback):
         (n, ...) probe observations; default: the environment's ``observations`` (one per
         state), or the state indices of an environment that observes indices.
     """
+
+    #: a run's snapshot bookkeeping, kept by checkpoints
+    checkpoint_fields: ClassVar[tuple[str, ...]] = ("_run", "_last", "layers")
 
     def __init__(
         self, layers: Sequence[str] | None = None, every: int = 10, probes: Any = None

@@ -163,6 +163,10 @@ class Monitor(abc.ABC):
     #: tables alone.
     joinable: ClassVar[bool] = False
 
+    #: attributes (JSON values: numbers, strings, lists of them, None) that carry a run's state
+    #: from one batch to the next; a checkpoint saves them (:mod:`cobelrun.checkpoint`)
+    checkpoint_fields: ClassVar[tuple[str, ...]] = ()
+
     _emit: Emit | None = None
 
     @abc.abstractmethod
@@ -219,6 +223,26 @@ class Monitor(abc.ABC):
 
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:  # noqa: B027
         """The run's last trial is over."""
+
+    # -- checkpoints -----------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict[str, Any]:
+        """The run's state between batches (the :attr:`checkpoint_fields`), JSON-ready."""
+        return {name: _json_value(getattr(self, name)) for name in self.checkpoint_fields}
+
+    def resume_run(self, run: int, agent: Any, state: Mapping[str, Any]) -> None:
+        """Go on with run ``run`` from a checkpoint: restore :meth:`checkpoint_state` instead
+        of :meth:`start_run` (whose rows, e.g. a trial-0 snapshot, are written already).
+        ValueError if ``state`` does not fit (nothing changed)."""
+        if not isinstance(state, Mapping) or set(state) != set(self.checkpoint_fields):
+            raise ValueError(
+                f"monitor {type(self).__name__}: expected the fields {list(self.checkpoint_fields)}"
+            )
+        for name in self.checkpoint_fields:
+            value, own = state[name], getattr(self, name)
+            if not _same_kind(value, own):
+                raise ValueError(f"monitor {type(self).__name__}.{name}: got {value!r}")
+        for name in self.checkpoint_fields:
+            setattr(self, name, state[name])
 
 
 @dataclass(frozen=True)
@@ -277,3 +301,28 @@ class TrialColumnsMonitor(Monitor):
 
     def on_batch(self, batch: TrialBatch, info: BatchInfo) -> dict[str, dict[str, np.ndarray]]:
         return {"trials": self.columns(batch, info.env)}
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, tuple | list):
+        return [_json_value(v) for v in value]
+    return value
+
+
+def _same_kind(value: Any, own: Any) -> bool:
+    """Whether a restored field ``value`` is of the kind of the live ``own`` (None fits any)."""
+    if value is None or own is None:
+        return value is None or isinstance(value, str | int | float | list)
+    if isinstance(own, bool) or isinstance(value, bool):
+        return isinstance(value, bool) and isinstance(own, bool)
+    if isinstance(own, int | np.integer):
+        return isinstance(value, int)
+    if isinstance(own, float):
+        return isinstance(value, int | float)
+    if isinstance(own, str):
+        return isinstance(value, str)
+    if isinstance(own, list | tuple):
+        return isinstance(value, list) and all(isinstance(v, str | int | float) for v in value)
+    return False

@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -57,6 +57,9 @@ class ActivityMapMonitor(ActivityMonitor):
     batch_size
         Views per forward pass.
     """
+
+    #: a run's snapshot bookkeeping and whether the grid rows are written, kept by checkpoints
+    checkpoint_fields: ClassVar[tuple[str, ...]] = ("_run", "_last", "layers", "_grid_written")
 
     requires = ("observe_grid",)
 

@@ -54,6 +54,11 @@ class ReplayMonitor(Monitor):
             raise ConfigError(f"replays monitor: {type(agent).__name__}.last_replays is no dict")
         self._agent = agent
 
+    def resume_run(self, run: int, agent: Any, state: Any) -> None:
+        """A run continued from a checkpoint: its agent, as :meth:`start_run`."""
+        super().resume_run(run, agent, state)
+        self.start_run(run, agent)
+
     def end_run(self, run: int, agent: Any, last_trial: int) -> None:
         self._agent = None
 

@@ -4,7 +4,7 @@ always the first monitor), reward, escape latency and response coding."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -86,6 +86,9 @@ class ResponseMonitor(TrialColumnsMonitor):
         one of ``states`` before any of ``before`` (the first choice), wherever it ends. When
         both are terminal this is the same as the end-state coding.
     """
+
+    #: the running response count, kept by checkpoints
+    checkpoint_fields: ClassVar[tuple[str, ...]] = ("_cumulative",)
 
     def __init__(self, states: Sequence[Any], before: Sequence[Any] | None = None) -> None:
         if isinstance(states, (str, int)):

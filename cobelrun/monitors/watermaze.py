@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -31,6 +31,9 @@ class WaterMazeMonitor(TrialColumnsMonitor):
     dt : float, optional
         Seconds per step (default the environment's ``dt``).
     """
+
+    #: the platform the measures refer to, kept by checkpoints
+    checkpoint_fields: ClassVar[tuple[str, ...]] = ("_target",)
 
     requires = ("pose", "geometry")
 

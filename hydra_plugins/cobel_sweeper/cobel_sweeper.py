@@ -88,6 +88,7 @@ class CobelSweeper(Sweeper):
         from hydra.core.utils import JobStatus
 
         from cobelrun.config import register_resolvers
+        from cobelrun.io.run_folder import RunFolder
         from cobelrun.io.sweep_folder import (
             DONE_MARKER,
             check_job_dir,
@@ -140,7 +141,8 @@ class CobelSweeper(Sweeper):
                 if chash is not None and is_complete(d, chash):
                     self.reused.append(num)
                     continue
-            clear_outputs(d)
+            if not RunFolder(d).checkpoint.is_file():  # a stopped job resumes (or clears) itself
+                clear_outputs(d)
             write_job_status(d, "queued", job=num, overrides=j["overrides"], config_hash=chash)
             pending.append([*j["overrides"], f"hydra.sweep.subdir={num}"])
             self.launched.append(num)

@@ -1,0 +1,62 @@
+"""``cobel resume RUN_DIR``: continue a stopped run from its checkpoint."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+
+HELP = """Continue a stopped run from its checkpoint, in its own folder (docs/clusters.md).
+
+\b
+Examples:
+  cobel resume results/place_cells/2026-01-01/12-00-00_ab12cd34
+\b
+A run writes checkpoints as task.checkpoint says (deep agents: every 10 minutes by default)
+and when it is stopped by SIGTERM, SIGUSR1 or Ctrl-C (it then exits 75). The resumed run's
+tables equal those of the same run without the stop. A checkpoint written by another cobel
+version or for another config is refused. Exit codes: 0 completed, 75 stopped again with a
+new checkpoint (resume again), 2 refused, 130 interrupted.
+"""
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``cobel resume`` to ``app``."""
+
+    @app.command("resume", help=HELP)
+    def resume_cmd(
+        run_dir: Annotated[Path, typer.Argument(help="A stopped run folder.", show_default=False)],
+        quiet: Annotated[bool, typer.Option("--quiet", help="No end-of-run summary.")] = False,
+        allow_target: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
+            ),
+        ] = None,
+    ) -> None:
+        allow_targets(allow_target)
+        from cobelrun.api import resume
+        from cobelrun.checkpoint import REQUEUE_EXIT
+        from cobelrun.commands.common import EXIT_INTERRUPTED, fail
+        from cobelrun.errors import CobelError
+        from cobelrun.progress import progress_enabled
+        from cobelrun.signals import Stopped
+
+        try:
+            result = resume(run_dir, progress=progress_enabled())
+        except CobelError as exc:
+            fail(str(exc))
+        except Stopped as exc:
+            typer.echo(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue "
+                       f"with `cobel resume {run_dir}`", err=True)  # fmt: skip
+            raise typer.Exit(REQUEUE_EXIT) from None
+        except KeyboardInterrupt:
+            fail("interrupted", EXIT_INTERRUPTED)
+        if not quiet:
+            from cobelrun.commands.summary import print_run_summary
+
+            print_run_summary(result.path)
+        typer.echo(str(result.path))

@@ -445,6 +445,7 @@ class OneRun:
         self.task, self.recorder, self.run = task, recorder, run
         self.runs, self.envs = [run], [task.env]
         self.agent = agent = task.make_agent(seed=agent_seed)
+        agent.prepare()  # compiled agents load their trial kernel now, not in the first phase
         if task.record.training_log:
             notes = agent.log_training(folder.training_log(run))
             for note in (notes or []) if run == 0 else []:

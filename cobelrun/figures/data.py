@@ -1,0 +1,261 @@
+"""Figures as data: each figure's summary table as a small CSV with a provenance sidecar.
+
+``python -m cobelrun.figures.data NAME [--quick] [--out DIR]`` builds figure ``NAME`` as
+``cobel figure NAME`` does (finished runs are reused by config hash), then reduces the figure's
+runs to the tables the docs quote and writes, per table, ``DIR/TABLE.csv`` and
+``DIR/TABLE.provenance.json`` (default ``DIR``: ``docs/figures/data`` of the source checkout).
+
+A sidecar holds what made the table: the command, the figure's runs (label, job, seed, config
+hash, run folder name), the cobel commit and whether the tree was dirty (from the runs'
+manifests), the machine, the date and the runs' wall time. Tables that could not be run again
+here (e.g. Fig. 8's 6000-trial runs) are transcribed by hand from the docs that recorded them;
+their sidecars say ``"source": "transcribed"`` and name the doc and the original run.
+
+The reductions (``SUMMARIES``) are per figure: a function ``FigureData -> {table name: frame}``;
+every table also gets a ``quick`` flag in its sidecar, and ``--quick`` tables are written with a
+``_quick`` suffix (``tests/test_figure_data_quick.py`` compares their columns with the
+committed tables').
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from cobelrun.errors import CobelError, allowed_list, suggest
+from cobelrun.figures import registry
+
+#: the committed tables, beside the figure pages
+DATA_DIR = Path(__file__).resolve().parents[2] / "docs" / "figures" / "data"
+
+Summary = Callable[[registry.FigureData], dict[str, pd.DataFrame]]
+
+
+# -- reductions per figure --------------------------------------------------------------------
+
+
+def _block_mean(trials: pd.DataFrame, column: str, lo: int, hi: int) -> pd.Series:
+    """Per run: mean of ``column`` over trials ``lo``..``hi`` (1-based, inclusive)."""
+    rows = trials[(trials["trial"] + 1).between(lo, hi)]
+    return rows.groupby("run")[column].mean()
+
+
+def summary_fig6b(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 6B per run: right-arm response rate and escape latency per block of trials, and
+    the cumulative responses at trials 100 and 200."""
+    from cobelrun.figures.extinction import summarize
+
+    trials = data.trials("dyna_q").sort_values(["run", "trial"])
+    resp = trials.groupby("run")["cumulative_response"].diff()
+    trials = trials.assign(response=resp.fillna(trials["cumulative_response"]))
+    per_run = pd.DataFrame({"run": np.sort(trials["run"].unique())}).set_index("run")
+    for lo, hi in ((91, 100), (101, 110), (111, 120), (191, 200)):
+        per_run[f"right_{lo}_{hi}"] = _block_mean(trials, "response", lo, hi)
+    for t in (100, 200):
+        per_run[f"cumulative_{t}"] = trials[trials["trial"] + 1 == t].set_index("run")[
+            "cumulative_response"
+        ]
+    for lo, hi in ((11, 20), (21, 30), (91, 100), (191, 200)):
+        per_run[f"latency_{lo}_{hi}"] = _block_mean(trials, "steps", lo, hi)
+    lat = summarize(trials, "steps")["mean"]
+    first10 = int(lat.index[lat.to_numpy() <= 10][0]) + 1 if (lat <= 10).any() else -1
+    summary = _means(per_run.reset_index(), extra={"first_trial_mean_latency_le_10": first10})
+    return {"fig6b_runs": per_run.reset_index(), "fig6b": summary}
+
+
+def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Water maze per run: latency and path length per day and phase, probe quadrants."""
+    from cobelrun.figures.watermaze import probe_quadrants
+
+    trials = data.trials("actor_critic")
+    day = trials.groupby(["phase", "run", "day"], sort=False)[
+        ["escape_latency_s", "path_length"]
+    ].mean()
+    per_run = day.reset_index()
+    quads = probe_quadrants(trials)
+    return {"morris_runs": per_run, "morris_probe": quads}
+
+
+def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 7 per run: latency over the first 10 and the last 10 rewarded trials (both
+    groups), the spread of the start state's SR (latent group) at the end of exploration and
+    at the end; and the latent-vs-direct comparison (:func:`two_sample`)."""
+    from cobelrun.figures.latent import world_of
+    from cobelrun.figures.latent_stats import per_run_latency, runs_as_jobs, sr_spread
+    from cobelrun.figures.twosample import two_sample
+
+    one_per_job = all(len(data.runs[g]) > 1 for g in ("latent", "direct"))
+    fix = runs_as_jobs if one_per_job else (lambda t: t)
+    frames = []
+    for g in ("latent", "direct"):
+        frames.append(per_run_latency(fix(data.trials(g))).assign(group=g))
+    per_run = pd.concat(frames, ignore_index=True)
+    activity = fix(data.activity("latent"))
+    world = world_of(data.run_dirs("latent")[0])
+    trials = fix(data.trials("latent"))
+    explore_end = int(trials.loc[trials["phase"] != "rewarded", "trial"].max())
+    snaps = np.sort(activity["trial"].unique())
+    sr = []
+    for label, t in (("end of exploration", explore_end), ("end", int(trials["trial"].max()))):
+        snap = int(snaps[snaps <= t].max())
+        sr.append(sr_spread(activity, world, snap).assign(snapshot=label))
+    lat, dire = (per_run.loc[per_run["group"] == g, "first10"] for g in ("latent", "direct"))
+    comparison = pd.DataFrame([{"measure": "first10", "a": "latent", "b": "direct",
+                                **two_sample(lat, dire)}])  # fmt: skip
+    spread = pd.concat(sr, ignore_index=True)
+    ends = [
+        spread.loc[spread["snapshot"] == s, "mean_distance"] for s in ("end", "end of exploration")
+    ]
+    comparison = pd.concat([comparison, pd.DataFrame([{
+        "measure": "sr_mean_distance", "a": "end", "b": "end of exploration",
+        **two_sample(*ends)}])], ignore_index=True)  # fmt: skip
+    return {"fig7_runs": per_run, "fig7_sr": spread, "fig7_compare": comparison}
+
+
+def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> pd.DataFrame:
+    """Long table ``measure, runs, mean`` of every column but ``run`` (plus ``extra``)."""
+    cols = [c for c in per_run.columns if c != "run"]
+    rows = [{"measure": c, "runs": int(per_run[c].count()), "mean": float(per_run[c].mean())}
+            for c in cols]  # fmt: skip
+    for k, v in (extra or {}).items():
+        rows.append({"measure": k, "runs": len(per_run), "mean": float(v)})
+    return pd.DataFrame(rows)
+
+
+SUMMARIES: dict[str, Summary] = {
+    "fig6b": summary_fig6b,
+    "morris": summary_morris,
+    "fig7": summary_fig7,
+    "fig7_paper": summary_fig7,
+}
+
+
+# -- provenance and writing -------------------------------------------------------------------
+
+
+def figure_data(figure: registry.Figure, *, quick: bool, root: Path) -> registry.FigureData:
+    """The figure's planned runs as :class:`FigureData`; a CobelError if one is unfinished."""
+    from cobelrun.io.sweep_folder import is_complete
+
+    data = registry.FigureData(quick=quick, runs={})
+    for p in registry.plan_runs(figure, quick=quick, root=root):
+        if not is_complete(p.run_dir, p.config_hash):
+            raise CobelError(f"{figure.name}: run {p.run_dir} is not finished; build it first")
+        ref = registry.RunRef(p.label, p.job, tuple(p.overrides), p.params, p.run_dir,
+                              p.config_hash, reused=True)  # fmt: skip
+        data.runs.setdefault(p.label, []).append(ref)
+    return data
+
+
+def provenance(
+    figure: registry.Figure, data: registry.FigureData, *, command: str, table: str
+) -> dict[str, Any]:
+    """The sidecar of one table built from ``data``'s runs (read from their manifests)."""
+    runs, commits, wall, started, machines = [], set(), 0.0, [], set()
+    for label, refs in data.runs.items():
+        for ref in refs:
+            m = json.loads((ref.run_dir / "manifest.json").read_text())
+            git = (m.get("git") or {}).get("cobelrun") or {}
+            commits.add(f"{git.get('commit')}{' (dirty)' if git.get('dirty') else ''}")
+            wall += float(m.get("wall_time_s") or 0.0)
+            started.append(m.get("started_at"))
+            machines.add(f"{m.get('hostname')} ({m.get('platform')})")
+            runs.append({"label": label, "job": ref.job, "seed": m.get("seed"),
+                         "runs": m.get("runs"), "config_hash": ref.config_hash,
+                         "overrides": list(ref.overrides)})  # fmt: skip
+    return {
+        "table": table,
+        "figure": figure.name,
+        "source": "run",
+        "quick": data.quick,
+        "command": command,
+        "runs": runs,
+        "seeds": sorted({r["seed"] for r in runs if r["seed"] is not None}),
+        "cobel_commit": sorted(commits),
+        "machine": sorted(machines),
+        "cpus": os.cpu_count(),
+        "runs_started": [min(s for s in started if s), max(s for s in started if s)],
+        "exported": datetime.now(UTC).isoformat(timespec="seconds"),
+        "wall_time_s": round(wall, 1),
+        "wall_time_note": "sum of the runs' wall times (their manifests)",
+    }
+
+
+def write_table(frame: pd.DataFrame, prov: Mapping[str, Any], out_dir: Path, name: str) -> Path:
+    """``out_dir/name.csv`` (6 significant digits) and ``out_dir/name.provenance.json``."""
+    from cobelrun.io.atomic import atomic_path
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv = out_dir / f"{name}.csv"
+    with atomic_path(csv) as tmp:
+        frame.to_csv(tmp, index=False, float_format="%.6g")
+    side = out_dir / f"{name}.provenance.json"
+    with atomic_path(side) as tmp:
+        Path(tmp).write_text(json.dumps(dict(prov), indent=1) + "\n")
+    return csv
+
+
+def export(
+    name: str,
+    *,
+    quick: bool = False,
+    out_dir: Path = DATA_DIR,
+    root: Path | None = None,
+    build: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> list[Path]:
+    """Build figure ``name`` (unless ``build`` is False: its runs must be finished) and write
+    its summary tables with their sidecars; returns the CSVs written."""
+    if name not in SUMMARIES:
+        raise CobelError(
+            f"no summary tables for figure {name!r}{suggest(name, SUMMARIES)}; "
+            f"allowed: {allowed_list(SUMMARIES)}"
+        )
+    figure = registry.get(name)
+    root = root or registry.results_root()
+    t0 = time.perf_counter()
+    if build:
+        registry.build(figure, quick=quick, root=root, log=log)
+    data = figure_data(figure, quick=quick, root=root)
+    tables = SUMMARIES[name](data)
+    command = f"python -m cobelrun.figures.data {name}" + (" --quick" if quick else "")
+    written = []
+    for table, frame in tables.items():
+        stem = f"{table}_quick" if quick else table
+        prov = provenance(figure, data, command=command, table=stem)
+        prov["export_wall_time_s"] = round(time.perf_counter() - t0, 1)
+        written.append(write_table(frame, prov, out_dir, stem))
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cobelrun.figures.data NAME [--quick] [--out DIR] [--no-build]``."""
+    parser = argparse.ArgumentParser(prog="python -m cobelrun.figures.data",
+                                     description=__doc__.split("\n\n")[0])  # fmt: skip
+    parser.add_argument("name", help=f"figure: {', '.join(SUMMARIES)}")
+    parser.add_argument("--quick", action="store_true", help="the figure's quick budget")
+    parser.add_argument("--out", type=Path, default=DATA_DIR, help="output folder")
+    parser.add_argument("--no-build", action="store_true", help="only finished runs")
+    args = parser.parse_args(argv)
+    try:
+        for path in export(args.name, quick=args.quick, out_dir=args.out,
+                           build=not args.no_build, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
+            print(path)
+    except CobelError as exc:
+        print(f"cobel: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

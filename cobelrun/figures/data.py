@@ -20,6 +20,7 @@ committed tables').
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -45,8 +46,8 @@ Summary = Callable[[registry.FigureData], dict[str, pd.DataFrame]]
 
 
 def _block_mean(trials: pd.DataFrame, column: str, lo: int, hi: int) -> pd.Series:
-    """Per run: mean of ``column`` over trials ``lo``..``hi`` (1-based, inclusive)."""
-    rows = trials[(trials["trial"] + 1).between(lo, hi)]
+    """Per run: mean of ``column`` over trials ``lo``..``hi`` (trials count from 1)."""
+    rows = trials[trials["trial"].between(lo, hi)]
     return rows.groupby("run")[column].mean()
 
 
@@ -55,35 +56,40 @@ def summary_fig6b(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     the cumulative responses at trials 100 and 200."""
     from cobelrun.figures.extinction import summarize
 
-    trials = data.trials("dyna_q").sort_values(["run", "trial"])
-    resp = trials.groupby("run")["cumulative_response"].diff()
-    trials = trials.assign(response=resp.fillna(trials["cumulative_response"]))
+    trials = data.trials("dyna_q")
     per_run = pd.DataFrame({"run": np.sort(trials["run"].unique())}).set_index("run")
     for lo, hi in ((91, 100), (101, 110), (111, 120), (191, 200)):
         per_run[f"right_{lo}_{hi}"] = _block_mean(trials, "response", lo, hi)
     for t in (100, 200):
-        per_run[f"cumulative_{t}"] = trials[trials["trial"] + 1 == t].set_index("run")[
+        per_run[f"cumulative_{t}"] = trials[trials["trial"] == t].set_index("run")[
             "cumulative_response"
         ]
     for lo, hi in ((11, 20), (21, 30), (91, 100), (191, 200)):
         per_run[f"latency_{lo}_{hi}"] = _block_mean(trials, "steps", lo, hi)
     lat = summarize(trials, "steps")["mean"]
-    first10 = int(lat.index[lat.to_numpy() <= 10][0]) + 1 if (lat <= 10).any() else -1
+    first10 = int(lat.index[lat.to_numpy() <= 10][0]) if (lat <= 10).any() else -1
     summary = _means(per_run.reset_index(), extra={"first_trial_mean_latency_le_10": first10})
     return {"fig6b_runs": per_run.reset_index(), "fig6b": summary}
 
 
 def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
-    """Water maze per run: latency and path length per day and phase, probe quadrants."""
-    from cobelrun.figures.watermaze import probe_quadrants
+    """Water maze: per run and day the mean latency and path length (acquisition and
+    reversal), per run the probe's quadrant occupancy, and the figure's own daily means."""
+    from cobelrun.analysis.watermaze import QUADRANTS, add_days
+    from cobelrun.figures.watermaze import CURVE_PHASES, daily_summary
 
     trials = data.trials("actor_critic")
-    day = trials.groupby(["phase", "run", "day"], sort=False)[
-        ["escape_latency_s", "path_length"]
-    ].mean()
-    per_run = day.reset_index()
-    quads = probe_quadrants(trials)
-    return {"morris_runs": per_run, "morris_probe": quads}
+    days = add_days(trials[trials["phase"].isin(CURVE_PHASES)], 4)
+    per_run = (
+        days.groupby(["phase", "day", "run"], sort=False)[["escape_latency_s", "path_length"]]
+        .mean()
+        .reset_index()
+    )
+    probe = trials[trials["phase"] == "probe"]
+    cols = {f"{q}_quadrant_fraction": q for q in QUADRANTS}
+    per_run_probe = probe.groupby("run")[list(cols)].mean().rename(columns=cols).reset_index()
+    daily = daily_summary(trials)
+    return {"morris_runs": per_run, "morris_probe_runs": per_run_probe, "morris": daily}
 
 
 def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
@@ -122,6 +128,64 @@ def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     return {"fig7_runs": per_run, "fig7_sr": spread, "fig7_compare": comparison}
 
 
+def summary_pma(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Mattar & Daw: per agent and run the first episode within 20 % of the 14-step path; PMA's
+    replay events of >= 5 experiences per ``when`` x direction (all runs); and the figure's
+    own table (median steps per trial, event rates)."""
+    from cobelrun.analysis.replay import direction_counts, replay_events
+    from cobelrun.results import load_table
+
+    shortest = 14
+    rows = []
+    for label in ("pma", "dyna_q", "q_learning"):
+        trials = data.trials(label)
+        for run, g in trials.groupby("run"):
+            ok = g.loc[g["steps"] <= 1.2 * shortest, "trial"]
+            rows.append({"agent": label, "run": int(run),
+                         "criterion_trial": int(ok.min()) if len(ok) else -1})  # fmt: skip
+    per_run = pd.DataFrame(rows)
+    agg = per_run.groupby("agent", sort=False)["criterion_trial"]
+    criterion = pd.DataFrame({"median": agg.median(), "mean": agg.mean()}).reset_index()
+    pma = data.trials("pma")
+    late = pma[pma["trial"] >= 3].groupby("trial")["steps"].median()
+    criterion["median_steps_from_trial_3"] = np.where(
+        criterion["agent"] == "pma", float(late.median()), np.nan
+    )
+    replays = pd.concat([load_table(d, "replays") for d in data.run_dirs("pma")])
+    counts = direction_counts(replay_events(replays), 5).reset_index(names="when")
+    return {"pma_runs": per_run, "pma_criterion": criterion, "pma_events": counts,
+            "pma": figure_table("pma")(data)["pma"]}  # fmt: skip
+
+
+def summary_revaluation(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Russek et al.: per design, agent, budget and run the greedy choice before and after
+    (each run's ``revaluation.csv``), and the scores (``revaluation_scores.csv``), for the
+    designs built (the graph ones: ``--labels reward,transition,policy``)."""
+    runs, scores = [], []
+    for label in data.runs:
+        for d in data.run_dirs(label):
+            runs.append(pd.read_csv(d / "revaluation.csv").assign(design=label))
+            scores.append(pd.read_csv(d / "revaluation_scores.csv").assign(design=label))
+    runs_t, scores_t = pd.concat(runs, ignore_index=True), pd.concat(scores, ignore_index=True)
+    return {"revaluation_runs": runs_t, "revaluation": scores_t}
+
+
+def figure_table(name: str) -> Summary:
+    """The figure's own plotted numbers (what ``cobel figure NAME`` writes as ``NAME.csv``)."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, table = registry.get(name).draw(data)
+        plt.close(fig)
+        return {name: table}
+
+    return summary
+
+
 def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> pd.DataFrame:
     """Long table ``measure, runs, mean`` of every column but ``run`` (plus ``extra``)."""
     cols = [c for c in per_run.columns if c != "run"]
@@ -137,6 +201,10 @@ SUMMARIES: dict[str, Summary] = {
     "morris": summary_morris,
     "fig7": summary_fig7,
     "fig7_paper": summary_fig7,
+    "pma": summary_pma,
+    "revaluation": summary_revaluation,
+    "fig9": figure_table("fig9"),
+    "fig9_fast": figure_table("fig9_fast"),
 }
 
 
@@ -212,23 +280,42 @@ def export(
     out_dir: Path = DATA_DIR,
     root: Path | None = None,
     build: bool = True,
+    labels: Sequence[str] | None = None,
     log: Callable[[str], None] | None = None,
 ) -> list[Path]:
     """Build figure ``name`` (unless ``build`` is False: its runs must be finished) and write
-    its summary tables with their sidecars; returns the CSVs written."""
+    its summary tables with their sidecars; returns the CSVs written. ``labels``: only these
+    of the figure's run labels (e.g. revaluation's graph designs without the grid ones)."""
     if name not in SUMMARIES:
         raise CobelError(
             f"no summary tables for figure {name!r}{suggest(name, SUMMARIES)}; "
             f"allowed: {allowed_list(SUMMARIES)}"
         )
     figure = registry.get(name)
+    if labels:
+        unknown = [x for x in labels if x not in figure.runs]
+        if unknown:
+            raise CobelError(
+                f"{name} has no run label {unknown[0]!r}{suggest(unknown[0], figure.runs)}; "
+                f"allowed: {allowed_list(figure.runs)}"
+            )
+        figure = dataclasses.replace(figure, runs={x: figure.runs[x] for x in labels})
     root = root or registry.results_root()
     t0 = time.perf_counter()
-    if build:
+    if build and labels:  # part of a figure: its runs, not its drawing
+        from cobelrun.io.sweep_folder import clear_outputs, is_complete
+        from cobelrun.runner import run
+
+        for p in registry.plan_runs(figure, quick=quick, root=root):
+            if not is_complete(p.run_dir, p.config_hash):
+                clear_outputs(p.run_dir)
+                run(p.cfg, p.run_dir)
+    elif build:
         registry.build(figure, quick=quick, root=root, log=log)
     data = figure_data(figure, quick=quick, root=root)
     tables = SUMMARIES[name](data)
     command = f"python -m cobelrun.figures.data {name}" + (" --quick" if quick else "")
+    command += f" --labels {','.join(labels)}" if labels else ""
     written = []
     for table, frame in tables.items():
         stem = f"{table}_quick" if quick else table
@@ -246,10 +333,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="the figure's quick budget")
     parser.add_argument("--out", type=Path, default=DATA_DIR, help="output folder")
     parser.add_argument("--no-build", action="store_true", help="only finished runs")
+    parser.add_argument("--labels", help="comma-separated run labels (default: all)")
     args = parser.parse_args(argv)
     try:
         for path in export(args.name, quick=args.quick, out_dir=args.out,
-                           build=not args.no_build, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
+                           build=not args.no_build,
+                           labels=args.labels.split(",") if args.labels else None, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
             print(path)
     except CobelError as exc:
         print(f"cobel: error: {exc}", file=sys.stderr)

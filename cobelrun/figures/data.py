@@ -76,7 +76,7 @@ def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     """Water maze: per run and day the mean latency and path length (acquisition and
     reversal), per run the probe's quadrant occupancy, and the figure's own daily means."""
     from cobelrun.analysis.watermaze import QUADRANTS, add_days
-    from cobelrun.figures.watermaze import CURVE_PHASES, daily_summary
+    from cobelrun.figures.watermaze import CURVE_PHASES, daily_summary, probe_quadrants
 
     trials = data.trials("actor_critic")
     days = add_days(trials[trials["phase"].isin(CURVE_PHASES)], 4)
@@ -89,7 +89,8 @@ def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     cols = {f"{q}_quadrant_fraction": q for q in QUADRANTS}
     per_run_probe = probe.groupby("run")[list(cols)].mean().rename(columns=cols).reset_index()
     daily = daily_summary(trials)
-    return {"morris_runs": per_run, "morris_probe_runs": per_run_probe, "morris": daily}
+    return {"morris_runs": per_run, "morris_probe_runs": per_run_probe, "morris": daily,
+            "morris_probe": probe_quadrants(trials)}  # fmt: skip
 
 
 def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
@@ -170,6 +171,29 @@ def summary_revaluation(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     return {"revaluation_runs": runs_t, "revaluation": scores_t}
 
 
+def summary_fig9(name: str) -> Summary:
+    """Fig. 9 per agent: mean training reward and greedy choice correct per block of trials
+    (1-5, 6-10, 11-20, 21-30, 31-40, 41-50); and the block means over agents."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        trials = data.trials("dqn")
+        size = int(trials["run"].max()) + 1
+        seeds = [ref.params.get("seed", 0) for ref in data.runs["dqn"]]
+        trials = trials.assign(seed=trials["job"].map(dict(enumerate(seeds))),
+                               run=trials["job"] * size + trials["run"])  # fmt: skip
+        blocks = ((1, 5), (6, 10), (11, 20), (21, 30), (31, 40), (41, 50))
+        per_run = trials.groupby("run")[["seed"]].first()
+        for lo, hi in blocks:
+            per_run[f"reward_{lo}_{hi}"] = _block_mean(trials, "reward", lo, hi)
+            if "greedy_correct" in trials:
+                per_run[f"greedy_{lo}_{hi}"] = _block_mean(trials, "greedy_correct", lo, hi)
+        per_run = per_run.reset_index()
+        means = _means(per_run.drop(columns="seed"))
+        return {f"{name}_runs": per_run, name: means}
+
+    return summary
+
+
 def figure_table(name: str) -> Summary:
     """The figure's own plotted numbers (what ``cobel figure NAME`` writes as ``NAME.csv``)."""
 
@@ -203,9 +227,44 @@ SUMMARIES: dict[str, Summary] = {
     "fig7_paper": summary_fig7,
     "pma": summary_pma,
     "revaluation": summary_revaluation,
-    "fig9": figure_table("fig9"),
-    "fig9_fast": figure_table("fig9_fast"),
+    "fig9": summary_fig9("fig9"),
+    "fig9_fast": summary_fig9("fig9_fast"),
+    "fig9_seeds": summary_fig9("fig9_seeds"),
 }
+
+
+def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
+    """Fig. 8 per snapshot from the per-run counts: the runs measured there, the mean number
+    of place cells over them (no run counted where it was not run), its range, and the
+    Spearman rho of that mean over the snapshots the surviving runs share (every snapshot
+    with more than one run)."""
+    from scipy import stats
+
+    g = per_run.groupby("trial")["place_cells"]
+    out = pd.DataFrame({"runs": g.count(), "mean": g.mean(), "min": g.min(), "max": g.max()})
+    out = out.reset_index()
+    shared = out[out["runs"] > 1]
+    rho = stats.spearmanr(shared["trial"], shared["mean"]).statistic
+    return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4))
+
+
+#: tables derived from transcribed ones: name -> (source table, function)
+DERIVED: dict[str, tuple[str, Callable[[pd.DataFrame], pd.DataFrame]]] = {
+    "fig8": ("fig8_runs", fig8_summary),
+}
+
+
+def derive(out_dir: Path = DATA_DIR) -> list[Path]:
+    """Write the tables of :data:`DERIVED` from their committed source tables; the sidecar
+    copies the source's provenance and names the derivation."""
+    written = []
+    for name, (source, fn) in DERIVED.items():
+        prov = json.loads((out_dir / f"{source}.provenance.json").read_text())
+        prov = {**prov, "table": name,
+                "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)",
+                "command": "python -m cobelrun.figures.data --derive"}  # fmt: skip
+        written.append(write_table(fn(pd.read_csv(out_dir / f"{source}.csv")), prov, out_dir, name))
+    return written
 
 
 # -- provenance and writing -------------------------------------------------------------------
@@ -329,12 +388,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cobelrun.figures.data NAME [--quick] [--out DIR] [--no-build]``."""
     parser = argparse.ArgumentParser(prog="python -m cobelrun.figures.data",
                                      description=__doc__.split("\n\n")[0])  # fmt: skip
-    parser.add_argument("name", help=f"figure: {', '.join(SUMMARIES)}")
+    parser.add_argument("name", nargs="?", help=f"figure: {', '.join(SUMMARIES)}")
+    parser.add_argument("--derive", action="store_true",
+                        help=f"write the derived tables ({', '.join(DERIVED)})")  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="the figure's quick budget")
     parser.add_argument("--out", type=Path, default=DATA_DIR, help="output folder")
     parser.add_argument("--no-build", action="store_true", help="only finished runs")
     parser.add_argument("--labels", help="comma-separated run labels (default: all)")
     args = parser.parse_args(argv)
+    if args.derive:
+        for path in derive(args.out):
+            print(path)
+        return 0
+    if not args.name:
+        parser.error("give a figure NAME or --derive")
     try:
         for path in export(args.name, quick=args.quick, out_dir=args.out,
                            build=not args.no_build,

@@ -248,9 +248,38 @@ def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
     return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4))
 
 
+def fig9_compare(per_run: pd.DataFrame, original: pd.DataFrame) -> pd.DataFrame:
+    """cobel's per-agent block rewards (``fig9_seeds_runs``) against the original's block
+    means (mean, s.e., n of ``fig9_original``): Welch's difference with its 95 % interval and
+    Cohen's d, per block of trials. The original's per-agent values were not kept, so no
+    rank test is possible."""
+    from cobelrun.figures.twosample import welch_from_stats
+
+    rows = []
+    for _, o in original.iterrows():
+        lo, hi = str(o["trials"]).split("-")
+        col = f"reward_{lo}_{hi}"
+        if col not in per_run:
+            continue
+        x = per_run[col].dropna()
+        sd_o = float(o["reward_se"]) * np.sqrt(float(o["agents"]))
+        rows.append({"trials": o["trials"], "cobel_agents": len(x), "cobel_mean": x.mean(),
+                     "cobel_sd": x.std(ddof=1), "original_agents": int(o["agents"]),
+                     "original_mean": o["reward_mean"], "original_sd": sd_o,
+                     **welch_from_stats(x.mean(), x.std(ddof=1), len(x),
+                                        float(o["reward_mean"]), sd_o, int(o["agents"]))})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def fig9_compare_table(per_run: pd.DataFrame) -> pd.DataFrame:
+    """:func:`fig9_compare` against the committed ``fig9_original.csv`` (transcribed)."""
+    return fig9_compare(per_run, pd.read_csv(DATA_DIR / "fig9_original.csv"))
+
+
 #: tables derived from transcribed ones: name -> (source table, function)
 DERIVED: dict[str, tuple[str, Callable[[pd.DataFrame], pd.DataFrame]]] = {
     "fig8": ("fig8_runs", fig8_summary),
+    "fig9_compare": ("fig9_seeds_runs", fig9_compare_table),
 }
 
 
@@ -259,9 +288,12 @@ def derive(out_dir: Path = DATA_DIR) -> list[Path]:
     copies the source's provenance and names the derivation."""
     written = []
     for name, (source, fn) in DERIVED.items():
+        if not (out_dir / f"{source}.csv").is_file():
+            continue
         prov = json.loads((out_dir / f"{source}.provenance.json").read_text())
         prov = {**prov, "table": name,
-                "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)",
+                "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)"
+                + (" and fig9_original.csv (transcribed)" if name == "fig9_compare" else ""),
                 "command": "python -m cobelrun.figures.data --derive"}  # fmt: skip
         written.append(write_table(fn(pd.read_csv(out_dir / f"{source}.csv")), prov, out_dir, name))
     return written

@@ -43,6 +43,7 @@ NOT_NUMBERS = [
     re.compile(r"\b(?:19|20)\d{2}\b"),  # years
     re.compile(r"\bv\d+(?:\.\d+)*\b"),  # versions
     re.compile(r"\b[A-Za-z]+\d+\b"),  # names with digits (keras-rl2, H100, issue refs)
+    re.compile(r"\b[23]D\b"),  # 2D, 3D
 ]
 
 
@@ -148,6 +149,8 @@ def check(docs: Iterable[Path], data_dir: Path, *, all_tables: Iterable[Path] = 
     cache: dict[str, np.ndarray] = {}
     for doc in docs:
         for c in covered(doc):
+            if not c.tables and not c.settings:  # <!-- data: none -->: no results here
+                continue
             pools = []
             for name in c.tables:
                 path = data_dir / name

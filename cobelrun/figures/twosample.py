@@ -81,3 +81,28 @@ def two_sample(
         "ps_lo": float(boot.confidence_interval.low),
         "ps_hi": float(boot.confidence_interval.high),
     }
+
+
+def welch_from_stats(
+    mean_a: float, sd_a: float, n_a: int, mean_b: float, sd_b: float, n_b: int
+) -> dict[str, float]:
+    """Welch's test and 95 % interval of ``mean_a - mean_b`` from summary statistics alone
+    (where one sample's per-run values were not kept, e.g. the original's Fig. 9 agents).
+
+    Returns ``diff``, ``diff_lo``, ``diff_hi``, ``welch_p``, ``df`` and Hedges-free Cohen's
+    ``d`` (pooled SD).
+    """
+    from scipy import stats
+
+    if min(n_a, n_b) < 2 or min(sd_a, sd_b) < 0:
+        raise CobelError("welch_from_stats: needs n >= 2 and SD >= 0 in both samples")
+    res = stats.ttest_ind_from_stats(mean_a, sd_a, n_a, mean_b, sd_b, n_b, equal_var=False)
+    va, vb = sd_a**2 / n_a, sd_b**2 / n_b
+    se = float(np.sqrt(va + vb))
+    df = (va + vb) ** 2 / (va**2 / (n_a - 1) + vb**2 / (n_b - 1))
+    half = float(stats.t.ppf(0.975, df)) * se
+    diff = mean_a - mean_b
+    pooled = np.sqrt(((n_a - 1) * sd_a**2 + (n_b - 1) * sd_b**2) / (n_a + n_b - 2))
+    return {"diff": float(diff), "diff_lo": float(diff - half), "diff_hi": float(diff + half),
+            "welch_p": float(res.pvalue), "df": float(df),
+            "cohens_d": float(diff / pooled) if pooled > 0 else float("nan")}  # fmt: skip

@@ -364,6 +364,31 @@ def write_table(frame: pd.DataFrame, prov: Mapping[str, Any], out_dir: Path, nam
     return csv
 
 
+def run_missing(
+    figure: registry.Figure,
+    *,
+    quick: bool,
+    root: Path,
+    log: Callable[[str], None] | None = None,
+) -> int:
+    """Run the figure's unfinished runs one at a time, interleaving its labels by job (job 0
+    of every label, then job 1, ...), so that a build stopped part way leaves groups of about
+    the same size (e.g. ``fig7_paper``'s latent and direct runs); returns how many ran."""
+    from cobelrun.io.sweep_folder import clear_outputs, is_complete
+    from cobelrun.runner import run
+
+    order = {label: k for k, label in enumerate(figure.runs)}
+    planned = registry.plan_runs(figure, quick=quick, root=root)
+    todo = [p for p in planned if not is_complete(p.run_dir, p.config_hash)]
+    todo.sort(key=lambda p: (p.job, order[p.label]))
+    for k, p in enumerate(todo, 1):
+        if log:
+            log(f"{figure.name}: run {k}/{len(todo)}: {p.label} job {p.job} ({p.run_dir.name})")
+        clear_outputs(p.run_dir)
+        run(p.cfg, p.run_dir)
+    return len(todo)
+
+
 def export(
     name: str,
     *,
@@ -393,16 +418,10 @@ def export(
         figure = dataclasses.replace(figure, runs={x: figure.runs[x] for x in labels})
     root = root or registry.results_root()
     t0 = time.perf_counter()
-    if build and labels:  # part of a figure: its runs, not its drawing
-        from cobelrun.io.sweep_folder import clear_outputs, is_complete
-        from cobelrun.runner import run
-
-        for p in registry.plan_runs(figure, quick=quick, root=root):
-            if not is_complete(p.run_dir, p.config_hash):
-                clear_outputs(p.run_dir)
-                run(p.cfg, p.run_dir)
-    elif build:
-        registry.build(figure, quick=quick, root=root, log=log)
+    if build:
+        run_missing(figure, quick=quick, root=root, log=log)
+        if not labels:  # the whole figure: draw it as `cobel figure` does (its runs are reused)
+            registry.build(figure, quick=quick, root=root, log=log)
     data = figure_data(figure, quick=quick, root=root)
     tables = SUMMARIES[name](data)
     command = f"python -m cobelrun.figures.data {name}" + (" --quick" if quick else "")

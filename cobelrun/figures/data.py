@@ -276,10 +276,24 @@ def fig9_compare_table(per_run: pd.DataFrame) -> pd.DataFrame:
     return fig9_compare(per_run, pd.read_csv(DATA_DIR / "fig9_original.csv"))
 
 
-#: tables derived from transcribed ones: name -> (source table, function)
+def fig6b_compare(per_run: pd.DataFrame) -> pd.DataFrame:
+    """cobel's Fig. 6B runs (``fig6b_runs``) against the original's (``fig6b_original_runs``,
+    CoBeL-RL v2.0.0's Dyna-Q through ``benchmarks/original_fig6b_runs.py``), measure by
+    measure: :func:`~cobelrun.figures.twosample.two_sample` (a = cobel, b = the original)."""
+    from cobelrun.figures.twosample import two_sample
+
+    original = pd.read_csv(DATA_DIR / "fig6b_original_runs.csv")
+    rows = []
+    for col in (c for c in per_run.columns if c != "run" and c in original):
+        rows.append({"measure": col, **two_sample(per_run[col], original[col])})
+    return pd.DataFrame(rows)
+
+
+#: tables derived from committed ones (transcribed, or two tables compared): name -> (source table, function)
 DERIVED: dict[str, tuple[str, Callable[[pd.DataFrame], pd.DataFrame]]] = {
     "fig8": ("fig8_runs", fig8_summary),
     "fig9_compare": ("fig9_seeds_runs", fig9_compare_table),
+    "fig6b_compare": ("fig6b_runs", fig6b_compare),
 }
 
 
@@ -290,10 +304,13 @@ def derive(out_dir: Path = DATA_DIR) -> list[Path]:
     for name, (source, fn) in DERIVED.items():
         if not (out_dir / f"{source}.csv").is_file():
             continue
+        if name == "fig6b_compare" and not (out_dir / "fig6b_original_runs.csv").is_file():
+            continue
         prov = json.loads((out_dir / f"{source}.provenance.json").read_text())
         prov = {**prov, "table": name,
                 "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)"
-                + (" and fig9_original.csv (transcribed)" if name == "fig9_compare" else ""),
+                + {"fig9_compare": " and fig9_original.csv (transcribed)",
+                   "fig6b_compare": " and fig6b_original_runs.csv (the original, run)"}.get(name, ""),
                 "command": "python -m cobelrun.figures.data --derive"}  # fmt: skip
         written.append(write_table(fn(pd.read_csv(out_dir / f"{source}.csv")), prov, out_dir, name))
     return written

@@ -8,6 +8,7 @@ All from :mod:`scipy.stats`.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -49,7 +50,9 @@ def two_sample(
     for name, v in (("a", x), ("b", y)):
         if v.ndim != 1 or v.size < 2 or not np.isfinite(v).all():
             raise CobelError(f"two_sample: sample {name} needs 2 or more finite values, got {v}")
-    welch = stats.ttest_ind(x, y, equal_var=False)
+    with warnings.catch_warnings():  # constant samples (e.g. every run 1.0): handled below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        welch = stats.ttest_ind(x, y, equal_var=False)
     ci = welch.confidence_interval(0.95)
     if not np.isfinite(welch.pvalue):  # both samples constant: no spread to test against
         diff = float(x.mean() - y.mean())

@@ -32,7 +32,7 @@ TABLES = {
     "fig9": ["fig9", "fig9_runs"],
     "fig9_seeds": ["fig9_seeds", "fig9_seeds_runs"],
     "revaluation": ["revaluation", "revaluation_runs"],
-    "fig7_paper": ["fig7_runs", "fig7_sr", "fig7_compare"],
+    "fig7_paper": ["fig7", "fig7_runs", "fig7_sr", "fig7_compare"],
 }
 
 

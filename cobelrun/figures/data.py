@@ -117,16 +117,23 @@ def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
         snap = int(snaps[snaps <= t].max())
         sr.append(sr_spread(activity, world, snap).assign(snapshot=label))
     lat, dire = (per_run.loc[per_run["group"] == g, "first10"] for g in ("latent", "direct"))
-    comparison = pd.DataFrame([{"measure": "first10", "a": "latent", "b": "direct",
-                                **two_sample(lat, dire)}])  # fmt: skip
+    comparison = pd.DataFrame(
+        [{"measure": "first10", "a": "latent", "b": "direct", "test": "independent",
+          **two_sample(lat, dire)}]
+    )  # fmt: skip
     spread = pd.concat(sr, ignore_index=True)
-    ends = [
-        spread.loc[spread["snapshot"] == s, "mean_distance"] for s in ("end", "end of exploration")
-    ]
-    comparison = pd.concat([comparison, pd.DataFrame([{
-        "measure": "sr_mean_distance", "a": "end", "b": "end of exploration",
-        **two_sample(*ends)}])], ignore_index=True)  # fmt: skip
-    return {"fig7_runs": per_run, "fig7_sr": spread, "fig7_compare": comparison}
+    comparison = pd.concat([comparison, pd.DataFrame([paired_sr(spread)])], ignore_index=True)
+    means = pd.concat(
+        [
+            per_run.groupby("group", sort=False)[["first10", "last10"]].agg(["count", "mean"]),
+            spread.groupby("snapshot", sort=False)[["mean_distance", "goal_over_start"]].agg(
+                ["count", "mean"]
+            ),
+        ]
+    )
+    means.columns = [f"{a}_{b}" for a, b in means.columns]
+    means = means.reset_index(names="series")
+    return {"fig7_runs": per_run, "fig7_sr": spread, "fig7_compare": comparison, "fig7": means}
 
 
 def summary_pma(data: registry.FigureData) -> dict[str, pd.DataFrame]:
@@ -208,6 +215,25 @@ def figure_table(name: str) -> Summary:
         return {name: table}
 
     return summary
+
+
+def paired_sr(spread: pd.DataFrame) -> dict[str, Any]:
+    """The SR-weighted distance of the start state's SR at the end minus at the end of
+    exploration, per run (paired t interval; Wilcoxon signed-rank p)."""
+    from scipy import stats
+
+    wide = spread.pivot(index="run", columns="snapshot", values="mean_distance").dropna()
+    end, explore = wide["end"], wide["end of exploration"]
+    t = stats.ttest_rel(end, explore)
+    ci = t.confidence_interval(0.95)
+    d = end - explore
+    return {"measure": "sr_mean_distance", "a": "end", "b": "end of exploration",
+            "test": "paired", "n_a": len(end), "n_b": len(explore),
+            "mean_a": float(end.mean()), "mean_b": float(explore.mean()),
+            "diff": float(d.mean()), "diff_lo": float(ci.low), "diff_hi": float(ci.high),
+            "welch_p": float("nan"), "paired_t_p": float(t.pvalue),
+            "wilcoxon_p": float(stats.wilcoxon(end, explore).pvalue) if len(d) > 1 else float("nan"),
+            "p_superiority": float((d > 0).mean() + (d == 0).mean() / 2)}  # fmt: skip
 
 
 def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> pd.DataFrame:
@@ -319,17 +345,25 @@ def derive(out_dir: Path = DATA_DIR) -> list[Path]:
 # -- provenance and writing -------------------------------------------------------------------
 
 
-def figure_data(figure: registry.Figure, *, quick: bool, root: Path) -> registry.FigureData:
-    """The figure's planned runs as :class:`FigureData`; a CobelError if one is unfinished."""
+def figure_data(
+    figure: registry.Figure, *, quick: bool, root: Path, finished_only: bool = False
+) -> registry.FigureData:
+    """The figure's planned runs as :class:`FigureData`; a CobelError if one is unfinished
+    (``finished_only``: the finished ones, at least one per label)."""
     from cobelrun.io.sweep_folder import is_complete
 
     data = registry.FigureData(quick=quick, runs={})
     for p in registry.plan_runs(figure, quick=quick, root=root):
         if not is_complete(p.run_dir, p.config_hash):
+            if finished_only:
+                continue
             raise CobelError(f"{figure.name}: run {p.run_dir} is not finished; build it first")
         ref = registry.RunRef(p.label, p.job, tuple(p.overrides), p.params, p.run_dir,
                               p.config_hash, reused=True)  # fmt: skip
         data.runs.setdefault(p.label, []).append(ref)
+    missing = [label for label in figure.runs if label not in data.runs]
+    if missing:
+        raise CobelError(f"{figure.name}: no finished run of {', '.join(missing)}")
     return data
 
 
@@ -414,11 +448,14 @@ def export(
     root: Path | None = None,
     build: bool = True,
     labels: Sequence[str] | None = None,
+    finished_only: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> list[Path]:
     """Build figure ``name`` (unless ``build`` is False: its runs must be finished) and write
     its summary tables with their sidecars; returns the CSVs written. ``labels``: only these
-    of the figure's run labels (e.g. revaluation's graph designs without the grid ones)."""
+    of the figure's run labels (e.g. revaluation's graph designs without the grid ones).
+    ``finished_only``: run nothing and use the runs finished so far (tables ``NAME_partial``,
+    the sidecar lists the runs used)."""
     if name not in SUMMARIES:
         raise CobelError(
             f"no summary tables for figure {name!r}{suggest(name, SUMMARIES)}; "
@@ -435,17 +472,19 @@ def export(
         figure = dataclasses.replace(figure, runs={x: figure.runs[x] for x in labels})
     root = root or registry.results_root()
     t0 = time.perf_counter()
-    if build:
+    if build and not finished_only:
         run_missing(figure, quick=quick, root=root, log=log)
         if not labels:  # the whole figure: draw it as `cobel figure` does (its runs are reused)
             registry.build(figure, quick=quick, root=root, log=log)
-    data = figure_data(figure, quick=quick, root=root)
+    data = figure_data(figure, quick=quick, root=root, finished_only=finished_only)
     tables = SUMMARIES[name](data)
     command = f"python -m cobelrun.figures.data {name}" + (" --quick" if quick else "")
     command += f" --labels {','.join(labels)}" if labels else ""
+    command += " --finished-only" if finished_only else ""
     written = []
     for table, frame in tables.items():
         stem = f"{table}_quick" if quick else table
+        stem += "_partial" if finished_only else ""
         prov = provenance(figure, data, command=command, table=stem)
         prov["export_wall_time_s"] = round(time.perf_counter() - t0, 1)
         written.append(write_table(frame, prov, out_dir, stem))
@@ -463,6 +502,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=DATA_DIR, help="output folder")
     parser.add_argument("--no-build", action="store_true", help="only finished runs")
     parser.add_argument("--labels", help="comma-separated run labels (default: all)")
+    parser.add_argument("--finished-only", action="store_true",
+                        help="run nothing; tables NAME_partial from the runs finished so far")  # fmt: skip
     args = parser.parse_args(argv)
     if args.derive:
         for path in derive(args.out):
@@ -473,7 +514,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         for path in export(args.name, quick=args.quick, out_dir=args.out,
                            build=not args.no_build,
-                           labels=args.labels.split(",") if args.labels else None, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
+                           labels=args.labels.split(",") if args.labels else None,
+                           finished_only=args.finished_only, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
             print(path)
     except CobelError as exc:
         print(f"cobel: error: {exc}", file=sys.stderr)

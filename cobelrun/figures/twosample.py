@@ -63,9 +63,8 @@ def two_sample(
     mw = stats.mannwhitneyu(x, y, alternative="two-sided")
 
     def ps(xs: np.ndarray, ys: np.ndarray, axis: int = -1) -> np.ndarray:
-        gt = (xs[..., :, None] > ys[..., None, :]).mean(axis=(-2, -1))
-        eq = (xs[..., :, None] == ys[..., None, :]).mean(axis=(-2, -1))
-        return gt + eq / 2
+        u = stats.mannwhitneyu(xs, ys, axis=axis, method="asymptotic").statistic
+        return u / (xs.shape[axis] * ys.shape[axis])
 
     boot = stats.bootstrap((x, y), ps, vectorized=True, paired=False, n_resamples=resamples,
                            method="percentile", rng=np.random.default_rng(seed))  # fmt: skip

@@ -89,3 +89,14 @@ def test_settings_and_inline_markers(tmp_path):
     ]
     doc.write_text("<!-- data: gone.csv -->\n0.5\n")
     assert "not in" in doc_numbers.check([doc], tmp_path)[0]
+
+
+def test_markers_in_code_are_text_and_bad_settings_fail_clearly(tmp_path):
+    from cobelrun.errors import CobelError
+
+    doc = tmp_path / "page.md"
+    doc.write_text("Tag with `<!-- data: T.csv; settings: N -->` before a table: 0.5\n")
+    assert doc_numbers.check([doc], tmp_path) == []
+    doc.write_text("<!-- data: t.csv; settings: N -->\n0.5\n")
+    with pytest.raises(CobelError, match="settings must be numbers"):
+        doc_numbers.check([doc], tmp_path)

@@ -30,6 +30,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cobelrun.errors import CobelError
+
+CODE = re.compile(r"`[^`]*`")
 MARKER = re.compile(r"<!--\s*data:\s*(?P<body>.*?)\s*-->")
 NUMBER = re.compile(r"(?<![\w.])(\d{1,3}(?:,\d{3})+|\d+)(\.\d+)?(?P<pct>\s?%)?")
 #: text that holds digits but no result
@@ -64,7 +67,13 @@ def parse_marker(body: str) -> tuple[tuple[str, ...], tuple[float, ...]]:
     tables = tuple(t for t in tables_part.split() if t != "none")
     settings: tuple[float, ...] = ()
     if rest.strip().startswith("settings:"):
-        settings = tuple(float(x) for x in rest.strip()[len("settings:") :].split())
+        words = rest.strip()[len("settings:") :].split()
+        try:
+            settings = tuple(float(x) for x in words)
+        except ValueError:
+            raise CobelError(
+                f"data marker {body!r}: settings must be numbers, got {words}"
+            ) from None
     return tables, settings
 
 
@@ -74,7 +83,8 @@ def covered(doc: Path) -> Iterator[Covered]:
     k = 0
     while k < len(lines):
         line = lines[k]
-        m = MARKER.search(line)
+        # a marker written inside inline code (e.g. in these docs) is text, not a marker
+        m = MARKER.search(CODE.sub(lambda c: " " * len(c.group(0)), line))
         if m and not line[: m.start()].strip() and not line[m.end() :].strip():
             tables, settings = parse_marker(m.group("body"))
             j = k + 1

@@ -1,10 +1,11 @@
 """Batched runs (``task.batch_runs``): R runs of a deep agent trained as one computation.
 
-The sequential runner (:func:`cobelrun.runner.execute`) builds one agent per run and runs its
-phases one after another. For agents with a batched implementation (``Agent.batchable``;
-:class:`~cobelrun.agents.dqn.DQNAgent` through :class:`~cobelrun.agents.batched_dqn.BatchedDQN`)
-this module instead builds R environments (each seeded as run ``r``'s), one batched learner
-for R runs, and advances all of them in lock-step through each phase. Each run keeps its own
+The run loop (:func:`cobelrun.runner.run_phases`) takes runs in cohorts: one run at a time, or,
+for agents with a batched implementation (``Agent.batchable``;
+:class:`~cobelrun.agents.dqn.DQNAgent` through :class:`~cobelrun.agents.batched_dqn.BatchedDQN`),
+a chunk of R runs as one :class:`BatchedRuns`: R environments (each seeded as run ``r``'s), one
+batched learner for R runs, all advanced in lock-step through each piece of each phase by the
+same loop, with the same pieces and the same per-trial protocol changes. Each run keeps its own
 seed, replay memory, counters and environment; only the arithmetic is shared.
 
 Recording stays per run: every run records through its own copies of the task's monitors
@@ -26,7 +27,6 @@ the run folder has the same tables, rows and order as a sequential run.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -34,7 +34,7 @@ import numpy as np
 
 from cobelrun.errors import ConfigError
 
-__all__ = ["DEFAULT_CHUNK", "batch_plan", "execute_batched", "why_sequential"]
+__all__ = ["DEFAULT_CHUNK", "BatchedRuns", "batch_plan", "why_sequential"]
 
 #: runs trained at once when ``task.batch_runs`` is ``auto`` or ``true``
 DEFAULT_CHUNK = 128
@@ -97,75 +97,54 @@ def _make_envs(
     return envs, agent_seeds
 
 
-def execute_batched(
-    task: Any,
-    recorder: Any,
-    chunk: int,
-    progress: Any = None,
-    phase_times: dict[str, float] | None = None,
-    *,
-    run_seed: Callable[[int, int], Any],
-) -> None:
-    """Every run of ``task``, ``chunk`` runs at a time, recorded run by run; ``run_seed(seed,
-    run)`` gives a run's (agent, environment) seed sequences
-    (:func:`cobelrun.runner.run_seed`)."""
-    from cobelrun.envs.base import Changeable, supports
+class BatchedRuns:
+    """A chunk of runs trained as one computation: the run loop's
+    (:func:`cobelrun.runner.run_phases`) cohort for batched runs. Builds one environment per
+    run (seeded as run ``r``'s), one batched learner for the chunk and one recorder fork per
+    run (:meth:`cobelrun.recorder.RunRecorder.fork`); every piece advances all runs in
+    lock-step, and each run's rows are written, in run order, when the chunk ends or stops.
 
-    protocol = task.protocol
-    per_run = protocol.n_trials
-    steps = sum(int(p.trials) * int(p.max_steps or protocol.max_steps)
-                for p in protocol.phases if p.learning)  # fmt: skip
-    for start in range(0, task.runs, chunk):
-        runs = list(range(start, min(start + chunk, task.runs)))
+    ``run_seed(seed, run)`` gives a run's (agent, environment) seed sequences
+    (:func:`cobelrun.runner.run_seed`).
+    """
+
+    def __init__(
+        self, task: Any, recorder: Any, runs: list[int], run_seed: Callable[[int, int], Any]
+    ) -> None:
+        from cobelrun.envs.base import Changeable, supports
+
+        protocol = task.protocol
+        steps = sum(int(p.trials) * int(p.max_steps or protocol.max_steps)
+                    for p in protocol.phases if p.learning)  # fmt: skip
         envs, seeds = _make_envs(task, runs, run_seed)
         base = task.env.unwrapped  # the recorder's env: phases apply to it as well
         if supports(base, Changeable):
             base.reset_world()
+        self.task, self.recorder, self.runs = task, recorder, runs
+        self._envs = envs
+        self.envs = [*envs, task.env]
         template = task.make_agent(seed=seeds[0])
-        learner = template.batch_learner(seeds, steps, task.make_agent)
-        views = [learner.view(i) for i in range(len(runs))]
-        forks = [recorder.fork(r) for r in runs]
-        try:
-            first = _run_chunk(task, envs, learner, views, forks, phase_times)
-        except BaseException:
-            # Ctrl-C, SIGTERM or an error: keep the phases the chunk's runs finished, as a
-            # sequential run keeps its finished phases (the phase under way is lost in both)
-            for fork in forks:
-                recorder.commit(fork)
-            raise
-        for run, fork, view in zip(runs, forks, views, strict=True):
-            fork.end_run(view, first - 1)
-            recorder.commit(fork)
-            if run in task.save_agents:
-                recorder.save_agent(run, view)
-        if progress is not None:
-            done = runs[-1] + 1
-            progress(done * per_run, task.runs * per_run, run=runs[-1], runs=task.runs)
+        self.learner = template.batch_learner(seeds, steps, task.make_agent)
+        self.views = [self.learner.view(i) for i in range(len(runs))]
+        self.forks = [recorder.fork(r) for r in runs]
+        for fork, view in zip(self.forks, self.views, strict=True):
+            fork.start_run(view)
 
+    def piece(self, phase: Any, max_steps: int, first: int, k: int, n: int) -> None:
+        callbacks = [fork.phase_callbacks(first + k) for fork in self.forks]
+        batches = self.learner.run_phase(self._envs, n, max_steps, phase.learning, callbacks,
+                                         self.views)  # fmt: skip
+        for fork, batch in zip(self.forks, batches, strict=True):
+            fork.record(phase.name, first + k, batch, first_in_phase=k + 1)
 
-def _run_chunk(
-    task: Any, envs: list[Any], learner: Any, views: list[Any], forks: list[Any],
-    phase_times: dict[str, float] | None,
-) -> int:  # fmt: skip
-    """Every phase of one chunk of runs, each run's batches held by its fork; returns the
-    trial number after the last phase."""
-    protocol = task.protocol
-    for fork, view in zip(forks, views, strict=True):
-        fork.start_run(view)
-    first = 1
-    for phase in protocol.phases:
-        for env in (*envs, task.env):
-            protocol.apply(phase, env)
-        max_steps = phase.max_steps or protocol.max_steps
-        callbacks = [fork.phase_callbacks(first) for fork in forks]
-        t_phase = time.perf_counter()
-        batches = learner.run_phase(envs, phase.trials, max_steps, phase.learning,
-                                    callbacks, views)  # fmt: skip
-        for fork, batch in zip(forks, batches, strict=True):
-            fork.record(phase.name, first, batch)
-        if phase_times is not None:
-            phase_times[phase.name] = (
-                phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
-            )
-        first += phase.trials
-    return first
+    def finish(self, last_trial: int) -> None:
+        for run, fork, view in zip(self.runs, self.forks, self.views, strict=True):
+            fork.end_run(view, last_trial)
+            self.recorder.commit(fork)
+            if run in self.task.save_agents:
+                self.recorder.save_agent(run, view)
+
+    def abort(self) -> None:
+        """Keep the pieces the chunk's runs finished (a sequential run keeps them too)."""
+        for fork in self.forks:
+            self.recorder.commit(fork)

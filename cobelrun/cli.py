@@ -433,9 +433,26 @@ def figure_cmd(
         typer.Option(
             "--jobs",
             "-j",
-            help="Run up to N of the figure's missing runs at once, one process each (a "
-            "deep agent uses one core: N up to the number of cores); 1: one after another, "
-            "with a progress bar. Default: the figure's own (1; one per core for fig8 and fig8_stable).",
+            help="Run up to N of the figure's missing runs at once, one process each (Hydra's "
+            "joblib launcher, as cobel run -m; a deep agent uses one core: N up to the number "
+            "of cores); 1: one after another. Default: the figure's own (1; one per core for "
+            "fig8 and fig8_stable).",
+        ),
+    ] = None,
+    launcher: Annotated[
+        str | None,
+        typer.Option(
+            "--launcher",
+            help="Run the missing runs through this Hydra launcher instead (a name as in "
+            "`cobel run -m hydra/launcher=NAME`: slurm, slurm_gpu, local, submitit_local, ...).",
+        ),
+    ] = None,
+    launcher_arg: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--launcher-arg",
+            help="KEY=VALUE for the launcher (hydra.launcher.KEY=VALUE), e.g. partition=gpu; "
+            "repeatable.",
         ),
     ] = None,
     finished_only: Annotated[
@@ -471,9 +488,10 @@ def figure_cmd(
             Console().print(table)
             return
         chosen = list(known.values()) if name == "all" else [get(name)]
+        hydra_launcher = _launcher_overrides(launcher, launcher_arg or [])
         for fig in chosen:
             files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (), jobs=jobs,
-                          finished_only=finished_only,
+                          finished_only=finished_only, launcher=hydra_launcher,
                           log=lambda m: typer.echo(m, err=True))  # fmt: skip
             for path in files.values():
                 typer.echo(str(path))
@@ -481,6 +499,26 @@ def figure_cmd(
         fail(str(exc))
     except KeyboardInterrupt:
         fail("interrupted", EXIT_INTERRUPTED)
+
+
+def _launcher_overrides(name: str | None, args: list[str]) -> list[str]:
+    """``cobel figure --launcher NAME --launcher-arg K=V``: the Hydra overrides that choose the
+    launcher of the figure's sweeps; a malformed argument is one line."""
+    import re
+
+    if name is None:
+        if args:
+            raise CobelError("--launcher-arg needs --launcher NAME (the launcher it configures)")
+        return []
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
+        raise CobelError(f"--launcher {name!r}: give a launcher config name (e.g. slurm, local)")
+    out = [f"hydra/launcher={name}"]
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.]*", key):
+            raise CobelError(f"--launcher-arg {arg!r}: give KEY=VALUE (e.g. partition=gpu)")
+        out.append(f"hydra.launcher.{key}={value}")
+    return out
 
 
 def _shell_completion_args(argv: list[str]) -> list[str] | None:

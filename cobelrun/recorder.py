@@ -721,8 +721,11 @@ class ForkedRun:
     def phase_callbacks(self, first_trial: int) -> list[Any]:
         return [cb for m in self.monitors for cb in m.callbacks(first_trial)]
 
-    def record(self, phase: str, first_trial: int, batch: TrialBatch) -> None:
-        rows = self.recorder._rows(self.run, phase, first_trial, batch, self.monitors)
+    def record(
+        self, phase: str, first_trial: int, batch: TrialBatch, first_in_phase: int = 1
+    ) -> None:
+        rows = self.recorder._rows(self.run, phase, first_trial, batch, self.monitors,
+                                   first_in_phase)  # fmt: skip
         if rows is not None:
             self.pending.append(("rows", rows))
 

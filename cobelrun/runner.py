@@ -10,10 +10,10 @@ import functools
 import logging
 import shlex
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -27,7 +27,8 @@ from cobelrun.io.lock import RunLock, refuse_existing
 from cobelrun.io.manifest import Manifest, _write_json_atomic, config_hash
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.monitors import Monitor, TrialKeysMonitor
-from cobelrun.protocol import Protocol
+from cobelrun.protocol import Phase
+from cobelrun.protocol import Protocol as TaskProtocol
 from cobelrun.recorder import Interrupted, RecordConfig, RunRecorder, SignalGuard
 from cobelrun.safety import check_memory, check_name, memory_plan, trim_memory
 from cobelrun.schema import RunSpec, validate_run
@@ -45,7 +46,7 @@ class Task:
     name: str
     env: Any
     make_agent: Callable[..., Any]
-    protocol: Protocol
+    protocol: TaskProtocol
     monitors: dict[str, Monitor]
     record: RecordConfig
     runs: int
@@ -93,7 +94,7 @@ def _build_task(cfg: DictConfig, *, probe_agent: bool) -> Task:
     if spec.task.job is not None:
         return build_job(cfg, spec)
     assert spec.task.protocol is not None  # TaskSpec requires one unless there is a job
-    protocol = Protocol.from_spec(spec.task.protocol)
+    protocol = TaskProtocol.from_spec(spec.task.protocol)
     env = instantiate("env", cfg.env)
     protocol.check(env)  # every phase's changes once: bad state names fail before any output
     agent_node = OmegaConf.to_container(cfg.agent, resolve=True)
@@ -218,7 +219,7 @@ def build_job(cfg: DictConfig, spec: RunSpec) -> Task:
     job = instantiate("task.job", spec.task.job or {}, _recursive_=False)
     if not callable(job):
         raise ConfigError("task.job must build a callable job(config, run_dir, progress=None)")
-    protocol = None if spec.task.protocol is None else Protocol.from_spec(spec.task.protocol)
+    protocol = None if spec.task.protocol is None else TaskProtocol.from_spec(spec.task.protocol)
     return Task(name=spec.task.name, env=None, make_agent=None, protocol=protocol,  # type: ignore[arg-type]
                 monitors={}, record=RecordConfig(), runs=1, seed=spec.seed,
                 save_agents=frozenset(), job=job, config=cfg)  # fmt: skip
@@ -376,65 +377,7 @@ def execute(
                            save_agents=bool(task.save_agents))  # fmt: skip
     cpu0 = time.thread_time()
     try:
-        if task.batch:
-            from cobelrun.batched import execute_batched
-
-            execute_batched(task, recorder, task.batch, progress, phase_times, run_seed=run_seed)
-            return None
-        trimmed = time.monotonic()
-        pacer = PhasePacer(task.record.flush_seconds)
-        for run in range(task.runs):
-            agent_seed, env_seed = run_seed(task.seed, run)
-            if supports(base, Changeable):
-                base.reset_world()
-            base.np_random = np.random.default_rng(env_seed)
-            agent = task.make_agent(seed=agent_seed)
-            if task.record.training_log:
-                notes = agent.log_training(folder.training_log(run))
-                for note in (notes or []) if run == 0 else []:
-                    LOG.warning(note)  # e.g. TensorBoard skipped: once per task, not per run
-            if task.load_from is not None:
-                load_saved_agent(agent, task.load_from, run)
-            recorder.start_run(run, agent)
-            first = 1
-            for phase in task.protocol.phases:
-                task.protocol.apply(phase, env)
-                max_steps = phase.max_steps or task.protocol.max_steps
-                go = agent.train if phase.learning else agent.test
-                t_phase = time.perf_counter()
-                k = 0
-                while k < phase.trials:
-                    # a phase with a per-trial cycle runs (and records) one trial at a time; a
-                    # long one in pieces of ~flush_seconds (PhasePacer)
-                    n = 1 if phase.cycle else pacer.next(phase.name, phase.trials - k)
-                    task.protocol.apply_trial(phase, k, env)
-                    callbacks = recorder.phase_callbacks(first + k, run)
-                    t_piece = time.perf_counter()
-                    batch = go(n, max_steps, callbacks) if callbacks else go(n, max_steps)
-                    pacer.observe(phase.name, n, time.perf_counter() - t_piece)
-                    recorder.record(run, phase.name, first + k, batch, first_in_phase=k + 1)
-                    k += n
-                    if progress is not None and k < phase.trials:
-                        progress(
-                            run * task.protocol.n_trials + first - 1 + k,
-                            task.runs * task.protocol.n_trials, run=run, runs=task.runs,
-                        )  # fmt: skip
-                if phase_times is not None:
-                    phase_times[phase.name] = (
-                        phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
-                    )
-                first += phase.trials
-                if progress is not None:  # trials over all runs; phases are the finest grain
-                    per_run = task.protocol.n_trials
-                    progress(
-                        run * per_run + first - 1, task.runs * per_run, run=run, runs=task.runs
-                    )
-            recorder.end_run(run, agent, first - 1)
-            if run in task.save_agents:
-                recorder.save_agent(run, agent)
-            if time.monotonic() - trimmed >= TRIM_SECONDS:
-                trim_memory()
-                trimmed = time.monotonic()
+        run_phases(task, recorder, folder, progress, phase_times)
     finally:
         recorder.close()
         if cpu_times is not None:
@@ -447,6 +390,137 @@ def execute(
                     recorder.step_process_cpu_s,
                     recorder.step_process_private_mb,
                 )
+
+
+class Cohort(Protocol):
+    """Runs that advance through the protocol together: one run (:class:`OneRun`, the
+    sequential path) or a chunk of runs trained as one computation
+    (:class:`cobelrun.batched.BatchedRuns`). Built when its runs start (agents made, monitors'
+    ``start_run`` called); :func:`run_phases` then hands it the protocol's pieces."""
+
+    #: the runs it holds, ascending
+    runs: list[int]
+    #: every environment the protocol's changes apply to
+    envs: list[Any]
+
+    def piece(self, phase: Phase, max_steps: int, first: int, k: int, n: int) -> None:
+        """Run (and record) trials ``k .. k+n-1`` (0-based, in ``phase``) of every run;
+        ``first`` is the phase's first trial number in the run (1-based)."""
+
+    def finish(self, last_trial: int) -> None:
+        """The runs are over (``last_trial`` trials each): end them, save their agents."""
+
+    def abort(self) -> None:
+        """Stopped or failed: keep what the finished pieces recorded."""
+
+
+class OneRun:
+    """One run of the sequential path: the task's env re-seeded, a fresh agent."""
+
+    def __init__(self, task: Task, recorder: RunRecorder, folder: RunFolder, run: int) -> None:
+        agent_seed, env_seed = run_seed(task.seed, run)
+        base = task.env.unwrapped
+        if supports(base, Changeable):
+            base.reset_world()
+        base.np_random = np.random.default_rng(env_seed)
+        self.task, self.recorder, self.run = task, recorder, run
+        self.runs, self.envs = [run], [task.env]
+        self.agent = agent = task.make_agent(seed=agent_seed)
+        if task.record.training_log:
+            notes = agent.log_training(folder.training_log(run))
+            for note in (notes or []) if run == 0 else []:
+                LOG.warning(note)  # e.g. TensorBoard skipped: once per task, not per run
+        if task.load_from is not None:
+            load_saved_agent(agent, task.load_from, run)
+        recorder.start_run(run, agent)
+
+    def piece(self, phase: Phase, max_steps: int, first: int, k: int, n: int) -> None:
+        go = self.agent.train if phase.learning else self.agent.test
+        callbacks = self.recorder.phase_callbacks(first + k, self.run)
+        batch = go(n, max_steps, callbacks) if callbacks else go(n, max_steps)
+        self.recorder.record(self.run, phase.name, first + k, batch, first_in_phase=k + 1)
+
+    def finish(self, last_trial: int) -> None:
+        self.recorder.end_run(self.run, self.agent, last_trial)
+        if self.run in self.task.save_agents:
+            self.recorder.save_agent(self.run, self.agent)
+
+    def abort(self) -> None:
+        """Nothing held back: the pieces were recorded as they ended."""
+
+
+def cohorts(task: Task, recorder: RunRecorder, folder: RunFolder) -> Iterator[Cohort]:
+    """The task's runs in the order they are trained: one at a time, or ``task.batch`` at a
+    time as one computation (``task.batch_runs``)."""
+    if task.batch:
+        from cobelrun.batched import BatchedRuns
+
+        for start in range(0, task.runs, task.batch):
+            runs = list(range(start, min(start + task.batch, task.runs)))
+            yield BatchedRuns(task, recorder, runs, run_seed)
+    else:
+        for run in range(task.runs):
+            yield OneRun(task, recorder, folder, run)
+
+
+def run_phases(
+    task: Task,
+    recorder: RunRecorder,
+    folder: RunFolder,
+    progress: Any = None,
+    phase_times: dict[str, float] | None = None,
+) -> None:
+    """The run loop: every cohort of runs through every phase of the protocol, each phase in
+    pieces (:class:`PhasePacer`; one trial at a time where the phase has a per-trial cycle),
+    the protocol's changes applied to every env of the cohort. Sequential and batched runs
+    differ only in their :class:`Cohort`."""
+    protocol = task.protocol
+    per_run = protocol.n_trials
+    total = task.runs * per_run
+    trimmed = time.monotonic()
+    pacer = PhasePacer(task.record.flush_seconds)
+    for cohort in cohorts(task, recorder, folder):
+        runs = cohort.runs
+
+        def report(done: int, runs: list[int] = runs) -> None:  # trials over all runs
+            if progress is not None:
+                progress(runs[0] * per_run + len(runs) * done, total, run=runs[-1],
+                         runs=task.runs)  # fmt: skip
+
+        first = 1
+        try:
+            for phase in protocol.phases:
+                for env in cohort.envs:
+                    protocol.apply(phase, env)
+                max_steps = phase.max_steps or protocol.max_steps
+                t_phase = time.perf_counter()
+                k = 0
+                while k < phase.trials:
+                    # a phase with a per-trial cycle runs (and records) one trial at a time; a
+                    # long one in pieces of ~flush_seconds
+                    n = 1 if phase.cycle else pacer.next(phase.name, phase.trials - k)
+                    for env in cohort.envs:
+                        protocol.apply_trial(phase, k, env)
+                    t_piece = time.perf_counter()
+                    cohort.piece(phase, max_steps, first, k, n)
+                    pacer.observe(phase.name, n, time.perf_counter() - t_piece)
+                    k += n
+                    if k < phase.trials:
+                        report(first - 1 + k)
+                if phase_times is not None:
+                    phase_times[phase.name] = (
+                        phase_times.get(phase.name, 0.0) + time.perf_counter() - t_phase
+                    )
+                first += phase.trials
+                report(first - 1)  # phases are the finest grain every run reports
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error: keep the pieces the cohort finished
+            cohort.abort()
+            raise
+        cohort.finish(first - 1)
+        if time.monotonic() - trimmed >= TRIM_SECONDS:
+            trim_memory()
+            trimmed = time.monotonic()
 
 
 #: seconds between two :func:`trim_memory` calls (between runs). Every 50 runs, as before,

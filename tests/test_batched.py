@@ -280,6 +280,21 @@ def test_batched_runs_are_deterministic_and_independent_of_the_batch(tmp_path):
     assert identical_runs(seq, a) >= 3
 
 
+def test_batched_runs_apply_a_phase_cycle_trial_by_trial(tmp_path):
+    """A phase with a per-trial cycle (the linear track's laps): batched runs go through the
+    same run loop as sequential ones, one trial per piece with the cycle's change applied to
+    every run's env, so trial k starts where cycle[k % 2] says, as in the sequential twin."""
+    phases = ("task.protocol.phases=[{name: laps, trials: 5, "
+              "cycle: [{starts: [0]}, {starts: [3]}]}]")  # fmt: skip
+    args = [*GRID[:-1], phases, "task.runs=3"]
+    bat, task, _ = run_task(tmp_path, "bat", [*args, "task.batch_runs=true"])
+    seq, _, _ = run_task(tmp_path, "seq", [*args, "task.batch_runs=false"])
+    assert task.batch == 3
+    assert bat.start_state.tolist() == [0, 3, 0, 3, 0] * 3
+    keys = ["run", "trial", "trial_in_phase", "start_state"]
+    pd.testing.assert_frame_equal(bat[keys], seq[keys])
+
+
 def test_fig9_prioritized_batched_matches_sequential(tmp_path):
     """Fig. 9 with prioritized replay: each batched run draws its replay batches from its own
     generator in the sequential buffer's order, so runs are identical trial for trial to the

@@ -151,7 +151,7 @@ def test_dqn_leaves_global_rng_alone() -> None:
 
 def test_dqn_configuration_errors() -> None:
     env = grid_env()
-    with pytest.raises(ConfigError, match=r"agent\.epsilon must be in"):
+    with pytest.raises(ConfigError, match=r"agent\.epsilon must be a number in"):
         DQNAgent(env, epsilon=1.5)
     with pytest.raises(ConfigError, match=r"agent\.activation 'tanhh' is not known"):
         DQNAgent(env, activation="tanhh")

@@ -130,7 +130,7 @@ def test_action_mask_never_bumps_into_walls():
     [
         (dict(policy="greedy"), "agent.policy 'greedy' is not known"),
         (dict(replay="always"), "agent.replay"),
-        (dict(epsilon=1.5), r"agent.epsilon must be in \[0.0, 1.0\]"),
+        (dict(epsilon=1.5), r"agent.epsilon must be a number in \[0.0, 1.0\]"),
         (dict(memory_sampling="visit"), "did you mean 'visited'"),
     ],
 )

@@ -1,8 +1,9 @@
-"""The ``--quick`` path of the figures not covered elsewhere (fig8, pma, revaluation,
-conditioning), built in-process as ``cobel figure NAME --quick`` builds them: the spec's quick
+"""The ``--quick`` path of the figures not covered elsewhere (fig8, fig8_stable, fig9_fast,
+pma, revaluation, conditioning), built in-process as ``cobel figure NAME --quick`` builds them: the spec's quick
 overrides plus a few that make the runs tiny, run planning, the runs, the drawing and the
 PNG/PDF/CSV files. (fig4, fig6a, fig6b, fig7, fig9 and morris: test_frame_times.py,
-test_fig6a.py, test_figures.py, test_water_maze.py.)
+test_fig6a.py, test_figures.py, test_water_maze.py; fig6a_paper is fig6a's DQN at the paper's
+84 x 84 images and 50 seeds: its plan is tested in test_fig6a.py, its runs are fig6a's.)
 """
 
 from __future__ import annotations
@@ -26,11 +27,24 @@ TINY: dict[str, list[str]] = {
         "task.monitors.maps.every=2",
         "task.monitors.maps.grid=[6,5]",
     ],
+    "fig8_stable": [
+        "task.runs=1",
+        "task.protocol.phases.0.trials=4",
+        "task.protocol.max_steps=6",
+        "agent.learning_starts=4",
+        "task.monitors.maps.every=2",
+        "task.monitors.maps.grid=[6,5]",
+    ],
+    "fig9_fast": ["task.runs=2"],
     "pma": [],  # its quick runs: 3 runs x 8 trials per agent
     "revaluation": ["task.job.runs=2", "task.job.training_trials=20"],
     "conditioning": ["task.runs=1"],
 }
-NEEDS = {"fig8": ("stable_baselines3", "pybullet")}
+NEEDS = {
+    "fig8": ("stable_baselines3", "pybullet"),
+    "fig8_stable": ("stable_baselines3", "pybullet"),
+    "fig9_fast": ("stable_baselines3",),
+}
 
 
 def build_quick(name: str, root: Path) -> tuple[registry.Figure, dict[str, Path]]:
@@ -102,3 +116,25 @@ def test_conditioning_quick_predictions_per_paradigm_and_model(tmp_path):
     # Rescorla-Wagner: V near the asymptote after acquisition, near 0 after extinction
     v = acq.set_index("probe")["V"]
     assert v["acquisition"] > 0.9 and v["extinction"] < 0.1
+
+
+def test_fig8_stable_quick(tmp_path):
+    """cobel's stabilised Fig. 8 training, tiny: snapshots before training and every 2 trials,
+    boxes compared by extent."""
+    _, files = build_quick("fig8_stable", tmp_path)
+    table = pd.read_csv(files["csv"])
+    assert table["trial"].tolist() == [0, 2, 4] and (table["units"] == 50).all()
+    assert table["place_cell_fraction"].between(0, 1).all()
+
+
+def test_fig9_fast_quick_is_the_two_afc_fast_task(tmp_path):
+    """fig9_fast: two_afc_fast's runs (Q from 0.5) drawn as Fig. 9: 50 trials of 2 runs, mean
+    reward and greedy probe in [0, 1]."""
+    figure, files = build_quick("fig9_fast", tmp_path)
+    table = pd.read_csv(files["csv"])
+    assert len(table) == 50 and table["runs"].eq(2).all()
+    assert table["greedy_correct_mean"].between(0, 1).all()
+    assert table["reward_mean"].between(0, 1).all()
+    (run_dir,) = run_dirs(figure, tmp_path)["dqn"]
+    config = (run_dir / ".hydra" / "config.yaml").read_text()
+    assert "two_afc_fast" in config

@@ -9,6 +9,11 @@ import pandas as pd
 from cobelrun.figures.registry import Figure, figures
 
 
+def job_dirs(figures_dir, stem: str) -> list:
+    """The run folders of a figure's sweeps (``figures/sweeps/STEM/<label>/<job>``)."""
+    return sorted(p for p in figures_dir.glob(f"sweeps/{stem}/*/*") if p.name.isdigit())
+
+
 def test_registry_finds_fig6b_and_specs_are_well_formed():
     known = figures()
     assert "fig6b" in known
@@ -31,8 +36,9 @@ def test_figure_fig6b_quick_writes_png_pdf_csv_and_reuses_runs(cobel, tmp_path):
     # learnt before the switch: nearly every trial ends in the right arm
     before = table.set_index("trial")["cumulative_response_mean"]
     assert before[100] - before[50] > 45
-    runs = list((out / "runs").iterdir())
+    runs = job_dirs(out, "fig6b_quick")  # its runs are a `cobel run -m` sweep of its overrides
     assert len(runs) == 1 and (runs[0] / ".done").is_file()
+    assert (runs[0].parent / "sweep.json").is_file() and "1 of 1 jobs done" in proc.stderr
     stamp = (runs[0] / "trials.parquet").stat().st_mtime_ns
     again = cobel("figure", "fig6b", "--quick")
     assert again.returncode == 0 and "1 reused, 0 to run" in again.stderr
@@ -97,26 +103,28 @@ def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
 
 def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_path):
     """`cobel figure --jobs 2` (or a figure's own ``jobs=0``: one process per core): the two
-    runs in two worker processes give the same CSV as one after another; a bad --jobs is one
+    runs go through Hydra's joblib launcher as `cobel run -m` does, in two worker processes,
+    and give the same CSV as one after another (the basic launcher); a bad --jobs is one
     line."""
     write_mine(tmp_path)
     seq = cobel("figure", "mine", "--out", str(tmp_path / "seq"))
     assert seq.returncode == 0, seq.stderr
-    assert "at once" not in seq.stderr
+    assert "hydra/launcher=basic" in seq.stderr
     par = cobel("figure", "mine", "--jobs", "2", "--out", str(tmp_path / "par"),
                 env={"COBEL_RESULTS": str(tmp_path / "par_results")})  # fmt: skip
     assert par.returncode == 0, par.stderr
-    assert "2 runs, 2 at once" in par.stderr and par.stderr.count(": done in") == 2
+    assert "2 runs to run" in par.stderr and "hydra.launcher.n_jobs=2" in par.stderr
+    assert "2 of 2 jobs done" in par.stderr
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "seq" / "mine.csv"),
                                   pd.read_csv(tmp_path / "par" / "mine.csv"))  # fmt: skip
-    runs = sorted((tmp_path / "par_results" / "figures" / "runs").iterdir())
+    runs = job_dirs(tmp_path / "par_results" / "figures", "mine")
     assert len(runs) == 2 and all((r / ".done").is_file() for r in runs)
     write_mine(tmp_path, jobs=0)  # the figure's default: one process per core (2 runs: 2 here)
     own = cobel("figure", "mine", "--out", str(tmp_path / "own"),
                 env={"COBEL_RESULTS": str(tmp_path / "own_results")})  # fmt: skip
     assert own.returncode == 0, own.stderr
-    assert f"2 runs, {min(2, os.cpu_count() or 1)} at once" in own.stderr or (
-        os.cpu_count() == 1 and "at once" not in own.stderr
+    assert f"hydra.launcher.n_jobs={min(2, os.cpu_count() or 1)}" in own.stderr or (
+        os.cpu_count() == 1 and "hydra/launcher=basic" in own.stderr
     )
     bad = cobel("figure", "mine", "--jobs", "0")
     assert bad.returncode != 0 and "--jobs 0: give 1 or more" in bad.stderr
@@ -145,7 +153,7 @@ def test_figure_finished_only_draws_what_is_done_and_runs_nothing(cobel, tmp_pat
     out = tmp_path / "results" / "figures"
     table = pd.read_csv(out / "mine_partial.csv")
     assert table["seed"].unique().tolist() == [1] and not (out / "mine.csv").exists()
-    assert len(list((out / "runs").iterdir())) == 1  # the missing run was not started
+    assert len(job_dirs(out, "mine")) == 1  # the missing run was not started
 
 
 def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
@@ -165,7 +173,8 @@ def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
     assert set(c["series"]) == {"end of exploration", "end of training"}
     assert len(c) == 2 * 40 and set(c["trial"]) == {10, 20}
     # the two folders drawn together by `cobel plot LATENT_DIR DIRECT_DIR`
-    runs = sorted((out / "runs").iterdir())
+    runs = job_dirs(out, "fig7_quick")
+    assert len(runs) == 2
     plot = cobel("plot", *map(str, runs), "-o", str(tmp_path / "fig7.png"))
     assert plot.returncode == 0, plot.stderr
     assert (tmp_path / "fig7.png").stat().st_size > 1000

@@ -182,7 +182,9 @@ CASES = [
 
 
 @pytest.mark.parametrize(
-    "path, value, message", CASES, ids=[f"{c[0]}={c[1]!r}"[:60] for c in CASES]
+    "path, value, message",
+    CASES,
+    ids=[f"{c[0]}={'MISSING' if c[1] is MISSING else repr(c[1])}"[:60] for c in CASES],
 )
 def test_bad_task_level_value_is_one_clear_line(base, path, value, message):
     with pytest.raises(ConfigError) as info:

@@ -22,7 +22,7 @@ saves ``w`` and ``z`` through the declared :meth:`state_schema`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import gymnasium as gym
 import numba
@@ -30,6 +30,7 @@ import numpy as np
 
 from cobelrun.agents import policy
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.schema import AgentArgs, interval, number_at_least, validate_args
 from cobelrun.errors import ConfigError
 
 
@@ -49,6 +50,15 @@ def _td_update(w: np.ndarray, z: np.ndarray, f: np.ndarray, f2: np.ndarray, a: i
         w[i] += cd * f[i]
         z[a, i] += ad * f[i]
     return delta
+
+
+class ActorCriticArgs(AgentArgs):
+    """The ranges of :class:`ActorCritic`'s arguments (checked in this order)."""
+
+    gamma: Annotated[Any, interval(0.0, 1.0)]
+    critic_lr: Annotated[Any, number_at_least(0.0)]
+    actor_lr: Annotated[Any, number_at_least(0.0)]
+    beta: Annotated[Any, number_at_least(0.0)]
 
 
 class ActorCritic(Agent):
@@ -91,16 +101,7 @@ class ActorCritic(Agent):
             raise ConfigError(
                 f"agent ActorCritic needs a flat feature vector observation, got shape {shape}"
             )
-        for name, value, lo, hi in (("gamma", gamma, 0.0, 1.0), ("critic_lr", critic_lr, 0.0, None),
-                                    ("actor_lr", actor_lr, 0.0, None), ("beta", beta, 0.0, None)):  # fmt: skip
-            ok = (
-                isinstance(value, int | float)
-                and not isinstance(value, bool)
-                and np.isfinite(value)
-            )
-            if not ok or value < lo or (hi is not None and value > hi):
-                bound = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
-                raise ConfigError(f"agent.{name} must be a number {bound}, got {value!r}")
+        validate_args(ActorCriticArgs, locals())
         self.gamma, self.critic_lr, self.actor_lr, self.beta = (
             float(gamma), float(critic_lr), float(actor_lr), float(beta))  # fmt: skip
         self.n_features = int(shape[0])

@@ -26,15 +26,39 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
+from cobelrun.agents.schema import AgentArgs, interval, number_at_least, validate_args
 from cobelrun.errors import ConfigError
 
 __all__ = ["RescorlaWagner", "TDConditioning"]
+
+
+class ResponseArgs(AgentArgs):
+    """The ranges of the logistic response's arguments (every conditioning agent)."""
+
+    response_beta: Annotated[Any, number_at_least(0.0)]
+    response_threshold: Annotated[Any, number_at_least(-1e9)]
+
+
+class RescorlaWagnerArgs(AgentArgs):
+    """The ranges of :class:`RescorlaWagner`'s own arguments (per-cue saliences, whose keys
+    are the env's cue names, are checked by the agent with :func:`_number`)."""
+
+    learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    asymptote: Annotated[Any, number_at_least(0.0)]
+
+
+class TDConditioningArgs(AgentArgs):
+    """The ranges of :class:`TDConditioning`'s own arguments."""
+
+    learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    gamma: Annotated[Any, interval(0.0, 1.0)]
+    trace_decay: Annotated[Any, interval(0.0, 1.0)]
 
 
 def _number(name: str, value: Any, low: float, high: float | None = None) -> float:
@@ -56,8 +80,9 @@ class _Conditioning(Agent):
                  seed: SeedLike) -> None:  # fmt: skip
         super().__init__(env, seed=seed)  # checks the trial_script contract (env=sequence)
         self.seq = env.unwrapped
-        self.response_beta = _number("response_beta", response_beta, 0.0)
-        self.response_threshold = _number("response_threshold", response_threshold, -1e9)
+        validate_args(ResponseArgs, locals())
+        self.response_beta = float(response_beta)
+        self.response_threshold = float(response_threshold)
         self.prediction = 0.0
 
     def respond(self, v: float) -> int:
@@ -103,8 +128,8 @@ class RescorlaWagner(_Conditioning):
     ) -> None:
         super().__init__(env, response_beta=response_beta,
                          response_threshold=response_threshold, seed=seed)  # fmt: skip
-        self.learning_rate = _number("learning_rate", learning_rate, 0.0, 1.0)
-        self.asymptote = _number("asymptote", asymptote, 0.0)
+        validate_args(RescorlaWagnerArgs, locals())
+        self.learning_rate, self.asymptote = float(learning_rate), float(asymptote)
         self.context_cues = bool(context_cues)
         names = self.seq.cue_names
         self.alpha = np.ones(len(names))
@@ -201,9 +226,9 @@ class TDConditioning(_Conditioning):
         if not self.seq.csc:
             raise ConfigError("agent TDConditioning needs the complete serial compound: "
                               "env.csc=true")  # fmt: skip
-        self.learning_rate = _number("learning_rate", learning_rate, 0.0, 1.0)
-        self.gamma = _number("gamma", gamma, 0.0, 1.0)
-        self.trace_decay = _number("trace_decay", trace_decay, 0.0, 1.0)
+        validate_args(TDConditioningArgs, locals())
+        self.learning_rate, self.gamma = float(learning_rate), float(gamma)
+        self.trace_decay = float(trace_decay)
         n = int(env.observation_space.shape[0])  # type: ignore[index]
         self.w = np.zeros(n)
         self._e = np.zeros(n)

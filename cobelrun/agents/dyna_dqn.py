@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -43,10 +43,20 @@ from cobelrun.agents.dyna_q import TABLE_BYTES_PER_PAIR
 from cobelrun.agents.memory import TabularMemory
 from cobelrun.agents.networks import Network, build_network, set_torch_threads
 from cobelrun.agents.policy import allowed_next, check_policy, select
+from cobelrun.agents.schema import AgentArgs, at_least, interval, validate_args
 from cobelrun.envs.base import StateObservations
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
+
+
+class DynaDeepArgs(AgentArgs):
+    """The ranges of :class:`DynaDeepAgent`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0.0, 1.0)]
+    gamma: Annotated[Any, interval(0.0, 1.0)]
+    target_tau: Annotated[Any, interval(0.0, 1.0)]
+    replay_batch: Annotated[Any, at_least(0)]
 
 
 class DynaDeepAgent(Agent):
@@ -117,16 +127,8 @@ class DynaDeepAgent(Agent):
     ) -> None:
         super().__init__(env, seed=seed)
         base = env.unwrapped
-        for name, value, lo, hi in (
-            ("epsilon", epsilon, 0.0, 1.0),
-            ("gamma", gamma, 0.0, 1.0),
-            ("target_tau", target_tau, 0.0, 1.0),
-        ):
-            if not lo <= value <= hi:
-                raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
+        validate_args(DynaDeepArgs, locals())
         check_policy(policy)
-        if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
-            raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
         set_torch_threads(torch_threads)
         self.epsilon, self.beta, self.policy = float(epsilon), float(beta), policy
         self.gamma, self.learning_rate = float(gamma), float(learning_rate)

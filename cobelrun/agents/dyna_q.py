@@ -21,7 +21,7 @@ Action selection is :func:`cobelrun.agents.kernels.select_action`, the numba twi
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -36,6 +36,7 @@ from cobelrun.agents.base import (
 )
 from cobelrun.agents.codes import POLICIES, REPLAY_MODES, REPLAY_STEP, REPLAY_TRIAL_END
 from cobelrun.agents.memory import TabularMemory
+from cobelrun.agents.schema import AgentArgs, at_least, interval, number_at_least, validate_args
 from cobelrun.envs.base import TabularModel, require, supports
 from cobelrun.errors import ConfigError, allowed_list, suggest
 from cobelrun.records import TrialBatch
@@ -62,6 +63,16 @@ def _choice(kind: str, value: str, allowed: Sequence[str]) -> str:
 TABLE_BYTES_PER_PAIR = 8 + 8 + 8 + 1 + 1 + 8
 #: bytes per experience of a replay batch (sampled index, state, action, reward, target)
 REPLAY_BYTES_PER_SAMPLE = 64
+
+
+class DynaQArgs(AgentArgs):
+    """The ranges of :class:`DynaQ`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0.0, 1.0)]
+    learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    gamma: Annotated[Any, interval(0.0, 1.0)]
+    beta: Annotated[Any, number_at_least(0)]
+    replay_batch: Annotated[Any, at_least(0)]
 
 
 class DynaQ(Agent):
@@ -120,15 +131,7 @@ class DynaQ(Agent):
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
-        for name, value, lo, hi in (
-            ("epsilon", epsilon, 0.0, 1.0),
-            ("learning_rate", learning_rate, 0.0, 1.0),
-            ("gamma", gamma, 0.0, 1.0),
-        ):
-            if not lo <= value <= hi:
-                raise ConfigError(f"agent.{name} must be in [{lo}, {hi}], got {value}")
-        if replay_batch < 0:
-            raise ConfigError(f"agent.replay_batch must be >= 0, got {replay_batch}")
+        validate_args(DynaQArgs, locals())
         self.epsilon, self.beta = float(epsilon), float(beta)
         self.learning_rate, self.gamma = float(learning_rate), float(gamma)
         self.policy = _choice("agent.policy", policy, list(POLICIES))

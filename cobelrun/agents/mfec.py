@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -49,7 +49,14 @@ from scipy.spatial import cKDTree
 
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
 from cobelrun.agents.policy import epsilon_greedy
-from cobelrun.errors import ConfigError
+from cobelrun.agents.schema import (
+    AgentArgs,
+    at_least,
+    int_at_least_or_none,
+    interval,
+    one_of,
+    validate_args,
+)
 
 PROJECTIONS = ("gaussian", "none")
 
@@ -132,6 +139,19 @@ class EpisodicBuffer:
         self._estimates.clear()
 
 
+class MFECArgs(AgentArgs):
+    """The ranges of :class:`MFEC`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0, 1)]
+    gamma: Annotated[Any, interval(0, 1)]
+    k: Annotated[Any, at_least(1)]
+    capacity: Annotated[Any, at_least(1)]
+    projection_dim: Annotated[Any, at_least(1)]
+    memo: Annotated[Any, at_least(0)]
+    blas_threads: Annotated[Any, int_at_least_or_none(1)]
+    projection: Annotated[Any, one_of(PROJECTIONS)]
+
+
 class MFEC(Agent):
     """Model-free episodic control agent.
 
@@ -182,30 +202,11 @@ class MFEC(Agent):
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
-        for name, value in (("epsilon", epsilon), ("gamma", gamma)):
-            if not 0.0 <= value <= 1.0:
-                raise ConfigError(f"agent.{name} must be in [0, 1], got {value}")
-        for name, value in (("k", k), ("capacity", capacity), ("projection_dim", projection_dim)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"agent.{name} must be an integer >= 1, got {value!r}")
-        if isinstance(memo, bool) or not isinstance(memo, int) or memo < 0:
-            raise ConfigError(f"agent.memo must be an integer >= 0, got {memo!r}")
+        validate_args(MFECArgs, locals())
         if blas_threads is not None:
-            if (
-                isinstance(blas_threads, bool)
-                or not isinstance(blas_threads, int)
-                or blas_threads < 1
-            ):
-                raise ConfigError(
-                    f"agent.blas_threads must be null or an integer >= 1, got {blas_threads!r}"
-                )
             from cobelrun.agents.blas import set_blas_threads
 
             set_blas_threads(blas_threads)
-        if projection not in PROJECTIONS:
-            raise ConfigError(
-                f"agent.projection {projection!r} is not known; allowed: 'gaussian', 'none'"
-            )
         self.epsilon, self.gamma, self.k, self.capacity = float(epsilon), float(gamma), k, capacity
         self.projection = projection
         space = env.observation_space

@@ -22,7 +22,7 @@ authors' code. See ``docs/replay.md`` for the equations and the departures from 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -30,7 +30,8 @@ import numpy as np
 from cobelrun.agents.base import ArraySpec, SeedLike, Transition, state_indices
 from cobelrun.agents.policy import check_policy
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayAgent, empty_replays
-from cobelrun.errors import ConfigError, check_choice
+from cobelrun.agents.schema import AgentArgs, at_least, interval, number_at_least, validate_args
+from cobelrun.errors import check_choice
 
 REPLAY_WHEN = ("start_and_goal", "start", "goal", "off")
 NEED = ("sr", "stationary")
@@ -46,6 +47,18 @@ def stationary_distribution(T: np.ndarray) -> np.ndarray:
     vals, vecs = np.linalg.eig(T.T)
     v = np.abs(vecs[:, int(np.argmin(np.abs(vals - 1.0)))].real)
     return v / np.linalg.norm(v)
+
+
+class PMAArgs(AgentArgs):
+    """The ranges of the prioritized-memory agent's arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0.0, 1.0)]
+    learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    gamma: Annotated[Any, interval(0.0, 0.999999)]
+    transition_rate: Annotated[Any, interval(0.0, 1.0)]
+    n_backups: Annotated[Any, at_least(0)]
+    min_gain: Annotated[Any, number_at_least(0)]
+    beta: Annotated[Any, number_at_least(0)]
 
 
 class PMA(ReplayAgent):
@@ -119,24 +132,7 @@ class PMA(ReplayAgent):
         seed: SeedLike = None,
     ) -> None:
         super().__init__(env, seed=seed)
-        for name, value, lo, hi in (
-            ("epsilon", epsilon, 0.0, 1.0),
-            ("learning_rate", learning_rate, 0.0, 1.0),
-            ("gamma", gamma, 0.0, 0.999999),
-            ("transition_rate", transition_rate, 0.0, 1.0),
-        ):
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not lo <= value <= hi
-            ):
-                raise ConfigError(f"agent.{name} must be a number in [{lo}, {hi}], got {value!r}")
-        if isinstance(n_backups, bool) or not isinstance(n_backups, int) or n_backups < 0:
-            raise ConfigError(f"agent.n_backups must be an integer >= 0, got {n_backups!r}")
-        if not isinstance(min_gain, int | float) or min_gain < 0:
-            raise ConfigError(f"agent.min_gain must be a number >= 0, got {min_gain!r}")
-        if not isinstance(beta, int | float) or beta < 0:
-            raise ConfigError(f"agent.beta must be a number >= 0, got {beta!r}")
+        validate_args(PMAArgs, locals())
         base = env.unwrapped
         self.beta, self.epsilon = float(beta), float(epsilon)
         self.policy = check_policy(policy)

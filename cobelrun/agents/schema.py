@@ -5,7 +5,7 @@ An agent declares its arguments as a subclass of :class:`AgentArgs`, each field 
 one rule (:func:`interval`, :func:`at_least`, :func:`positive`, :func:`one_of`, ...), and
 calls :func:`validate_args` at the top of ``__init__``. The first broken rule becomes one
 :class:`~cobelrun.errors.ConfigError` line naming the key (``agent.<name>``), what is allowed and
-the value given, e.g. ``agent.epsilon must be in [0.0, 1.0], got 1.5``.
+the value given, e.g. ``agent.epsilon must be a number in [0.0, 1.0], got 1.5``.
 
 The rules check values as they are (fields are ``Any``: nothing is coerced), so the agent builds
 from the arguments it was given; the model is the one place for their ranges.
@@ -17,7 +17,7 @@ Examples
 >>> validate_args(Args, {"epsilon": 1.5})
 Traceback (most recent call last):
 ...
-cobelrun.errors.ConfigError: agent.epsilon must be in [0.0, 1.0], got 1.5
+cobelrun.errors.ConfigError: agent.epsilon must be a number in [0.0, 1.0], got 1.5
 """
 
 from __future__ import annotations
@@ -35,8 +35,12 @@ from cobelrun.errors import ConfigError, allowed_list, suggest
 __all__ = [
     "AgentArgs",
     "at_least",
+    "boolean",
     "finite_or_none",
+    "int_at_least_or_none",
     "interval",
+    "number_above",
+    "number_at_least",
     "one_of",
     "positive",
     "positive_or_none",
@@ -77,7 +81,51 @@ def interval(lo: float, hi: float) -> BeforeValidator:
     def check(key: str, value: Any) -> str | None:
         if _real(value) and lo <= value <= hi:
             return None
-        return f"{key} must be in [{lo}, {hi}], got {value}"
+        return f"{key} must be a number in [{lo}, {hi}], got {value!r}"
+
+    return _rule(check)
+
+
+def number_at_least(lo: float) -> BeforeValidator:
+    """A finite number ``>= lo``."""
+
+    def check(key: str, value: Any) -> str | None:
+        if _real(value) and math.isfinite(value) and value >= lo:
+            return None
+        return f"{key} must be a number >= {lo}, got {value!r}"
+
+    return _rule(check)
+
+
+def number_above(lo: float) -> BeforeValidator:
+    """A finite number ``> lo``."""
+
+    def check(key: str, value: Any) -> str | None:
+        if _real(value) and math.isfinite(value) and value > lo:
+            return None
+        return f"{key} must be a number > {lo}, got {value!r}"
+
+    return _rule(check)
+
+
+def boolean() -> BeforeValidator:
+    """``true`` or ``false`` (not 0/1, not a string)."""
+
+    def check(key: str, value: Any) -> str | None:
+        return None if isinstance(value, bool) else f"{key} must be true or false, got {value!r}"
+
+    return _rule(check)
+
+
+def int_at_least_or_none(lo: int) -> BeforeValidator:
+    """None (null) or an integer (not a bool) ``>= lo``."""
+
+    def check(key: str, value: Any) -> str | None:
+        if value is None or (
+            isinstance(value, int) and not isinstance(value, bool) and value >= lo
+        ):
+            return None
+        return f"{key} must be null or an integer >= {lo}, got {value!r}"
 
     return _rule(check)
 

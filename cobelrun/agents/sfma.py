@@ -23,7 +23,7 @@ same matrix.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -31,7 +31,8 @@ import numpy as np
 from cobelrun.agents.base import ArraySpec, SeedLike, Transition, state_indices
 from cobelrun.agents.policy import check_policy
 from cobelrun.agents.replay_log import WHEN_END, WHEN_START, ReplayAgent, empty_replays
-from cobelrun.errors import ConfigError, check_choice
+from cobelrun.agents.schema import AgentArgs, at_least, interval, validate_args
+from cobelrun.errors import check_choice
 
 MODES = ("default", "reverse")
 SIMILARITY = ("dr", "euclidean")
@@ -48,6 +49,19 @@ def euclidean_similarity(coords: np.ndarray) -> np.ndarray:
     """(S, S) ``exp(-||x_s - x_s'||)`` of the state coordinates."""
     d = np.linalg.norm(coords[:, None, :] - coords[None, :, :], axis=2)
     return np.exp(-d)
+
+
+class SFMAArgs(AgentArgs):
+    """The ranges of :class:`SFMA`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0, 1.0)]
+    learning_rate: Annotated[Any, interval(0, 1.0)]
+    gamma: Annotated[Any, interval(0, 0.999999)]
+    gamma_dr: Annotated[Any, interval(0, 0.999999)]
+    decay_inhibition: Annotated[Any, interval(0, 1.0)]
+    decay_strength: Annotated[Any, interval(0, 1.0)]
+    threshold: Annotated[Any, interval(0, 1.0)]
+    n_backups: Annotated[Any, at_least(0)]
 
 
 class SFMA(ReplayAgent):
@@ -115,20 +129,7 @@ class SFMA(ReplayAgent):
     ) -> None:
         super().__init__(env, seed=seed)
         base = env.unwrapped
-        for name, value, hi in (
-            ("epsilon", epsilon, 1.0), ("learning_rate", learning_rate, 1.0),
-            ("gamma", gamma, 0.999999), ("gamma_dr", gamma_dr, 0.999999),
-            ("decay_inhibition", decay_inhibition, 1.0), ("decay_strength", decay_strength, 1.0),
-            ("threshold", threshold, 1.0),
-        ):  # fmt: skip
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not 0 <= value <= hi
-            ):
-                raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
-        if isinstance(n_backups, bool) or not isinstance(n_backups, int) or n_backups < 0:
-            raise ConfigError(f"agent.n_backups must be an integer >= 0, got {n_backups!r}")
+        validate_args(SFMAArgs, locals())
         self.policy = check_policy(policy)
         self.mode = check_choice("agent.mode", mode, MODES)
         self.similarity_kind = check_choice("agent.similarity", similarity, SIMILARITY)

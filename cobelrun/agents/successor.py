@@ -37,7 +37,7 @@ it also updates ``w`` from the replayed rewards (as neuro-nav's ``DynaSR``).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Annotated, Any
 
 import gymnasium as gym
 import numpy as np
@@ -59,7 +59,15 @@ from cobelrun.agents.compiled_trials import (
     use_compiled,
 )
 from cobelrun.agents.policy import check_policy, select
-from cobelrun.errors import ConfigError
+from cobelrun.agents.schema import (
+    AgentArgs,
+    at_least,
+    boolean,
+    interval,
+    number_above,
+    number_at_least,
+    validate_args,
+)
 from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
 from cobelrun.signals import critical
@@ -129,10 +137,39 @@ class SuccessorCore:
         self.M[...] = T @ N
 
 
-def _check_rate(name: str, value: object, hi: float = 1.0) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= hi:
-        raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
-    return float(value)
+class TabularModelArgs(AgentArgs):
+    """The ranges of :class:`TabularModelAgent`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0, 1.0)]
+    beta: Annotated[Any, number_at_least(0)]
+    gamma: Annotated[Any, interval(0, 0.999999)]
+
+
+class SRTDArgs(AgentArgs):
+    """The ranges of :class:`SRTD`'s own arguments."""
+
+    learning_rate: Annotated[Any, interval(0, 1.0)]
+    reward_rate: Annotated[Any, interval(0, 1.0)]
+
+
+class SRDynaArgs(AgentArgs):
+    """The ranges of :class:`SRDyna`'s own arguments."""
+
+    replay_batch: Annotated[Any, at_least(0)]
+    replay_reward: Annotated[Any, boolean()]
+
+
+class ModelRatesArgs(AgentArgs):
+    """The ranges of the model-based agents' rates."""
+
+    reward_rate: Annotated[Any, interval(0, 1.0)]
+    transition_rate: Annotated[Any, interval(0, 1.0)]
+
+
+class ValueIterationArgs(ModelRatesArgs):
+    """The ranges of :class:`ValueIteration`'s own arguments."""
+
+    tolerance: Annotated[Any, number_above(0)]
 
 
 class TabularModelAgent(Agent):
@@ -174,9 +211,8 @@ class TabularModelAgent(Agent):
     ) -> None:
         super().__init__(env, seed=seed)
         self.policy = check_policy(policy)
-        self.epsilon = _check_rate("epsilon", epsilon)
-        self.beta = float(beta)
-        self.gamma = _check_rate("gamma", gamma, 0.999999)
+        validate_args(TabularModelArgs, locals())
+        self.epsilon, self.beta, self.gamma = float(epsilon), float(beta), float(gamma)
         self.n_states = int(env.observation_space.n)
         self.n_actions = int(env.action_space.n)
 
@@ -260,10 +296,9 @@ class SRTD(_CompiledSR):
         self, env: gym.Env, *, learning_rate: float = 0.3, reward_rate: float = 0.9, **kwargs
     ) -> None:
         super().__init__(env, **kwargs)
-        self.core = SuccessorCore(
-            self.n_states, self.n_actions, self.gamma,
-            _check_rate("learning_rate", learning_rate), _check_rate("reward_rate", reward_rate),
-        )  # fmt: skip
+        validate_args(SRTDArgs, locals())
+        self.core = SuccessorCore(self.n_states, self.n_actions, self.gamma,
+                                  float(learning_rate), float(reward_rate))  # fmt: skip
 
     def q_values(self, s: int) -> np.ndarray:
         return self.core.q(s)
@@ -346,10 +381,7 @@ class SRDyna(SRTD):
         self, env: gym.Env, *, replay_batch: int = 10, replay_reward: bool = False, **kwargs
     ) -> None:
         super().__init__(env, **kwargs)
-        if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 0:
-            raise ConfigError(f"agent.replay_batch must be an integer >= 0, got {replay_batch!r}")
-        if not isinstance(replay_reward, bool):
-            raise ConfigError(f"agent.replay_reward must be true or false, got {replay_reward!r}")
+        validate_args(SRDynaArgs, locals())
         self.replay_batch = replay_batch
         self.replay_reward = replay_reward
         self.model_next = np.full((self.n_states, self.n_actions), -1, np.int64)
@@ -434,10 +466,10 @@ class SRMB(_CompiledSR):
         self, env: gym.Env, *, transition_rate: float = 1.0, reward_rate: float = 0.9, **kwargs
     ) -> None:
         super().__init__(env, **kwargs)
+        validate_args(ModelRatesArgs, locals())
         self.core = SuccessorCore(self.n_states, self.n_actions, self.gamma, 0.0,
-                                  _check_rate("reward_rate", reward_rate))  # fmt: skip
-        self.model = _OneStepModel(self.n_states, self.n_actions,
-                                   _check_rate("transition_rate", transition_rate))  # fmt: skip
+                                  float(reward_rate))  # fmt: skip
+        self.model = _OneStepModel(self.n_states, self.n_actions, float(transition_rate))
         #: (S, A) the greedy policy when the agent last acted in each state (ties split)
         self.cached_policy = np.full((self.n_states, self.n_actions), 1.0 / self.n_actions)
         self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()
@@ -531,11 +563,9 @@ class ValueIteration(TabularModelAgent):
         **kwargs,
     ) -> None:
         super().__init__(env, **kwargs)
-        self.model = _OneStepModel(self.n_states, self.n_actions,
-                                   _check_rate("transition_rate", transition_rate))  # fmt: skip
-        self.reward_rate = _check_rate("reward_rate", reward_rate)
-        if not isinstance(tolerance, int | float) or tolerance <= 0:
-            raise ConfigError(f"agent.tolerance must be a number > 0, got {tolerance!r}")
+        validate_args(ValueIterationArgs, locals())
+        self.model = _OneStepModel(self.n_states, self.n_actions, float(transition_rate))
+        self.reward_rate = float(reward_rate)
         self.tolerance = float(tolerance)
         self.w = np.zeros(self.n_states)
         self.terminal = np.asarray(env.unwrapped.world.terminal, bool).copy()

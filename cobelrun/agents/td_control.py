@@ -23,7 +23,7 @@ Sutton & Anderson (1983) (actor-critic); Sutton (1990) (Dyna).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -45,8 +45,16 @@ from cobelrun.agents.compiled_trials import (
     use_compiled,
 )
 from cobelrun.agents.policy import check_policy
+from cobelrun.agents.schema import (
+    AgentArgs,
+    at_least,
+    interval,
+    number_at_least,
+    one_of,
+    validate_args,
+)
 from cobelrun.envs.base import TabularModel, require, supports
-from cobelrun.errors import ConfigError, allowed_list, suggest
+from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
 from cobelrun.signals import critical
@@ -61,10 +69,33 @@ _NO_MODEL_TERMINAL = np.zeros((1, 1), np.bool_)
 _NO_PAIRS = np.zeros(1, np.int64)
 
 
-def _rate(name: str, value: object, hi: float = 1.0) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= hi:
-        raise ConfigError(f"agent.{name} must be a number in [0, {hi}], got {value!r}")
-    return float(value)
+class TabularControlArgs(AgentArgs):
+    """The ranges of :class:`TabularControl`'s arguments (checked in this order)."""
+
+    epsilon: Annotated[Any, interval(0, 1.0)]
+    beta: Annotated[Any, number_at_least(0)]
+    learning_rate: Annotated[Any, interval(0, 1.0)]
+    gamma: Annotated[Any, interval(0, 1.0)]
+
+
+class LambdaArgs(AgentArgs):
+    """The ranges of the eligibility-trace agents' own arguments."""
+
+    lam: Annotated[Any, interval(0, 1.0)]
+    trace: Annotated[Any, one_of(TRACES)]
+
+
+class ActorCriticRatesArgs(AgentArgs):
+    """The ranges of :class:`TabularActorCritic`'s own arguments."""
+
+    actor_lr: Annotated[Any, interval(0, 1.0)]
+    critic_lr: Annotated[Any, interval(0, 1.0)]
+
+
+class DynaACArgs(AgentArgs):
+    """The ranges of :class:`DynaActorCritic`'s own arguments."""
+
+    replay_batch: Annotated[Any, at_least(1)]
 
 
 class TabularControl(Agent):
@@ -112,12 +143,9 @@ class TabularControl(Agent):
     ) -> None:
         super().__init__(env, seed=seed)
         self.policy = check_policy(policy)
-        self.epsilon = _rate("epsilon", epsilon)
-        if isinstance(beta, bool) or not isinstance(beta, int | float) or beta < 0:
-            raise ConfigError(f"agent.beta must be a number >= 0, got {beta!r}")
-        self.beta = float(beta)
-        self.learning_rate = _rate("learning_rate", learning_rate)
-        self.gamma = _rate("gamma", gamma)
+        validate_args(TabularControlArgs, locals())
+        self.epsilon, self.beta = float(epsilon), float(beta)
+        self.learning_rate, self.gamma = float(learning_rate), float(gamma)
         self.engine = check_engine(engine)
         self.n_states = int(env.observation_space.n)
         self.n_actions = int(env.action_space.n)
@@ -253,11 +281,8 @@ class _Lambda(TabularControl):
         self, env: gym.Env, *, lam: float = 0.9, trace: str = "replacing", **kwargs: Any
     ) -> None:
         super().__init__(env, **kwargs)
-        self.lam = _rate("lam", lam)
-        if trace not in TRACES:
-            raise ConfigError(f"agent.trace {trace!r} is not known{suggest(trace, TRACES)}; "
-                              f"allowed: {allowed_list(TRACES)}")  # fmt: skip
-        self.trace = trace
+        validate_args(LambdaArgs, locals())
+        self.lam, self.trace = float(lam), trace
 
     def _lam(self) -> tuple[float, int]:
         return self.lam, TRACES[self.trace]
@@ -358,9 +383,9 @@ class TabularActorCritic(TabularControl):
         if "learning_rate" in kwargs:
             raise ConfigError("agent.learning_rate is not a parameter of the actor-critic; "
                               "use agent.actor_lr and agent.critic_lr")  # fmt: skip
-        super().__init__(env, learning_rate=_rate("actor_lr", actor_lr), policy=policy,
-                         beta=beta, **kwargs)  # fmt: skip
-        self.critic_lr = _rate("critic_lr", critic_lr)
+        validate_args(ActorCriticRatesArgs, locals())
+        super().__init__(env, learning_rate=float(actor_lr), policy=policy, beta=beta, **kwargs)
+        self.critic_lr = float(critic_lr)
 
     def _lr2(self) -> float:
         return self.critic_lr
@@ -393,8 +418,7 @@ class DynaActorCritic(TabularActorCritic):
 
     def __init__(self, env: gym.Env, *, replay_batch: int = 3, **kwargs: Any) -> None:
         super().__init__(env, **kwargs)
-        if isinstance(replay_batch, bool) or not isinstance(replay_batch, int) or replay_batch < 1:
-            raise ConfigError(f"agent.replay_batch must be an integer >= 1, got {replay_batch!r}")
+        validate_args(DynaACArgs, locals())
         self.replay_batch = replay_batch
         S, A = self.n_states, self.n_actions
         self.model_next = np.full((S, A), -1, np.int64)

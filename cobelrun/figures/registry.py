@@ -12,10 +12,10 @@ that defines ``FIGURE = Figure(...)``::
         draw=draw,                                           # FigureData -> (fig, table)
     )
 
-``cobel figure NAME`` composes every run's config, finds finished runs again by config hash
-(``$COBEL_RESULTS/figures/runs/<task>-<hash>``, done marker + matching hash), runs only what is
-missing, then calls ``draw`` and writes ``$COBEL_RESULTS/figures/NAME.png``, ``.pdf`` and ``.csv``
-(the plotted numbers). ``--quick`` adds the spec's ``quick`` overrides (a small budget, for CI)
+``cobel figure NAME`` composes every run's config, finds finished runs again by config hash,
+runs what is missing as ``cobel run -m`` does (one sweep per label, through Hydra's launcher:
+``$COBEL_RESULTS/figures/sweeps/NAME/<label>/<job>``, resumed like any sweep), then calls ``draw``
+and writes ``$COBEL_RESULTS/figures/NAME.png``, ``.pdf`` and ``.csv`` (the plotted numbers). ``--quick`` adds the spec's ``quick`` overrides (a small budget, for CI)
 and writes ``NAME_quick.*``; quick runs have their own hashes, so they never mix with full ones.
 """
 
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import logging
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,7 +36,10 @@ from cobelrun.errors import CobelError, ConfigError, allowed_list, suggest
 from cobelrun.io.atomic import atomic_path, disk_error
 
 FIGURE_DIR = "figures"
+#: the run store of figures before their runs became sweeps: searched for finished runs
 RUN_STORE = "runs"
+#: where a figure's runs are: ``sweeps/<figure>[_quick]/<label>`` (one sweep per label)
+SWEEPS = "sweeps"
 
 
 @dataclass(frozen=True)
@@ -234,9 +238,16 @@ class _Planned:
     run_dir: Path
 
 
+def sweep_dir(figure: Figure, label: str, *, quick: bool = False, root: Path | None = None) -> Path:
+    """The sweep folder that runs ``label``'s jobs of ``figure``."""
+    stem = f"{figure.name}_quick" if quick else figure.name
+    return (root or results_root()) / FIGURE_DIR / SWEEPS / stem / label
+
+
 def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) -> list[_Planned]:
-    """Compose every run of ``figure``; each gets a run folder keyed by its config hash."""
-    from cobelrun.io.sweep_folder import job_config_hash
+    """Compose every run of ``figure``; each is a job of its label's sweep folder
+    (:func:`sweep_dir`), numbered as ``cobel run -m`` numbers the label's overrides."""
+    from cobelrun.io.sweep_folder import job_config_hash, job_dir
     from cobelrun.sweep_plan import plan
 
     root = root or results_root()
@@ -244,10 +255,11 @@ def plan_runs(figure: Figure, *, quick: bool = False, root: Path | None = None) 
     with _composer() as compose:
         for label in figure.runs:
             _, jobs = plan(figure.overrides(label, quick))
+            where = sweep_dir(figure, label, quick=quick, root=root)
             for j in jobs:
                 cfg = compose(j["overrides"])
                 chash = job_config_hash(cfg)
-                run_dir = root / FIGURE_DIR / RUN_STORE / f"{cfg.task.name}-{chash[:16]}"
+                run_dir = job_dir(where, j["job"])
                 planned.append(
                     _Planned(label, j["job"], j["overrides"], j["params"], cfg, chash, run_dir)
                 )
@@ -276,7 +288,7 @@ def finished_runs(folders: Sequence[Path]) -> dict[str, Path]:
 
 def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
     """Copy the finished runs under ``folders`` that ``planned`` needs (same config hash) into
-    their run folders in the figure's run store; returns how many were copied."""
+    their job folders of the figure's sweeps; returns how many were copied."""
     import shutil
 
     found = finished_runs(folders)
@@ -286,6 +298,7 @@ def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
         if src is None or src.resolve() == p.run_dir.resolve():
             continue
         tmp = p.run_dir.with_name(p.run_dir.name + ".importing")
+        tmp.parent.mkdir(parents=True, exist_ok=True)
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(src, tmp)
         shutil.rmtree(p.run_dir, ignore_errors=True)
@@ -294,113 +307,62 @@ def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
     return taken
 
 
-def _run_planned(cfg: Any, run_dir: Path) -> float:
-    """A figure run in a worker process of :func:`run_parallel`; returns its wall seconds."""
-    import time
+def launcher_overrides(jobs: int) -> list[str]:
+    """Hydra's launcher for ``jobs`` runs at once: the basic launcher (one after another, in
+    this process) for 1, else joblib with ``jobs`` workers (the basic one without joblib)."""
+    from cobelrun.hydra_app import default_launcher
 
-    import cobelrun.sweep as sweep
-    from cobelrun.config import register_resolvers
-    from cobelrun.runner import run
-
-    register_resolvers()  # the config's interpolations resolve in this process
-    t0 = time.perf_counter()
-    sweep.IN_JOB = True  # a signal now is the run's to handle: it closes its files and stops
-    try:
-        run(cfg, run_dir, background_writes=False)  # the runs in parallel already fill the cores
-    finally:
-        sweep.IN_JOB = False
-    return time.perf_counter() - t0
+    if jobs <= 1 or not default_launcher([]):
+        return ["hydra/launcher=basic"]
+    return ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
 
 
-def run_parallel(
-    name: str, todo: Sequence[_Planned], jobs: int, *, log: Callable[[str], None] | None = None
+def run_label(
+    figure: Figure,
+    label: str,
+    todo: Sequence[_Planned],
+    *,
+    quick: bool,
+    root: Path,
+    launcher: Sequence[str],
+    log: Callable[[str], None] | None = None,
 ) -> None:
-    """Run ``todo`` in up to ``jobs`` worker processes at once (``cobel figure --jobs``).
+    """Run ``label``'s missing jobs as ``cobel run -m`` does: a sweep of the label's overrides
+    into its sweep folder (:func:`sweep_dir`), through Hydra's launcher (``launcher``:
+    ``hydra/launcher=...`` overrides; joblib, basic, submitit), with cobel's sweeper, which
+    skips the jobs already done there. A job that fails is a one-line CobelError naming it;
+    Ctrl-C or SIGTERM stops the sweep cleanly (its running jobs close their files) and raises
+    KeyboardInterrupt."""
+    import contextlib as _contextlib
 
-    The workers are set up as a sweep's (:func:`cobelrun.sweep.worker_init`): an idle worker
-    ignores Ctrl-C and SIGTERM, a running run takes them itself and closes its files, and no
-    worker outlives this process. A run starts only when a worker is free; each logs to its
-    own ``cobel.log``, and one line is printed as each ends. Every run is waited for and the
-    first failure raised afterwards (the finished runs are kept and reused next time). On
-    Ctrl-C or SIGTERM no further run starts, the running ones stop cleanly (they are sent
-    SIGTERM too, in case the signal reached only this process), and :class:`KeyboardInterrupt`
-    propagates once they have closed their files.
-    """
-    import concurrent.futures as cf
-    import multiprocessing
-    import os
-    import signal
+    from cobelrun.hydra_app import launch
+    from cobelrun.io.sweep_folder import job_rows
 
-    from cobelrun.io.sweep_folder import clear_outputs
-    from cobelrun.sweep import LAUNCHER_ENV, worker_init
-
-    say = log or (lambda m: None)
-    workers = min(jobs, len(todo))
-    say(f"{name}: {len(todo)} runs, {workers} at once (one process each; progress in each run "
-        f"folder's cobel.log under {todo[0].run_dir.parent})")  # fmt: skip
-    for p in todo:
-        clear_outputs(p.run_dir)
-
-    def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
-
-    previous = os.environ.get(LAUNCHER_ENV)
-    os.environ[LAUNCHER_ENV] = str(os.getpid())  # the workers' launcher (no orphans)
-    previous_term = signal.signal(signal.SIGTERM, interrupt)
-    pool = cf.ProcessPoolExecutor(
-        max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-        initializer=worker_init,
-    )  # fmt: skip
-    waiting = iter(todo)
-    running: dict[cf.Future, _Planned] = {}
-    errors: list[BaseException] = []
-    stopping, ended = False, 0
-
-    def start_next() -> None:
-        p = next(waiting, None)
-        if p is not None and not stopping:
-            running[pool.submit(_run_planned, p.cfg, p.run_dir)] = p
-
+    where = sweep_dir(figure, label, quick=quick, root=root)
+    if log:
+        log(f"{figure.name}: {label}: {len(todo)} runs to run, as the sweep {where} "
+            f"({' '.join(launcher)})")  # fmt: skip
+    args = ["-m", *figure.overrides(label, quick), *launcher, f"hydra.sweep.dir={where}"]
+    root_log = logging.getLogger()
+    level, handlers = root_log.level, list(root_log.handlers)
     try:
-        for _ in range(workers):
-            start_next()
-        while running:
-            try:
-                finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
-            except KeyboardInterrupt:
-                if not stopping:
-                    stopping = True
-                    say(f"{name}: stopping: the running runs close their files, the others "
-                        "do not start")  # fmt: skip
-                    for child in multiprocessing.active_children():
-                        with contextlib.suppress(OSError):
-                            os.kill(child.pid, signal.SIGTERM)  # type: ignore[arg-type]
-                continue
-            for fut in finished:
-                p = running.pop(fut)
-                ended += 1
-                head = f"{name} {ended}/{len(todo)} {p.label} job {p.job}"
-                exc = fut.exception()
-                if exc is None:
-                    say(f"{head}: done in {fut.result():.0f} s")
-                elif isinstance(exc, KeyboardInterrupt):
-                    stopping = True
-                    say(f"{head}: interrupted (its files are closed; it runs again next time)")
-                else:
-                    errors.append(exc)
-                    say(f"{head}: failed: {exc}")
-                start_next()
-    finally:
-        signal.signal(signal.SIGTERM, previous_term)
-        pool.shutdown(wait=True, cancel_futures=True)
-        if previous is None:
-            os.environ.pop(LAUNCHER_ENV, None)
-        else:
-            os.environ[LAUNCHER_ENV] = previous
-    if stopping:
+        with _contextlib.redirect_stdout(sys.stderr):  # stdout: the figure's files only
+            code = launch(args, quiet=True)
+    finally:  # Hydra configured logging for the sweep; drawing logs as before it
+        root_log.handlers[:] = handlers
+        root_log.setLevel(level)
+    if code == 130:
         raise KeyboardInterrupt
-    if errors:
-        raise errors[0]
+    wanted = {p.job for p in todo}
+    failed = [r for r in job_rows(where, write=False)
+              if r["job"] in wanted and r["status"] != "done"]  # fmt: skip
+    if code != 0 or failed:
+        first = failed[0] if failed else {"job": "?", "status": "failed", "error": ""}
+        raise CobelError(
+            f"{figure.name}: {label} job {first['job']} {first['status']}"
+            + (f": {first['error']}" if first.get("error") else "")
+            + f" (see cobel status {where}; finished runs are kept and reused next time)"
+        )
 
 
 def _finished_part(
@@ -438,6 +400,7 @@ def build(
     reuse_from: Sequence[Path] = (),
     jobs: int | None = None,
     finished_only: bool = False,
+    launcher: Sequence[str] = (),
 ) -> dict[str, Path]:
     """Run what ``figure`` still needs, draw it, and write PNG, PDF and CSV.
 
@@ -445,17 +408,18 @@ def build(
     runs are copied into the figure's run store when their config hash is one the figure needs,
     e.g. a ``cobel run -m`` sweep of the figure's jobs run in parallel or on a cluster.
     ``jobs``: run up to this many of the missing runs at once, each in a process of its own
-    (:func:`run_parallel`); 1 runs them one after another in this process, with a progress bar;
-    None takes the figure's own default (:attr:`Figure.jobs`).
+    (Hydra's joblib launcher); 1 runs them one after another in this process (the basic
+    launcher); None takes the figure's own default (:attr:`Figure.jobs`). Either way the runs
+    go through :func:`run_label`, the path of ``cobel run -m``.
+    ``launcher``: Hydra overrides choosing another launcher for the runs
+    (``["hydra/launcher=slurm", "hydra.launcher.partition=gpu"]``); ``jobs`` is then ignored.
     ``finished_only``: run nothing and draw from the runs already finished (each of the
     figure's labels needs one at least), to ``NAME_partial.*``; the runs left out are logged.
 
     Returns the written files by suffix (``png``, ``pdf``, ``csv``).
     """
     from cobelrun.figures.style import paper_style
-    from cobelrun.io.sweep_folder import clear_outputs, is_complete
-    from cobelrun.progress import run_progress
-    from cobelrun.runner import run
+    from cobelrun.io.sweep_folder import is_complete
 
     if jobs is not None and jobs < 1:
         raise CobelError(f"--jobs {jobs}: give 1 or more (runs at once, one process each)")
@@ -472,19 +436,23 @@ def build(
         if log:
             log(f"{figure.name}: {taken} runs taken from {', '.join(map(str, reuse_from))}")
         todo = [p for p in todo if not is_complete(p.run_dir, p.config_hash)]
+    if todo:  # the same runs finished for another figure, or in the store of older versions
+        figures_dir = root / FIGURE_DIR
+        stores = [d for d in (figures_dir / RUN_STORE, *figures_dir.glob(f"{SWEEPS}/*/*"))
+                  if d.is_dir() and d not in {p.run_dir.parent for p in todo}]  # fmt: skip
+        if stores:
+            import_runs(todo, stores)
+            todo = [p for p in todo if not is_complete(p.run_dir, p.config_hash)]
     if finished_only:
         planned, todo = _finished_part(figure, planned, todo, log), []
     elif log:
         log(f"{figure.name}: {len(planned)} runs, {len(planned) - len(todo)} reused, "
             f"{len(todo)} to run")  # fmt: skip
-    if jobs > 1 and len(todo) > 1:
-        run_parallel(figure.name, todo, jobs, log=log)
-    else:
-        for k, p in enumerate(todo, 1):
-            clear_outputs(p.run_dir)
-            label = f"{figure.name} {k}/{len(todo)} {p.label}"
-            with run_progress(label) as progress:
-                run(p.cfg, p.run_dir, progress=progress)
+    launcher = list(launcher) or launcher_overrides(min(jobs, len(todo)))
+    for label in figure.runs:
+        missing = [p for p in todo if p.label == label]
+        if missing:
+            run_label(figure, label, missing, quick=quick, root=root, launcher=launcher, log=log)
     todo_dirs = {p.run_dir for p in todo}
     data = FigureData(quick=quick, runs={})
     for p in planned:

@@ -342,6 +342,53 @@ def derive(out_dir: Path = DATA_DIR) -> list[Path]:
     return written
 
 
+def frame_time_ratios(runs: Mapping[str, Path]) -> pd.DataFrame:
+    """Fig. 4-style medians from ``render_benchmark`` run folders (label -> folder, e.g.
+    ``memo0`` and ``memo4096``): per label, agent and size the median frame time of each
+    mode over the repetitions, and offline / online and online / offline."""
+    rows = []
+    for label, folder in runs.items():
+        ft = pd.read_csv(Path(folder) / "frame_times.csv")
+        med = ft.groupby(["agent", "height", "width", "mode"])["frame_ms_median"].median()
+        for (agent, h, w), g in med.groupby(level=[0, 1, 2]):
+            m = g.droplevel([0, 1, 2])
+            rows.append({"label": label, "agent": agent, "size": f"{h}x{w}",
+                         "online_ms": m.get("online"), "offline_ms": m.get("offline"),
+                         "norender_ms": m.get("none"),
+                         "offline_over_online": m.get("offline") / m.get("online"),
+                         "online_over_offline": m.get("online") / m.get("offline"),
+                         "repetitions": int(ft["rep"].nunique()),
+                         "steps": int(ft["steps"].max()), "clock": ft["clock"].iloc[0]})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def export_run_folders(
+    table: str,
+    runs: Mapping[str, Path],
+    fn: Callable[[Mapping[str, Path]], pd.DataFrame],
+    out_dir: Path = DATA_DIR,
+    command: str = "",
+) -> Path:
+    """A table made from plain run folders (not a figure's), its sidecar from their manifests."""
+    started, wall, commits, machines, entries = [], 0.0, set(), set(), []
+    for label, folder in runs.items():
+        m = json.loads((Path(folder) / "manifest.json").read_text())
+        git = (m.get("git") or {}).get("cobelrun") or {}
+        commits.add(f"{git.get('commit')}{' (dirty)' if git.get('dirty') else ''}")
+        machines.add(f"{m.get('hostname')} ({m.get('platform')})")
+        started.append(m.get("started_at"))
+        wall += float(m.get("wall_time_s") or 0.0)
+        entries.append({"label": label, "seed": m.get("seed"), "config_hash": m.get("config_hash"),
+                        "command": " ".join(m.get("command") or [])})  # fmt: skip
+    prov = {"table": table, "source": "run", "command": command, "runs": entries,
+            "seeds": sorted({e["seed"] for e in entries if e["seed"] is not None}),
+            "cobel_commit": sorted(commits), "machine": sorted(machines), "cpus": os.cpu_count(),
+            "runs_started": [min(started), max(started)],
+            "exported": datetime.now(UTC).isoformat(timespec="seconds"),
+            "wall_time_s": round(wall, 1)}  # fmt: skip
+    return write_table(fn(runs), prov, out_dir, table)
+
+
 # -- provenance and writing -------------------------------------------------------------------
 
 

@@ -76,3 +76,17 @@ def test_two_sample_constant_samples_and_bad_input():
         two_sample([1.0], [1.0, 2.0])
     with pytest.raises(CobelError, match="2 or more finite values"):
         two_sample([1.0, np.nan], [1.0, 2.0])
+
+
+def test_fig9_original_constants_are_the_committed_table():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "fig9.py"
+    spec = importlib.util.spec_from_file_location("_fig9_spec", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    table = pd.read_csv(DATA / "fig9_original.csv").set_index("trials")
+    for (lo, hi), reward, greedy in module.ORIGINAL:
+        row = table.loc[f"{lo}-{hi}"]
+        assert (row["reward_mean"], row["greedy_correct"]) == (reward, greedy)

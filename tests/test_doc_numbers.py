@@ -68,6 +68,8 @@ def test_every_table_has_its_provenance():
         ("probe 76% in the target quadrant", {"t.csv": "q,f\ntarget,0.7604\n"}, True),
         ("probe 0.77 in the target quadrant", {"t.csv": "q,f\ntarget,0.7604\n"}, False),
         ("Fig. 6B `cobel run x=3` path 8", {"t.csv": "a\n1\n"}, False),
+        ("Mann-Whitney p 6.7e-08", {"t.csv": "p\n6.74785e-08\n"}, True),
+        ("Mann-Whitney p 6.8e-08", {"t.csv": "p\n6.74785e-08\n"}, False),
     ],
 )
 def test_a_drifted_number_fails(tmp_path, text, tables, ok):

@@ -34,7 +34,9 @@ from cobelrun.errors import CobelError
 
 CODE = re.compile(r"`[^`]*`")
 MARKER = re.compile(r"<!--\s*data:\s*(?P<body>.*?)\s*-->")
-NUMBER = re.compile(r"(?<![\w.])(\d{1,3}(?:,\d{3})+|\d+)(\.\d+)?(?P<pct>\s?%)?")
+NUMBER = re.compile(
+    r"(?<![\w.])(\d{1,3}(?:,\d{3})+|\d+)(\.\d+)?(?:[eE](?P<exp>[-+]?\d+))?(?P<pct>\s?%)?"
+)
 #: text that holds digits but no result
 NOT_NUMBERS = [
     re.compile(r"<!--.*?-->"),
@@ -99,14 +101,17 @@ def covered(doc: Path) -> Iterator[Covered]:
         k += 1
 
 
-def numbers(text: str) -> list[tuple[str, float, int, bool]]:
-    """The numbers of ``text`` as (as written, value, decimals, percent)."""
+def numbers(text: str) -> list[tuple[str, float, float, bool]]:
+    """The numbers of ``text`` as (as written, value, half a unit of its last digit, percent);
+    ``6.7e-08`` is read with its exponent."""
     for pattern in NOT_NUMBERS:
         text = pattern.sub(" ", text)
     out = []
     for m in NUMBER.finditer(text):
         whole, frac = m.group(1).replace(",", ""), m.group(2) or ""
-        out.append((m.group(0).strip(), float(whole + frac), max(len(frac) - 1, 0),
+        exp = int(m.group("exp") or 0)
+        half = 0.5 * 10.0 ** (exp - max(len(frac) - 1, 0))
+        out.append((m.group(0).strip(), float(whole + frac) * 10.0**exp, half,
                     bool(m.group("pct"))))  # fmt: skip
     return out
 
@@ -126,9 +131,10 @@ def table_values(path: Path) -> np.ndarray:
     return np.abs(np.asarray(values, dtype=float))
 
 
-def held(value: float, decimals: int, percent: bool, pool: np.ndarray) -> bool:
-    """Does a table value shown with ``decimals`` decimals read ``value``?"""
-    half = 0.5 * 10.0**-decimals * (1 + 1e-9) + 1e-12
+def held(value: float, half: float, percent: bool, pool: np.ndarray) -> bool:
+    """Does a table value, rounded to the doc's last digit (``half`` a unit of it), read
+    ``value``?"""
+    half = half * (1 + 1e-9) + 1e-15
     if np.any(np.abs(pool - value) <= half):
         return True
     return bool(percent and np.any(np.abs(pool * 100 - value) <= half))
@@ -171,8 +177,8 @@ def check(docs: Iterable[Path], data_dir: Path, *, all_tables: Iterable[Path] = 
                     cache[name] = table_values(path)
                 pools.append(cache[name])
             pool = np.concatenate([*pools, np.abs(np.asarray(c.settings, float))])
-            for shown, value, decimals, pct in numbers(c.text):
-                if not held(value, decimals, pct, pool):
+            for shown, value, half, pct in numbers(c.text):
+                if not held(value, half, pct, pool):
                     problems.append(
                         f"{doc}:{c.line}: {shown!r} is in no table of {', '.join(c.tables)}"
                     )

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -22,10 +23,18 @@ def cli(tmp_path, monkeypatch):
     monkeypatch.setenv("COBEL_RESULTS", str(tmp_path / "results"))
     monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
 
-    def _run(*args: str) -> subprocess.CompletedProcess:
-        # the command line a run's manifest records (and NWB export reads back)
-        monkeypatch.setattr(sys, "argv", ["cobel", *args])
-        result = CliRunner().invoke(app, list(args))
+    def _run(
+        *args: str, env: dict[str, str] | None = None, cwd: Path | None = None
+    ) -> subprocess.CompletedProcess:
+        """``env``: variables set for this call only; ``cwd``: its working directory."""
+        with monkeypatch.context() as m:
+            for key, value in (env or {}).items():
+                m.setenv(key, value)
+            if cwd is not None:
+                m.chdir(cwd)
+            # the command line a run's manifest records (and NWB export reads back)
+            m.setattr(sys, "argv", ["cobel", *args])
+            result = CliRunner().invoke(app, list(args))
         if result.exception is not None and not isinstance(result.exception, SystemExit):
             raise result.exception
         return subprocess.CompletedProcess(

@@ -11,6 +11,9 @@ import pytest
 
 import cobelrun
 from cobelrun.errors import ConfigError
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process
 
 TINY = ["task.runs=2", "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12",
         "task.record.mcap=false", "task.save_agents=false"]  # fmt: skip
@@ -38,10 +41,10 @@ def test_run_returns_tables_manifest_and_plot(api_run, tmp_path):
     pd.testing.assert_frame_equal(again.trials, trials)
 
 
-def test_api_matches_cli_tables(api_run, cobel, tmp_path):
+def test_api_matches_cli_tables(api_run, cli, tmp_path):
     """The API composes exactly as `cobel run` does: same overrides, identical trials."""
     out = tmp_path / "cli"
-    proc = cobel("run", "task=tmaze_extinction", *TINY, "seed=5", f"hydra.run.dir={out}",
+    proc = cli("run", "task=tmaze_extinction", *TINY, "seed=5", f"hydra.run.dir={out}",
                  "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "folder:" not in proc.stderr  # --quiet: no summary
@@ -86,26 +89,26 @@ def test_rerun_identical_tables_and_overrides(api_run, tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
-def test_cli_summary_and_rerun(api_run, cobel, tmp_path):
-    proc = cobel("rerun", str(api_run.path), "--out", str(tmp_path / "r"))
+def test_cli_summary_and_rerun(api_run, cli, tmp_path):
+    proc = cli("rerun", str(api_run.path), "--out", str(tmp_path / "r"))
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip().splitlines()[-1] == str(tmp_path / "r")
     for text in ("acquisition", "extinction", "mean reward", "latency", "folder:", "cobel plot"):
         assert text in proc.stderr, proc.stderr
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "r" / "trials.parquet"),
                                   api_run.trials)  # fmt: skip
-    bad = cobel("rerun", str(tmp_path / "nowhere"))
+    bad = cli("rerun", str(tmp_path / "nowhere"))
     assert bad.returncode == 2 and "not a run folder" in bad.stderr
 
 
-def test_cli_config_dir_runs_the_saved_config(cobel, tmp_path):
+def test_cli_config_dir_runs_the_saved_config(cli, tmp_path):
     """`cobel run -cd RUN/.hydra -cn config` runs that config, not the default one."""
     first = tmp_path / "first"
-    proc = cobel("run", "task=tmaze_extinction", *TINY, "seed=9", "agent.epsilon=0.3",
+    proc = cli("run", "task=tmaze_extinction", *TINY, "seed=9", "agent.epsilon=0.3",
                  f"hydra.run.dir={first}", "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     second = tmp_path / "second"
-    proc = cobel("run", "-cd", str(first / ".hydra"), "-cn", "config",
+    proc = cli("run", "-cd", str(first / ".hydra"), "-cn", "config",
                  f"hydra.run.dir={second}", "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     cfg = json.loads((second / "manifest.json").read_text())["config"]
@@ -114,7 +117,7 @@ def test_cli_config_dir_runs_the_saved_config(cobel, tmp_path):
                                   pd.read_parquet(first / "trials.parquet"))  # fmt: skip
     # a sweep over the saved config is a cobel sweep: indexed, every job done
     sweep = tmp_path / "sweep"
-    proc = cobel("run", "-m", "-cd", str(first / ".hydra"), "-cn", "config", "seed=9,10",
+    proc = cli("run", "-m", "-cd", str(first / ".hydra"), "-cn", "config", "seed=9,10",
                  f"hydra.sweep.dir={sweep}", "hydra/launcher=basic", "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     index = pd.read_csv(sweep / "jobs.csv")
@@ -128,11 +131,11 @@ def test_cli_config_dir_runs_the_saved_config(cobel, tmp_path):
         "# @package _global_\ndefaults:\n  - tmaze_extinction\n  - _self_\n"
         "task:\n  name: mine\n  runs: 1\n"
     )
-    proc = cobel("run", "-cd", str(user), "task=mine", *TINY[1:], f"hydra.run.dir={tmp_path / 'm'}",
+    proc = cli("run", "-cd", str(user), "task=mine", *TINY[1:], f"hydra.run.dir={tmp_path / 'm'}",
                  "--quiet")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "m" / "manifest.json").read_text())["task"] == "mine"
-    missing = cobel("run", "-cd", str(tmp_path / "nope"), "--quiet")
+    missing = cli("run", "-cd", str(tmp_path / "nope"), "--quiet")
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
@@ -180,14 +183,14 @@ TB_RUN = ["run", "task=two_afc", "task.runs=2", "task.protocol.phases.0.trials=5
           "task.record.training_log=true", "task.record.mcap=false", "--quiet"]  # fmt: skip
 
 
-def test_training_log_writes_tensorboard_events(cobel, tmp_path):
+def test_training_log_writes_tensorboard_events(cli, tmp_path):
     """With tensorboard installed, each run's folder also holds event files with the CSV's
     curves (read back through tensorboard's public EventAccumulator)."""
     pytest.importorskip("stable_baselines3")
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    proc = cobel(*TB_RUN, f"hydra.run.dir={tmp_path / 'r'}")
+    proc = cli(*TB_RUN, f"hydra.run.dir={tmp_path / 'r'}")
     assert proc.returncode == 0, proc.stderr
     assert "TensorBoard output skipped" not in proc.stderr
     for run in (0, 1):

@@ -7,6 +7,9 @@ import os
 import pandas as pd
 
 from cobelrun.figures.registry import Figure, figures
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process (figures run their sweeps in it too)
 
 
 def job_dirs(figures_dir, stem: str) -> list:
@@ -22,8 +25,8 @@ def test_registry_finds_fig6b_and_specs_are_well_formed():
         assert fig.source is not None and fig.source.suffix == ".py"
 
 
-def test_figure_fig6b_quick_writes_png_pdf_csv_and_reuses_runs(cobel, tmp_path):
-    proc = cobel("figure", "fig6b", "--quick")
+def test_figure_fig6b_quick_writes_png_pdf_csv_and_reuses_runs(cli, tmp_path):
+    proc = cli("figure", "fig6b", "--quick")
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "results" / "figures"
     for suffix in ("png", "pdf", "csv"):
@@ -40,37 +43,37 @@ def test_figure_fig6b_quick_writes_png_pdf_csv_and_reuses_runs(cobel, tmp_path):
     assert len(runs) == 1 and (runs[0] / ".done").is_file()
     assert (runs[0].parent / "sweep.json").is_file() and "1 of 1 jobs done" in proc.stderr
     stamp = (runs[0] / "trials.parquet").stat().st_mtime_ns
-    again = cobel("figure", "fig6b", "--quick")
+    again = cli("figure", "fig6b", "--quick")
     assert again.returncode == 0 and "1 reused, 0 to run" in again.stderr
     assert (runs[0] / "trials.parquet").stat().st_mtime_ns == stamp
 
 
-def test_figure_from_takes_the_finished_runs_of_a_sweep(cobel, tmp_path):
+def test_figure_from_takes_the_finished_runs_of_a_sweep(cli, tmp_path):
     """`cobel figure NAME --from SWEEP`: the jobs of a `cobel run -m` of the figure's overrides
     (e.g. run in parallel or on a cluster) are copied into the run store by config hash, so the
     figure runs nothing itself and draws the same table as from its own runs."""
     sweep = tmp_path / "sweep"
     quick = ["task=tmaze_extinction", "task.runs=5", "task.record.steps=false",
              "task.record.mcap=false"]  # fmt: skip
-    proc = cobel("run", "-m", *quick, "seed=0", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
+    proc = cli("run", "-m", *quick, "seed=0", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
     assert proc.returncode == 0, proc.stderr
-    proc = cobel("figure", "fig6b", "--quick", "--from", str(sweep), "--out", str(tmp_path / "a"))
+    proc = cli("figure", "fig6b", "--quick", "--from", str(sweep), "--out", str(tmp_path / "a"))
     assert proc.returncode == 0, proc.stderr
     assert "1 runs taken from" in proc.stderr and "1 reused, 0 to run" in proc.stderr
-    own = cobel("figure", "fig6b", "--quick", "--out", str(tmp_path / "b"),
+    own = cli("figure", "fig6b", "--quick", "--out", str(tmp_path / "b"),
                 env={"COBEL_RESULTS": str(tmp_path / "own")})  # fmt: skip
     assert own.returncode == 0 and "0 reused, 1 to run" in own.stderr
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "a" / "fig6b_quick.csv"),
                                   pd.read_csv(tmp_path / "b" / "fig6b_quick.csv"))  # fmt: skip
-    bad = cobel("figure", "fig6b", "--quick", "--from", str(tmp_path / "nope"))
+    bad = cli("figure", "fig6b", "--quick", "--from", str(tmp_path / "nope"))
     assert bad.returncode != 0
     assert "no such folder" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_figure_list_and_unknown_name(cobel):
-    listing = cobel("figure", "--list")
+def test_figure_list_and_unknown_name(cli):
+    listing = cli("figure", "--list")
     assert listing.returncode == 0 and "fig6b" in listing.stdout
-    bad = cobel("figure", "fig6")
+    bad = cli("figure", "fig6")
     assert bad.returncode == 2 and "unknown figure 'fig6' (did you mean 'fig6b'?)" in bad.stderr
 
 
@@ -93,24 +96,24 @@ def write_mine(tmp_path, jobs=1):
     )
 
 
-def test_user_experiments_folder_adds_a_figure(cobel, tmp_path):
+def test_user_experiments_folder_adds_a_figure(cli, tmp_path):
     write_mine(tmp_path)
-    proc = cobel("figure", "mine")
+    proc = cli("figure", "mine")
     assert proc.returncode == 0, proc.stderr
     table = pd.read_csv(tmp_path / "results" / "figures" / "mine.csv")
     assert sorted(table["seed"].unique()) == [1, 2] and len(table) == 20
 
 
-def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_path):
+def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cli, tmp_path):
     """`cobel figure --jobs 2` (or a figure's own ``jobs=0``: one process per core): the two
     runs go through Hydra's joblib launcher as `cobel run -m` does, in two worker processes,
     and give the same CSV as one after another (the basic launcher); a bad --jobs is one
     line."""
     write_mine(tmp_path)
-    seq = cobel("figure", "mine", "--out", str(tmp_path / "seq"))
+    seq = cli("figure", "mine", "--out", str(tmp_path / "seq"))
     assert seq.returncode == 0, seq.stderr
     assert "hydra/launcher=basic" in seq.stderr
-    par = cobel("figure", "mine", "--jobs", "2", "--out", str(tmp_path / "par"),
+    par = cli("figure", "mine", "--jobs", "2", "--out", str(tmp_path / "par"),
                 env={"COBEL_RESULTS": str(tmp_path / "par_results")})  # fmt: skip
     assert par.returncode == 0, par.stderr
     assert "2 runs to run" in par.stderr and "hydra.launcher.n_jobs=2" in par.stderr
@@ -120,31 +123,31 @@ def test_figure_jobs_runs_in_parallel_processes_with_the_same_tables(cobel, tmp_
     runs = job_dirs(tmp_path / "par_results" / "figures", "mine")
     assert len(runs) == 2 and all((r / ".done").is_file() for r in runs)
     write_mine(tmp_path, jobs=0)  # the figure's default: one process per core (2 runs: 2 here)
-    own = cobel("figure", "mine", "--out", str(tmp_path / "own"),
+    own = cli("figure", "mine", "--out", str(tmp_path / "own"),
                 env={"COBEL_RESULTS": str(tmp_path / "own_results")})  # fmt: skip
     assert own.returncode == 0, own.stderr
     assert f"hydra.launcher.n_jobs={min(2, os.cpu_count() or 1)}" in own.stderr or (
         os.cpu_count() == 1 and "hydra/launcher=basic" in own.stderr
     )
-    bad = cobel("figure", "mine", "--jobs", "0")
+    bad = cli("figure", "mine", "--jobs", "0")
     assert bad.returncode != 0 and "--jobs 0: give 1 or more" in bad.stderr
     assert "Traceback" not in bad.stderr
 
 
-def test_figure_finished_only_draws_what_is_done_and_runs_nothing(cobel, tmp_path):
+def test_figure_finished_only_draws_what_is_done_and_runs_nothing(cli, tmp_path):
     """`cobel figure NAME --finished-only`: the figure from the runs already finished (here one
     job taken from a sweep), to NAME_partial.*, naming the runs left out; nothing finished is
     one line."""
     write_mine(tmp_path)
-    none = cobel("figure", "mine", "--finished-only")
+    none = cli("figure", "mine", "--finished-only")
     assert none.returncode != 0 and "Traceback" not in none.stderr
     assert "mine: no finished run for 'a' to draw" in none.stderr
     sweep = tmp_path / "sweep"
     one = ["task=tmaze_extinction", "seed=1", "task.runs=1", "task.protocol.phases.0.trials=5",
            "task.protocol.phases.1.trials=5"]  # fmt: skip
-    proc = cobel("run", "-m", *one, "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
+    proc = cli("run", "-m", *one, "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
     assert proc.returncode == 0, proc.stderr
-    part = cobel("figure", "mine", "--finished-only", "--from", str(sweep))
+    part = cli("figure", "mine", "--finished-only", "--from", str(sweep))
     assert part.returncode == 0, part.stderr
     assert (
         "drawing the 1 finished of 2 runs, running nothing; not finished: a job 1 (seed=2)"
@@ -156,8 +159,8 @@ def test_figure_finished_only_draws_what_is_done_and_runs_nothing(cobel, tmp_pat
     assert len(job_dirs(out, "mine")) == 1  # the missing run was not started
 
 
-def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
-    proc = cobel("figure", "fig7", "--quick")
+def test_figure_fig7_quick_writes_latency_and_sr_panels(cli, tmp_path):
+    proc = cli("figure", "fig7", "--quick")
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "results" / "figures"
     for suffix in ("png", "pdf", "csv"):
@@ -175,15 +178,15 @@ def test_figure_fig7_quick_writes_latency_and_sr_panels(cobel, tmp_path):
     # the two folders drawn together by `cobel plot LATENT_DIR DIRECT_DIR`
     runs = job_dirs(out, "fig7_quick")
     assert len(runs) == 2
-    plot = cobel("plot", *map(str, runs), "-o", str(tmp_path / "fig7.png"))
+    plot = cli("plot", *map(str, runs), "-o", str(tmp_path / "fig7.png"))
     assert plot.returncode == 0, plot.stderr
     assert (tmp_path / "fig7.png").stat().st_size > 1000
-    twice = cobel("plot", str(runs[0]), str(runs[0]))
+    twice = cli("plot", str(runs[0]), str(runs[0]))
     assert twice.returncode == 2 and "give one of each" in twice.stderr
 
 
-def test_figure_fig9_quick_writes_reward_and_greedy_probe(cobel, tmp_path):
-    proc = cobel("figure", "fig9", "--quick")
+def test_figure_fig9_quick_writes_reward_and_greedy_probe(cli, tmp_path):
+    proc = cli("figure", "fig9", "--quick")
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "results" / "figures"
     for suffix in ("png", "pdf", "csv"):

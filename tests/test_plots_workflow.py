@@ -11,6 +11,9 @@ import pytest
 
 import cobelrun
 from cobelrun.figures.runs import ascii_geometry, curve_stats, load_geometry, occupancy, plot_curves
+from tests import inprocess
+
+cli = inprocess.cli  # fixture: cobel in this process
 
 matplotlib.use("Agg")
 
@@ -43,7 +46,7 @@ def test_sweep_ends_with_job_table(sweep):
         assert text in proc.stderr, proc.stderr
 
 
-def test_curves_by_swept_key_have_the_right_n(sweep, tmp_path, cobel):
+def test_curves_by_swept_key_have_the_right_n(sweep, tmp_path, cli):
     sweep_dir, _ = sweep
     trials = cobelrun.load_sweep(sweep_dir)
     assert {"agent.epsilon", "seed", "job"} <= set(trials.columns)
@@ -54,10 +57,10 @@ def test_curves_by_swept_key_have_the_right_n(sweep, tmp_path, cobel):
     plt.close(fig)
     # 2 seeds x 3 runs per epsilon value, not every job pooled
     assert drawn == [("agent.epsilon=0.05", 6), ("agent.epsilon=0.5", 6)]
-    proc = cobel("plot", str(sweep_dir), "--hue", "agent.epsilon", "-o", str(tmp_path / "h.png"))
+    proc = cli("plot", str(sweep_dir), "--hue", "agent.epsilon", "-o", str(tmp_path / "h.png"))
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "h.png").stat().st_size > 5000
-    bad = cobel("plot", str(sweep_dir), "--hue", "agent.epsilom")
+    bad = cli("plot", str(sweep_dir), "--hue", "agent.epsilom")
     assert bad.returncode == 2 and "did you mean 'agent.epsilon'" in bad.stderr
 
 
@@ -73,10 +76,10 @@ def test_curve_stats_band():
     assert s.loc[2, "lo"] == s.loc[2, "hi"] == 1.0
 
 
-def test_compare_and_kinds_on_saved_geometry(sweep, tmp_path, cobel):
+def test_compare_and_kinds_on_saved_geometry(sweep, tmp_path, cli):
     sweep_dir, _ = sweep
     a, b = sweep_dir / "0", sweep_dir / "3"
-    proc = cobel("compare", str(a), str(b), "--labels", "low,high", "-o", str(tmp_path / "c.png"))
+    proc = cli("compare", str(a), str(b), "--labels", "low,high", "-o", str(tmp_path / "c.png"))
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "c.png").is_file()
     geometry = load_geometry(a)
@@ -85,24 +88,24 @@ def test_compare_and_kinds_on_saved_geometry(sweep, tmp_path, cobel):
     assert counts.sum() == len(steps)  # every step falls in a cell of the saved grid
     for kind in ("occupancy", "trajectories", "latency", "response"):
         out = tmp_path / f"{kind}.png"
-        proc = cobel("plot", str(a), "--kind", kind, "-o", str(out))
+        proc = cli("plot", str(a), "--kind", kind, "-o", str(out))
         assert proc.returncode == 0, proc.stderr
         assert out.stat().st_size > 5000
-    bad = cobel("plot", str(a), "--kind", "ocupancy")
+    bad = cli("plot", str(a), "--kind", "ocupancy")
     assert bad.returncode == 2 and "did you mean 'occupancy'" in bad.stderr
 
 
-def test_show_env_and_task(cobel, tmp_path):
-    proc = cobel("show", "env=tmaze_paper", "-o", str(tmp_path / "t.png"))
+def test_show_env_and_task(cli, tmp_path):
+    proc = cli("show", "env=tmaze_paper", "-o", str(tmp_path / "t.png"))
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "t.png").stat().st_size > 3000
     lines = proc.stdout.splitlines()
     assert lines[0].startswith("tmaze_paper: grid")
     assert any("#" in line and "." in line for line in lines)
-    proc = cobel("show", "task=latent_learning", "--no-png")
+    proc = cli("show", "task=latent_learning", "--no-png")
     assert proc.returncode == 0, proc.stderr
     assert not list(Path(tmp_path).glob("show_*.png"))
-    bad = cobel("show", "env=tmaze_papr")
+    bad = cli("show", "env=tmaze_papr")
     assert bad.returncode == 2 and "did you mean" in bad.stderr
 
 

@@ -322,3 +322,25 @@ def test_vfov_keeps_earlier_camera_keys_and_bad_values_are_one_line():
         with pytest.raises(ConfigError) as err:
             ImageObservation(height=12, width=48, fov=240, n_cameras=4, vfov=bad)
         assert str(err.value) == f"camera vfov must be in (0, 170) degrees or null, got {bad}"
+
+
+def test_textures_are_loaded_and_their_files_are_gone(tmp_path, monkeypatch):
+    """Wall and floor textures reach the picture (it differs from the untextured scene), and
+    their temporary files are removed once pybullet has loaded them: a scene that is never
+    closed (a killed process) leaves no folder behind."""
+    import tempfile
+
+    from cobelrun.render.scene import CameraSpec, Scene, SceneSpec
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # this test's temporary folder
+    graph = topo.hexagonal(5, 5)
+    textured = Scene(SceneSpec.from_topology(graph, {}))
+    plain = Scene(SceneSpec.from_topology(graph, {"texture": None}))
+    try:
+        assert not list(tmp_path.iterdir())  # built, not closed: nothing left in /tmp
+        a = textured.render(0.0, 0.0, 0.0, CameraSpec()).astype(int)
+        b = plain.render(0.0, 0.0, 0.0, CameraSpec()).astype(int)
+        assert np.abs(a - b).mean() > 1.0
+    finally:
+        textured.close()
+        plain.close()

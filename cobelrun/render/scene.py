@@ -533,7 +533,6 @@ class Scene:
             self._plugin = self._load_egl()
             self.renderer = "egl" if self._plugin >= 0 else "tiny"
         self._flag = p.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else p.ER_TINY_RENDERER
-        self._tmp = tempfile.TemporaryDirectory(prefix="cobel-scene-")
         self._build()
 
     def _load_egl(self) -> int:
@@ -577,9 +576,12 @@ class Scene:
         return body
 
     def _load_texture(self, kind: str) -> int:
-        path = Path(self._tmp.name) / f"{kind}.png"
-        _write_png(path, _texture(kind))
-        return int(self.p.loadTexture(str(path), physicsClientId=self.client))
+        # pybullet reads the image when it loads it: the file is removed at once, so a
+        # process that is killed later leaves no folder behind
+        with tempfile.TemporaryDirectory(prefix="cobel-scene-") as tmp:
+            path = Path(tmp) / f"{kind}.png"
+            _write_png(path, _texture(kind))
+            return int(self.p.loadTexture(str(path), physicsClientId=self.client))
 
     def _build(self) -> None:
         p, c = self.p, self.client
@@ -686,8 +688,6 @@ class Scene:
                     self.p.unloadPlugin(self._plugin, physicsClientId=self.client)
                 self.p.disconnect(physicsClientId=self.client)
             self.client = -1
-        with contextlib.suppress(Exception):
-            self._tmp.cleanup()
 
     def __enter__(self) -> Scene:
         return self

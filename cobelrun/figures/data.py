@@ -1,0 +1,574 @@
+"""Figures as data: each figure's summary table as a small CSV with a provenance sidecar.
+
+``python -m cobelrun.figures.data NAME [--quick] [--out DIR]`` builds figure ``NAME`` as
+``cobel figure NAME`` does (finished runs are reused by config hash), then reduces the figure's
+runs to the tables the docs quote and writes, per table, ``DIR/TABLE.csv`` and
+``DIR/TABLE.provenance.json`` (default ``DIR``: ``docs/figures/data`` of the source checkout).
+
+A sidecar holds what made the table: the command, the figure's runs (label, job, seed, config
+hash, run folder name), the cobel commit and whether the tree was dirty (from the runs'
+manifests), the machine, the date and the runs' wall time. Tables that could not be run again
+here (e.g. Fig. 8's 6000-trial runs) are transcribed by hand from the docs that recorded them;
+their sidecars say ``"source": "transcribed"`` and name the doc and the original run.
+
+The reductions (``SUMMARIES``) are per figure: a function ``FigureData -> {table name: frame}``;
+every table also gets a ``quick`` flag in its sidecar, and ``--quick`` tables are written with a
+``_quick`` suffix (``tests/test_figure_data_quick.py`` compares their columns with the
+committed tables').
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from cobelrun.errors import CobelError, allowed_list, suggest
+from cobelrun.figures import registry
+
+#: the committed tables, beside the figure pages
+DATA_DIR = Path(__file__).resolve().parents[2] / "docs" / "figures" / "data"
+
+Summary = Callable[[registry.FigureData], dict[str, pd.DataFrame]]
+
+
+# -- reductions per figure --------------------------------------------------------------------
+
+
+def _block_mean(trials: pd.DataFrame, column: str, lo: int, hi: int) -> pd.Series:
+    """Per run: mean of ``column`` over trials ``lo``..``hi`` (trials count from 1)."""
+    rows = trials[trials["trial"].between(lo, hi)]
+    return rows.groupby("run")[column].mean()
+
+
+def summary_fig6b(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 6B per run: right-arm response rate and escape latency per block of trials, and
+    the cumulative responses at trials 100 and 200."""
+    from cobelrun.figures.extinction import summarize
+
+    trials = data.trials("dyna_q")
+    per_run = pd.DataFrame({"run": np.sort(trials["run"].unique())}).set_index("run")
+    for lo, hi in ((91, 100), (101, 110), (111, 120), (191, 200)):
+        per_run[f"right_{lo}_{hi}"] = _block_mean(trials, "response", lo, hi)
+    for t in (100, 200):
+        per_run[f"cumulative_{t}"] = trials[trials["trial"] == t].set_index("run")[
+            "cumulative_response"
+        ]
+    for lo, hi in ((11, 20), (21, 30), (91, 100), (191, 200)):
+        per_run[f"latency_{lo}_{hi}"] = _block_mean(trials, "steps", lo, hi)
+    lat = summarize(trials, "steps")["mean"]
+    first10 = int(lat.index[lat.to_numpy() <= 10][0]) if (lat <= 10).any() else -1
+    summary = _means(per_run.reset_index(), extra={"first_trial_mean_latency_le_10": first10})
+    return {"fig6b_runs": per_run.reset_index(), "fig6b": summary}
+
+
+def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Water maze: per run and day the mean latency and path length (acquisition and
+    reversal), per run the probe's quadrant occupancy, and the figure's own daily means."""
+    from cobelrun.analysis.watermaze import QUADRANTS, add_days
+    from cobelrun.figures.watermaze import CURVE_PHASES, daily_summary, probe_quadrants
+
+    trials = data.trials("actor_critic")
+    days = add_days(trials[trials["phase"].isin(CURVE_PHASES)], 4)
+    per_run = (
+        days.groupby(["phase", "day", "run"], sort=False)[["escape_latency_s", "path_length"]]
+        .mean()
+        .reset_index()
+    )
+    probe = trials[trials["phase"] == "probe"]
+    cols = {f"{q}_quadrant_fraction": q for q in QUADRANTS}
+    per_run_probe = probe.groupby("run")[list(cols)].mean().rename(columns=cols).reset_index()
+    daily = daily_summary(trials)
+    return {"morris_runs": per_run, "morris_probe_runs": per_run_probe, "morris": daily,
+            "morris_probe": probe_quadrants(trials)}  # fmt: skip
+
+
+def summary_fig7(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 7 per run: latency over the first 10 and the last 10 rewarded trials (both
+    groups), the spread of the start state's SR (latent group) at the end of exploration and
+    at the end; and the latent-vs-direct comparison (:func:`two_sample`)."""
+    from cobelrun.figures.latent import world_of
+    from cobelrun.figures.latent_stats import per_run_latency, runs_as_jobs, sr_spread
+    from cobelrun.figures.twosample import two_sample
+
+    one_per_job = all(len(data.runs[g]) > 1 for g in ("latent", "direct"))
+    fix = runs_as_jobs if one_per_job else (lambda t: t)
+    frames = []
+    for g in ("latent", "direct"):
+        frames.append(per_run_latency(fix(data.trials(g))).assign(group=g))
+    per_run = pd.concat(frames, ignore_index=True)
+    activity = fix(data.activity("latent"))
+    world = world_of(data.run_dirs("latent")[0])
+    trials = fix(data.trials("latent"))
+    explore_end = int(trials.loc[trials["phase"] != "rewarded", "trial"].max())
+    snaps = np.sort(activity["trial"].unique())
+    sr = []
+    for label, t in (("end of exploration", explore_end), ("end", int(trials["trial"].max()))):
+        snap = int(snaps[snaps <= t].max())
+        sr.append(sr_spread(activity, world, snap).assign(snapshot=label))
+    lat, dire = (per_run.loc[per_run["group"] == g, "first10"] for g in ("latent", "direct"))
+    comparison = pd.DataFrame(
+        [{"measure": "first10", "a": "latent", "b": "direct", "test": "independent",
+          **two_sample(lat, dire)}]
+    )  # fmt: skip
+    spread = pd.concat(sr, ignore_index=True)
+    comparison = pd.concat([comparison, pd.DataFrame([paired_sr(spread)])], ignore_index=True)
+    means = pd.concat(
+        [
+            per_run.groupby("group", sort=False)[["first10", "last10"]].agg(["count", "mean"]),
+            spread.groupby("snapshot", sort=False)[["mean_distance", "goal_over_start"]].agg(
+                ["count", "mean"]
+            ),
+        ]
+    )
+    means.columns = [f"{a}_{b}" for a, b in means.columns]
+    means = means.reset_index(names="series")
+    return {"fig7_runs": per_run, "fig7_sr": spread, "fig7_compare": comparison, "fig7": means}
+
+
+def summary_pma(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Mattar & Daw: per agent and run the first episode within 20 % of the 14-step path; PMA's
+    replay events of >= 5 experiences per ``when`` x direction (all runs); and the figure's
+    own table (median steps per trial, event rates)."""
+    from cobelrun.analysis.replay import direction_counts, replay_events
+    from cobelrun.results import load_table
+
+    shortest = 14
+    rows = []
+    for label in ("pma", "dyna_q", "q_learning"):
+        trials = data.trials(label)
+        for run, g in trials.groupby("run"):
+            ok = g.loc[g["steps"] <= 1.2 * shortest, "trial"]
+            rows.append({"agent": label, "run": int(run),
+                         "criterion_trial": int(ok.min()) if len(ok) else -1})  # fmt: skip
+    per_run = pd.DataFrame(rows)
+    agg = per_run.groupby("agent", sort=False)["criterion_trial"]
+    criterion = pd.DataFrame({"median": agg.median(), "mean": agg.mean()}).reset_index()
+    pma = data.trials("pma")
+    late = pma[pma["trial"] >= 3].groupby("trial")["steps"].median()
+    criterion["median_steps_from_trial_3"] = np.where(
+        criterion["agent"] == "pma", float(late.median()), np.nan
+    )
+    replays = pd.concat([load_table(d, "replays") for d in data.run_dirs("pma")])
+    counts = direction_counts(replay_events(replays), 5).reset_index(names="when")
+    return {"pma_runs": per_run, "pma_criterion": criterion, "pma_events": counts,
+            "pma": figure_table("pma")(data)["pma"]}  # fmt: skip
+
+
+def summary_revaluation(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Russek et al.: per design, agent, budget and run the greedy choice before and after
+    (each run's ``revaluation.csv``), and the scores (``revaluation_scores.csv``), for the
+    designs built (the graph ones: ``--labels reward,transition,policy``)."""
+    runs, scores = [], []
+    for label in data.runs:
+        for d in data.run_dirs(label):
+            runs.append(pd.read_csv(d / "revaluation.csv").assign(design=label))
+            scores.append(pd.read_csv(d / "revaluation_scores.csv").assign(design=label))
+    runs_t, scores_t = pd.concat(runs, ignore_index=True), pd.concat(scores, ignore_index=True)
+    return {"revaluation_runs": runs_t, "revaluation": scores_t}
+
+
+def summary_fig9(name: str) -> Summary:
+    """Fig. 9 per agent: mean training reward and greedy choice correct per block of trials
+    (1-5, 6-10, 11-20, 21-30, 31-40, 41-50); and the block means over agents."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        trials = data.trials("dqn")
+        size = int(trials["run"].max()) + 1
+        seeds = [ref.params.get("seed", 0) for ref in data.runs["dqn"]]
+        trials = trials.assign(seed=trials["job"].map(dict(enumerate(seeds))),
+                               run=trials["job"] * size + trials["run"])  # fmt: skip
+        blocks = ((1, 5), (6, 10), (11, 20), (21, 30), (31, 40), (41, 50))
+        per_run = trials.groupby("run")[["seed"]].first()
+        for lo, hi in blocks:
+            per_run[f"reward_{lo}_{hi}"] = _block_mean(trials, "reward", lo, hi)
+            if "greedy_correct" in trials:
+                per_run[f"greedy_{lo}_{hi}"] = _block_mean(trials, "greedy_correct", lo, hi)
+        per_run = per_run.reset_index()
+        means = _means(per_run.drop(columns="seed"))
+        return {f"{name}_runs": per_run, name: means}
+
+    return summary
+
+
+def figure_table(name: str) -> Summary:
+    """The figure's own plotted numbers (what ``cobel figure NAME`` writes as ``NAME.csv``)."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, table = registry.get(name).draw(data)
+        plt.close(fig)
+        return {name: table}
+
+    return summary
+
+
+def paired_sr(spread: pd.DataFrame) -> dict[str, Any]:
+    """The SR-weighted distance of the start state's SR at the end minus at the end of
+    exploration, per run (paired t interval; Wilcoxon signed-rank p)."""
+    from scipy import stats
+
+    wide = spread.pivot(index="run", columns="snapshot", values="mean_distance").dropna()
+    end, explore = wide["end"], wide["end of exploration"]
+    t = stats.ttest_rel(end, explore)
+    ci = t.confidence_interval(0.95)
+    d = end - explore
+    return {"measure": "sr_mean_distance", "a": "end", "b": "end of exploration",
+            "test": "paired", "n_a": len(end), "n_b": len(explore),
+            "mean_a": float(end.mean()), "mean_b": float(explore.mean()),
+            "diff": float(d.mean()), "diff_lo": float(ci.low), "diff_hi": float(ci.high),
+            "welch_p": float("nan"), "paired_t_p": float(t.pvalue),
+            "wilcoxon_p": float(stats.wilcoxon(end, explore).pvalue) if len(d) > 1 else float("nan"),
+            "p_superiority": float((d > 0).mean() + (d == 0).mean() / 2)}  # fmt: skip
+
+
+def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> pd.DataFrame:
+    """Long table ``measure, runs, mean`` of every column but ``run`` (plus ``extra``)."""
+    cols = [c for c in per_run.columns if c != "run"]
+    rows = [{"measure": c, "runs": int(per_run[c].count()), "mean": float(per_run[c].mean())}
+            for c in cols]  # fmt: skip
+    for k, v in (extra or {}).items():
+        rows.append({"measure": k, "runs": len(per_run), "mean": float(v)})
+    return pd.DataFrame(rows)
+
+
+SUMMARIES: dict[str, Summary] = {
+    "fig6b": summary_fig6b,
+    "morris": summary_morris,
+    "fig7": summary_fig7,
+    "fig7_paper": summary_fig7,
+    "pma": summary_pma,
+    "revaluation": summary_revaluation,
+    "fig9": summary_fig9("fig9"),
+    "fig9_fast": summary_fig9("fig9_fast"),
+    "fig9_seeds": summary_fig9("fig9_seeds"),
+}
+
+
+def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
+    """Fig. 8 per snapshot from the per-run counts: the runs measured there, the mean number
+    of place cells over them (no run counted where it was not run), its range, and the
+    Spearman rho of that mean over the snapshots the surviving runs share (every snapshot
+    with more than one run)."""
+    from scipy import stats
+
+    g = per_run.groupby("trial")["place_cells"]
+    out = pd.DataFrame({"runs": g.count(), "mean": g.mean(), "min": g.min(), "max": g.max()})
+    out = out.reset_index()
+    shared = out[out["runs"] > 1]
+    rho = stats.spearmanr(shared["trial"], shared["mean"]).statistic
+    return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4))
+
+
+def fig9_compare(per_run: pd.DataFrame, original: pd.DataFrame) -> pd.DataFrame:
+    """cobel's per-agent block rewards (``fig9_seeds_runs``) against the original's block
+    means (mean, s.e., n of ``fig9_original``): Welch's difference with its 95 % interval and
+    Cohen's d, per block of trials. The original's per-agent values were not kept, so no
+    rank test is possible."""
+    from cobelrun.figures.twosample import welch_from_stats
+
+    rows = []
+    for _, o in original.iterrows():
+        lo, hi = str(o["trials"]).split("-")
+        col = f"reward_{lo}_{hi}"
+        if col not in per_run:
+            continue
+        x = per_run[col].dropna()
+        sd_o = float(o["reward_se"]) * np.sqrt(float(o["agents"]))
+        rows.append({"trials": o["trials"], "cobel_agents": len(x), "cobel_mean": x.mean(),
+                     "cobel_sd": x.std(ddof=1), "original_agents": int(o["agents"]),
+                     "original_mean": o["reward_mean"], "original_sd": sd_o,
+                     **welch_from_stats(x.mean(), x.std(ddof=1), len(x),
+                                        float(o["reward_mean"]), sd_o, int(o["agents"]))})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def fig9_compare_table(per_run: pd.DataFrame) -> pd.DataFrame:
+    """:func:`fig9_compare` against the committed ``fig9_original.csv`` (transcribed)."""
+    return fig9_compare(per_run, pd.read_csv(DATA_DIR / "fig9_original.csv"))
+
+
+def fig6b_compare(per_run: pd.DataFrame) -> pd.DataFrame:
+    """cobel's Fig. 6B runs (``fig6b_runs``) against the original's (``fig6b_original_runs``,
+    CoBeL-RL v2.0.0's Dyna-Q through ``benchmarks/original_fig6b_runs.py``), measure by
+    measure: :func:`~cobelrun.figures.twosample.two_sample` (a = cobel, b = the original)."""
+    from cobelrun.figures.twosample import two_sample
+
+    original = pd.read_csv(DATA_DIR / "fig6b_original_runs.csv")
+    rows = []
+    for col in (c for c in per_run.columns if c != "run" and c in original):
+        rows.append({"measure": col, **two_sample(per_run[col], original[col])})
+    return pd.DataFrame(rows)
+
+
+#: tables derived from committed ones (transcribed, or two tables compared): name -> (source table, function)
+DERIVED: dict[str, tuple[str, Callable[[pd.DataFrame], pd.DataFrame]]] = {
+    "fig8": ("fig8_runs", fig8_summary),
+    "fig9_compare": ("fig9_seeds_runs", fig9_compare_table),
+    "fig6b_compare": ("fig6b_runs", fig6b_compare),
+}
+
+
+def derive(out_dir: Path = DATA_DIR) -> list[Path]:
+    """Write the tables of :data:`DERIVED` from their committed source tables; the sidecar
+    copies the source's provenance and names the derivation."""
+    written = []
+    for name, (source, fn) in DERIVED.items():
+        if not (out_dir / f"{source}.csv").is_file():
+            continue
+        if name == "fig6b_compare" and not (out_dir / "fig6b_original_runs.csv").is_file():
+            continue
+        prov = json.loads((out_dir / f"{source}.provenance.json").read_text())
+        prov = {**prov, "table": name,
+                "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)"
+                + {"fig9_compare": " and fig9_original.csv (transcribed)",
+                   "fig6b_compare": " and fig6b_original_runs.csv (the original, run)"}.get(name, ""),
+                "command": "python -m cobelrun.figures.data --derive"}  # fmt: skip
+        written.append(write_table(fn(pd.read_csv(out_dir / f"{source}.csv")), prov, out_dir, name))
+    return written
+
+
+def frame_time_ratios(runs: Mapping[str, Path]) -> pd.DataFrame:
+    """Fig. 4-style medians from ``render_benchmark`` run folders (label -> folder, e.g.
+    ``memo0`` and ``memo4096``): per label, agent and size the median frame time of each
+    mode over the repetitions, and offline / online and online / offline."""
+    rows = []
+    for label, folder in runs.items():
+        ft = pd.read_csv(Path(folder) / "frame_times.csv")
+        med = ft.groupby(["agent", "height", "width", "mode"])["frame_ms_median"].median()
+        for (agent, h, w), g in med.groupby(level=[0, 1, 2]):
+            m = g.droplevel([0, 1, 2])
+            rows.append({"label": label, "agent": agent, "size": f"{h}x{w}",
+                         "online_ms": m.get("online"), "offline_ms": m.get("offline"),
+                         "norender_ms": m.get("none"),
+                         "offline_over_online": m.get("offline") / m.get("online"),
+                         "online_over_offline": m.get("online") / m.get("offline"),
+                         "repetitions": int(ft["rep"].nunique()),
+                         "steps": int(ft["steps"].max()), "clock": ft["clock"].iloc[0]})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def export_run_folders(
+    table: str,
+    runs: Mapping[str, Path],
+    fn: Callable[[Mapping[str, Path]], pd.DataFrame],
+    out_dir: Path = DATA_DIR,
+    command: str = "",
+) -> Path:
+    """A table made from plain run folders (not a figure's), its sidecar from their manifests."""
+    started, wall, commits, machines, entries = [], 0.0, set(), set(), []
+    for label, folder in runs.items():
+        m = json.loads((Path(folder) / "manifest.json").read_text())
+        git = (m.get("git") or {}).get("cobelrun") or {}
+        commits.add(f"{git.get('commit')}{' (dirty)' if git.get('dirty') else ''}")
+        machines.add(f"{m.get('hostname')} ({m.get('platform')})")
+        started.append(m.get("started_at"))
+        wall += float(m.get("wall_time_s") or 0.0)
+        entries.append({"label": label, "seed": m.get("seed"), "config_hash": m.get("config_hash"),
+                        "command": " ".join(m.get("command") or [])})  # fmt: skip
+    prov = {"table": table, "source": "run", "command": command, "runs": entries,
+            "seeds": sorted({e["seed"] for e in entries if e["seed"] is not None}),
+            "cobel_commit": sorted(commits), "machine": sorted(machines), "cpus": os.cpu_count(),
+            "runs_started": [min(started), max(started)],
+            "exported": datetime.now(UTC).isoformat(timespec="seconds"),
+            "wall_time_s": round(wall, 1)}  # fmt: skip
+    return write_table(fn(runs), prov, out_dir, table)
+
+
+# -- provenance and writing -------------------------------------------------------------------
+
+
+def figure_data(
+    figure: registry.Figure, *, quick: bool, root: Path, finished_only: bool = False
+) -> registry.FigureData:
+    """The figure's planned runs as :class:`FigureData`; a CobelError if one is unfinished
+    (``finished_only``: the finished ones, at least one per label)."""
+    from cobelrun.io.sweep_folder import is_complete
+
+    data = registry.FigureData(quick=quick, runs={})
+    for p in registry.plan_runs(figure, quick=quick, root=root):
+        if not is_complete(p.run_dir, p.config_hash):
+            if finished_only:
+                continue
+            raise CobelError(f"{figure.name}: run {p.run_dir} is not finished; build it first")
+        ref = registry.RunRef(p.label, p.job, tuple(p.overrides), p.params, p.run_dir,
+                              p.config_hash, reused=True)  # fmt: skip
+        data.runs.setdefault(p.label, []).append(ref)
+    missing = [label for label in figure.runs if label not in data.runs]
+    if missing:
+        raise CobelError(f"{figure.name}: no finished run of {', '.join(missing)}")
+    return data
+
+
+def provenance(
+    figure: registry.Figure, data: registry.FigureData, *, command: str, table: str
+) -> dict[str, Any]:
+    """The sidecar of one table built from ``data``'s runs (read from their manifests)."""
+    runs, commits, wall, started, machines = [], set(), 0.0, [], set()
+    for label, refs in data.runs.items():
+        for ref in refs:
+            m = json.loads((ref.run_dir / "manifest.json").read_text())
+            git = (m.get("git") or {}).get("cobelrun") or {}
+            commits.add(f"{git.get('commit')}{' (dirty)' if git.get('dirty') else ''}")
+            wall += float(m.get("wall_time_s") or 0.0)
+            started.append(m.get("started_at"))
+            machines.add(f"{m.get('hostname')} ({m.get('platform')})")
+            runs.append({"label": label, "job": ref.job, "seed": m.get("seed"),
+                         "runs": m.get("runs"), "config_hash": ref.config_hash,
+                         "overrides": list(ref.overrides)})  # fmt: skip
+    return {
+        "table": table,
+        "figure": figure.name,
+        "source": "run",
+        "quick": data.quick,
+        "command": command,
+        "runs": runs,
+        "seeds": sorted({r["seed"] for r in runs if r["seed"] is not None}),
+        "cobel_commit": sorted(commits),
+        "machine": sorted(machines),
+        "cpus": os.cpu_count(),
+        "runs_started": [min(s for s in started if s), max(s for s in started if s)],
+        "exported": datetime.now(UTC).isoformat(timespec="seconds"),
+        "wall_time_s": round(wall, 1),
+        "wall_time_note": "sum of the runs' wall times (their manifests)",
+    }
+
+
+def write_table(frame: pd.DataFrame, prov: Mapping[str, Any], out_dir: Path, name: str) -> Path:
+    """``out_dir/name.csv`` (6 significant digits) and ``out_dir/name.provenance.json``."""
+    from cobelrun.io.atomic import atomic_path
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv = out_dir / f"{name}.csv"
+    with atomic_path(csv) as tmp:
+        frame.to_csv(tmp, index=False, float_format="%.6g")
+    side = out_dir / f"{name}.provenance.json"
+    with atomic_path(side) as tmp:
+        Path(tmp).write_text(json.dumps(dict(prov), indent=1) + "\n")
+    return csv
+
+
+def run_missing(
+    figure: registry.Figure,
+    *,
+    quick: bool,
+    root: Path,
+    log: Callable[[str], None] | None = None,
+) -> int:
+    """Run the figure's unfinished runs one at a time, interleaving its labels by job (job 0
+    of every label, then job 1, ...), so that a build stopped part way leaves groups of about
+    the same size (e.g. ``fig7_paper``'s latent and direct runs); returns how many ran."""
+    from cobelrun.io.sweep_folder import clear_outputs, is_complete
+    from cobelrun.runner import run
+
+    order = {label: k for k, label in enumerate(figure.runs)}
+    planned = registry.plan_runs(figure, quick=quick, root=root)
+    todo = [p for p in planned if not is_complete(p.run_dir, p.config_hash)]
+    todo.sort(key=lambda p: (p.job, order[p.label]))
+    for k, p in enumerate(todo, 1):
+        if log:
+            log(f"{figure.name}: run {k}/{len(todo)}: {p.label} job {p.job} ({p.run_dir.name})")
+        clear_outputs(p.run_dir)
+        run(p.cfg, p.run_dir)
+    return len(todo)
+
+
+def export(
+    name: str,
+    *,
+    quick: bool = False,
+    out_dir: Path = DATA_DIR,
+    root: Path | None = None,
+    build: bool = True,
+    labels: Sequence[str] | None = None,
+    finished_only: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> list[Path]:
+    """Build figure ``name`` (unless ``build`` is False: its runs must be finished) and write
+    its summary tables with their sidecars; returns the CSVs written. ``labels``: only these
+    of the figure's run labels (e.g. revaluation's graph designs without the grid ones).
+    ``finished_only``: run nothing and use the runs finished so far (tables ``NAME_partial``,
+    the sidecar lists the runs used)."""
+    if name not in SUMMARIES:
+        raise CobelError(
+            f"no summary tables for figure {name!r}{suggest(name, SUMMARIES)}; "
+            f"allowed: {allowed_list(SUMMARIES)}"
+        )
+    figure = registry.get(name)
+    if labels:
+        unknown = [x for x in labels if x not in figure.runs]
+        if unknown:
+            raise CobelError(
+                f"{name} has no run label {unknown[0]!r}{suggest(unknown[0], figure.runs)}; "
+                f"allowed: {allowed_list(figure.runs)}"
+            )
+        figure = dataclasses.replace(figure, runs={x: figure.runs[x] for x in labels})
+    root = root or registry.results_root()
+    t0 = time.perf_counter()
+    if build and not finished_only:
+        run_missing(figure, quick=quick, root=root, log=log)
+        if not labels:  # the whole figure: draw it as `cobel figure` does (its runs are reused)
+            registry.build(figure, quick=quick, root=root, log=log)
+    data = figure_data(figure, quick=quick, root=root, finished_only=finished_only)
+    tables = SUMMARIES[name](data)
+    command = f"python -m cobelrun.figures.data {name}" + (" --quick" if quick else "")
+    command += f" --labels {','.join(labels)}" if labels else ""
+    command += " --finished-only" if finished_only else ""
+    written = []
+    for table, frame in tables.items():
+        stem = f"{table}_quick" if quick else table
+        stem += "_partial" if finished_only else ""
+        prov = provenance(figure, data, command=command, table=stem)
+        prov["export_wall_time_s"] = round(time.perf_counter() - t0, 1)
+        written.append(write_table(frame, prov, out_dir, stem))
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cobelrun.figures.data NAME [--quick] [--out DIR] [--no-build]``."""
+    parser = argparse.ArgumentParser(prog="python -m cobelrun.figures.data",
+                                     description=__doc__.split("\n\n")[0])  # fmt: skip
+    parser.add_argument("name", nargs="?", help=f"figure: {', '.join(SUMMARIES)}")
+    parser.add_argument("--derive", action="store_true",
+                        help=f"write the derived tables ({', '.join(DERIVED)})")  # fmt: skip
+    parser.add_argument("--quick", action="store_true", help="the figure's quick budget")
+    parser.add_argument("--out", type=Path, default=DATA_DIR, help="output folder")
+    parser.add_argument("--no-build", action="store_true", help="only finished runs")
+    parser.add_argument("--labels", help="comma-separated run labels (default: all)")
+    parser.add_argument("--finished-only", action="store_true",
+                        help="run nothing; tables NAME_partial from the runs finished so far")  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.derive:
+        for path in derive(args.out):
+            print(path)
+        return 0
+    if not args.name:
+        parser.error("give a figure NAME or --derive")
+    try:
+        for path in export(args.name, quick=args.quick, out_dir=args.out,
+                           build=not args.no_build,
+                           labels=args.labels.split(",") if args.labels else None,
+                           finished_only=args.finished_only, log=lambda s: print(s, file=sys.stderr)):  # fmt: skip
+            print(path)
+    except CobelError as exc:
+        print(f"cobel: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

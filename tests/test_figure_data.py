@@ -1,0 +1,92 @@
+"""The committed figure tables agree with each other, and the statistics that compare them are
+right: summaries are the means of their per-run tables, derived tables are up to date with
+their sources, and two_sample / welch_from_stats match scipy on known samples."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cobelrun.errors import CobelError
+from cobelrun.figures import data
+from cobelrun.figures.twosample import FIELDS, two_sample, welch_from_stats
+
+DATA = Path(__file__).resolve().parents[1] / "docs" / "figures" / "data"
+
+
+@pytest.mark.parametrize(("summary", "runs"), [("fig6b", "fig6b_runs"), ("fig9", "fig9_runs"),
+                                               ("fig9_seeds", "fig9_seeds_runs")])  # fmt: skip
+def test_summaries_are_the_means_of_their_runs(summary, runs):
+    means = pd.read_csv(DATA / f"{summary}.csv").set_index("measure")
+    per_run = pd.read_csv(DATA / f"{runs}.csv")
+    for measure, row in means.iterrows():
+        if measure in per_run:
+            assert row["runs"] == per_run[measure].count()
+            assert row["mean"] == pytest.approx(per_run[measure].mean(), rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(n, marks=pytest.mark.slow) if n == "fig6b_compare" else n for n in data.DERIVED],
+)  # the bootstrap of fig6b_compare's 10 measures takes seconds: slow
+def test_derived_tables_are_up_to_date(name):
+    source, fn = data.DERIVED[name]
+    derived = fn(pd.read_csv(DATA / f"{source}.csv"))
+    committed = pd.read_csv(DATA / f"{name}.csv")
+    assert list(derived.columns) == list(committed.columns), name
+    pd.testing.assert_frame_equal(derived.reset_index(drop=True), committed,
+                                  check_dtype=False, rtol=1e-5)  # fmt: skip
+
+
+def test_fig8_mean_counts_only_the_runs_measured():
+    per_run = pd.DataFrame({"seed": [0, 1, 0, 1, 1], "trial": [0, 0, 800, 800, 1600],
+                            "place_cells": [0, 0, 0, 4, 8]})  # fmt: skip
+    out = data.fig8_summary(per_run).set_index("trial")
+    assert out.loc[800, "mean"] == 2 and out.loc[1600, "runs"] == 1
+    assert out.loc[1600, "mean"] == 8  # seed 0 not run there: no derived zero
+
+
+def test_two_sample_matches_scipy():
+    from scipy import stats
+
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(0, 1, 30), rng.normal(0.8, 2, 25)
+    out = two_sample(a, b, seed=3)
+    assert list(out) == list(FIELDS)
+    welch = stats.ttest_ind(a, b, equal_var=False)
+    assert out["welch_p"] == pytest.approx(welch.pvalue)
+    assert (out["diff_lo"], out["diff_hi"]) == pytest.approx(tuple(welch.confidence_interval()))
+    u = stats.mannwhitneyu(a, b).statistic
+    assert out["p_superiority"] == pytest.approx(u / (30 * 25))
+    assert out["ps_lo"] <= out["p_superiority"] <= out["ps_hi"]
+    assert two_sample(a, b, seed=3) == out  # seeded bootstrap
+    same = welch_from_stats(a.mean(), a.std(ddof=1), 30, b.mean(), b.std(ddof=1), 25)
+    assert (same["diff_lo"], same["diff_hi"], same["welch_p"]) == pytest.approx(
+        (out["diff_lo"], out["diff_hi"], out["welch_p"])
+    )
+
+
+def test_two_sample_constant_samples_and_bad_input():
+    out = two_sample([1.0, 1.0, 1.0], [1.0, 1.0])
+    assert out["diff"] == 0 and out["welch_p"] == 1.0 and out["p_superiority"] == 0.5
+    with pytest.raises(CobelError, match="2 or more finite values"):
+        two_sample([1.0], [1.0, 2.0])
+    with pytest.raises(CobelError, match="2 or more finite values"):
+        two_sample([1.0, np.nan], [1.0, 2.0])
+
+
+def test_fig9_original_constants_are_the_committed_table():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "fig9.py"
+    spec = importlib.util.spec_from_file_location("_fig9_spec", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    table = pd.read_csv(DATA / "fig9_original.csv").set_index("trials")
+    for (lo, hi), reward, greedy in module.ORIGINAL:
+        row = table.loc[f"{lo}-{hi}"]
+        assert (row["reward_mean"], row["greedy_correct"]) == (reward, greedy)

@@ -24,6 +24,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "cobelrun.hydra_app",
         "cobelrun.sweep",
         "cobelrun.figures.registry",
+        "cobelrun.figures.data",  # builds figures and writes their data tables (docs/figures/data)
         "cobelrun.render.benchmark",
         "cobelrun.api",
         "cobelrun.recover",

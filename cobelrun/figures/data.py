@@ -469,21 +469,18 @@ def run_missing(
     root: Path,
     log: Callable[[str], None] | None = None,
 ) -> int:
-    """Run the figure's unfinished runs one at a time, interleaving its labels by job (job 0
-    of every label, then job 1, ...), so that a build stopped part way leaves groups of about
-    the same size (e.g. ``fig7_paper``'s latent and direct runs); returns how many ran."""
-    from cobelrun.io.sweep_folder import clear_outputs, is_complete
-    from cobelrun.runner import run
+    """Run the figure's unfinished runs as ``cobel figure`` runs them: each label's missing
+    jobs as a sweep of its overrides through Hydra's launcher (:func:`registry.run_label`,
+    resumed like any sweep); returns how many were missing."""
+    from cobelrun.io.sweep_folder import is_complete
 
-    order = {label: k for k, label in enumerate(figure.runs)}
     planned = registry.plan_runs(figure, quick=quick, root=root)
     todo = [p for p in planned if not is_complete(p.run_dir, p.config_hash)]
-    todo.sort(key=lambda p: (p.job, order[p.label]))
-    for k, p in enumerate(todo, 1):
-        if log:
-            log(f"{figure.name}: run {k}/{len(todo)}: {p.label} job {p.job} ({p.run_dir.name})")
-        clear_outputs(p.run_dir)
-        run(p.cfg, p.run_dir)
+    for label in figure.runs:
+        missing = [p for p in todo if p.label == label]
+        if missing:
+            registry.run_label(figure, label, missing, quick=quick, root=root,
+                               launcher=registry.launcher_overrides(1), log=log)  # fmt: skip
     return len(todo)
 
 

@@ -48,6 +48,8 @@ def main(port: int, seconds: float) -> dict:
             except websocket.WebSocketConnectionClosedException:
                 break
             if isinstance(msg, str):
+                if not msg:  # websocket-client returns '' for the server's close frame
+                    break
                 op = json.loads(msg)
                 if op.get("op") == "advertise":
                     subs = []

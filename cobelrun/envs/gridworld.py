@@ -374,9 +374,20 @@ class GridWorldEnv(ChangeableWorld, gym.Env[int, int]):
         move = np.array([[-1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, -1.0]])  # world x, y
         index = {(float(x), float(y)): i for i, (x, y) in enumerate(xy.tolist())}
         door = np.zeros(len(k), bool)
+        if self.egocentric:  # where a forward move facing each way leads, per cell
+            S = w.n_cells
+            forward = np.argmax(w.T[:, 2], axis=1) % S
+            allo = np.empty((S, len(ALLOCENTRIC_ACTIONS)), np.int64)
+            for h, d in enumerate(HEADING_MOVE):
+                allo[:, d] = forward[h * S : (h + 1) * S]
         for j, (kk, aa) in enumerate(zip(k.tolist(), a.tolist(), strict=True)):
             nb = index.get(tuple((xy[kk] + move[aa]).tolist()))
-            door[j] = nb is not None and intended[nb, (aa + 2) % 4] == free[kk]
+            if nb is None:
+                continue
+            if self.egocentric:
+                door[j] = allo[free[nb] % S, (aa + 2) % 4] == free[kk] % S
+            else:
+                door[j] = intended[nb, (aa + 2) % 4] == free[kk]
         doors = np.hstack([segs[door], 0.0 - move[a[door]]]) if door.any() else np.zeros((0, 6))
         segs = segs[~door]
         segs = np.unique(segs, axis=0) if segs.size else segs

@@ -181,8 +181,8 @@ def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
     """Write ``data`` as JSON to ``path`` through a temporary file and a rename.
 
     On a full disk (ENOSPC/EDQUOT) the temporary copy may not fit next to the old file; then
-    the old file is overwritten in place (its blocks are reused), so that a run on a full disk
-    can still record why it failed.
+    the old file is overwritten in place with compact JSON (its blocks are reused), so that a
+    run on a full disk can still record why it failed.
     """
     import errno
 
@@ -199,8 +199,11 @@ def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
             raise
         if tmp.exists():
             tmp.unlink()  # give its blocks back first
+        # compact (no indentation: ~40 % smaller), so that it fits in the blocks the old file
+        # holds when the new one is longer (an error message added)
+        text = json.dumps(_plain(data), separators=(",", ":"), ensure_ascii=False, default=str)
         with open(path, "r+", encoding="utf-8") as f:
-            f.write(text)
+            f.write(text + "\n")
             f.truncate()
             f.flush()
             os.fsync(f.fileno())

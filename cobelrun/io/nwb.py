@@ -288,15 +288,22 @@ def build_nwbfile(
         if {"next_x", "next_y"} <= set(s):  # where each trial ended, at its stop_time
             last = s.groupby("trial", sort=True).tail(1)
             stop_of = dict(zip(t["trial"].to_numpy(), stops, strict=True))
+            ends = np.array([stop_of[tr] for tr in last["trial"].to_numpy()], np.float64)
+            steps = np.diff(ends)
+            # NWB's best practice: a regular series as a start and a rate (nwbinspector)
+            if len(ends) > 2 and np.allclose(steps, steps[0]) and steps[0] > 0:
+                end_timing = {"starting_time": float(ends[0]), "rate": 1.0 / float(steps[0])}
+            else:
+                end_timing = {"timestamps": ends}
             position.add_spatial_series(
                 SpatialSeries(
                     name="end_position",
                     description="the agent's (x, y) after each trial's last step (the goal "
                     "of a trial that reached it), at the trial's stop_time",
                     data=last[["next_x", "next_y"]].to_numpy(np.float64),
-                    timestamps=np.array([stop_of[tr] for tr in last["trial"].to_numpy()]),
                     reference_frame=frame,
                     unit="meters",
+                    **end_timing,
                 )
             )
         behavior.add(position)

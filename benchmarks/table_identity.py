@@ -26,9 +26,11 @@ import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
-from omegaconf import OmegaConf, open_dict
+from omegaconf import open_dict
 
-ROOT = Path.cwd() if (Path.cwd() / "conf" / "task").is_dir() else Path(__file__).resolve().parents[1]
+ROOT = (
+    Path.cwd() if (Path.cwd() / "conf" / "task").is_dir() else Path(__file__).resolve().parents[1]
+)
 #: trials per phase and steps per trial at the tiny settings
 TRIALS, STEPS = 4, 30
 #: columns that hold wall-clock times (not part of the identity)

@@ -52,5 +52,6 @@ def read_only_dir(tmp_path: Path) -> Iterator[Path]:
     finally:
         ro.chmod(0o755)
 
+
 # a real run folder and a real sweep folder, made once per session (tests/faults/folders.py)
 from tests.faults.folders import real_run, real_sweep  # noqa: E402, F401

@@ -58,7 +58,10 @@ def main(port: int, seconds: float) -> dict:
                         sub_topic[next_sub] = ch["topic"]
                         subs.append({"id": next_sub, "channelId": ch["id"]})
                         next_sub += 1
-                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                    try:
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                    except (OSError, websocket.WebSocketException):
+                        break  # the run ended (and its server closed) meanwhile
                 continue
             if not msg or msg[0] != MESSAGE_DATA:
                 continue

@@ -69,7 +69,10 @@ def test_live_run_streams_to_a_client(cli, tmp_path: Path) -> None:  # noqa: F81
     assert ch["/trial_series"] == "cobel.TrialSeries"
     assert ch["/run_0000/pose"] == "foxglove.PoseInFrame"
     assert got["counts"].get("/maze", 0) >= 1  # latched: sent on subscribe
-    assert sum(n for t, n in got["counts"].items() if t.endswith("/pose")) >= 1
+    # poses: a run's pose channel is advertised when the run starts, and its first piece's
+    # poses may be sent before the client's subscription arrives; on a loaded machine the
+    # run can even end first. test_series_reach_a_client_in_trial_order checks that they
+    # reach a subscribed client.
     event = got["first"]["/trial"]
     assert event["run"] == 0 and event["trial"] >= 1 and event["event"] in ("start", "end")
     # the client left after its messages (said in one line if the server saw it before the
@@ -121,6 +124,7 @@ def test_series_reach_a_client_in_trial_order(tmp_path: Path, capfd) -> None:
     assert said.count("stopped watching") == 1
     assert re.search(rf"cobel: live view: client \d+ is watching ws://127.0.0.1:{port}\n", said)
     got = json.loads(out)
+    assert got["counts"].get("/run_0000/pose", 0) >= 1  # poses reach a subscribed client
     first = got["first"]["/trial_series"]
     assert first == {"run": 0, "trial": 1, "phase": "training", "steps": 3, "reward": 0.0,
                      "terminated": True}  # fmt: skip

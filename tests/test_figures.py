@@ -199,3 +199,22 @@ def test_figure_fig9_quick_writes_reward_and_greedy_probe(cli, tmp_path):
     )
     assert table["greedy_correct_mean"].between(0, 1).all()
     assert table["greedy_correct_mean"].iloc[-10:].mean() >= 0.8
+
+
+def test_runs_taken_from_elsewhere_are_plain_folders(tmp_path, monkeypatch):
+    """A finished run found by config hash (--from, another figure's sweeps) is copied into the
+    figure's sweep only when it holds plain files: a link inside it could bring any file of
+    the machine into the results (the run is made again instead)."""
+    from cobelrun.figures import registry
+
+    src = tmp_path / "elsewhere" / "run"
+    src.mkdir(parents=True)
+    (src / "trials.parquet").write_bytes(b"PAR1")
+    monkeypatch.setattr(registry, "finished_runs", lambda folders: {"abc": src})
+    planned = registry._Planned("a", 0, [], {}, None, "abc", tmp_path / "sweep" / "0")
+    assert registry.import_runs([planned], [tmp_path / "elsewhere"]) == 1  # plain: copied
+    assert (tmp_path / "sweep" / "0" / "trials.parquet").read_bytes() == b"PAR1"
+    (src / "secret").symlink_to("/etc/hostname")
+    other = registry._Planned("a", 1, [], {}, None, "abc", tmp_path / "sweep" / "1")
+    assert registry.import_runs([other], [tmp_path / "elsewhere"]) == 0  # a link: not copied
+    assert not (tmp_path / "sweep" / "1").exists()

@@ -288,14 +288,16 @@ def finished_runs(folders: Sequence[Path]) -> dict[str, Path]:
 
 def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
     """Copy the finished runs under ``folders`` that ``planned`` needs (same config hash) into
-    their job folders of the figure's sweeps; returns how many were copied."""
+    their job folders of the figure's sweeps; returns how many were copied. A folder that holds
+    a symbolic link (or anything but folders and regular files) is not copied: its link could
+    bring in any file of this machine (the run is made again instead)."""
     import shutil
 
     found = finished_runs(folders)
     taken = 0
     for p in planned:
         src = found.get(p.config_hash)
-        if src is None or src.resolve() == p.run_dir.resolve():
+        if src is None or src.resolve() == p.run_dir.resolve() or not _plain_tree(src):
             continue
         tmp = p.run_dir.with_name(p.run_dir.name + ".importing")
         tmp.parent.mkdir(parents=True, exist_ok=True)
@@ -305,6 +307,21 @@ def import_runs(planned: Sequence[_Planned], folders: Sequence[Path]) -> int:
         tmp.rename(p.run_dir)  # the run folder appears whole or not at all
         taken += 1
     return taken
+
+
+def _plain_tree(folder: Path) -> bool:
+    """Whether ``folder`` holds only folders and regular files (no link, fifo, device)."""
+    import os
+    import stat
+
+    if folder.is_symlink():
+        return False
+    for top, dirs, files in os.walk(folder):
+        for name in (*dirs, *files):
+            mode = os.lstat(os.path.join(top, name)).st_mode
+            if not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
+                return False
+    return True
 
 
 def launcher_overrides(jobs: int) -> list[str]:

@@ -393,29 +393,16 @@ def task_text(loaded: Loaded, design: GridDesign, name: str) -> str:
     doc = loaded.task_doc
     if doc is None:
         doc = read_yaml(_builtin() / "task" / "gridworld.yaml")
-    defaults = doc.get("defaults")
-    if defaults is None:
-        defaults = doc["defaults"] = _block([])
-    for entry in defaults:
-        if isinstance(entry, dict) and "override /env" in entry:
-            entry["override /env"] = name
-            break
-    else:
-        defaults.insert(0, CommentedMap({"override /env": name}))
-    task = doc.get("task")
-    if task is None:
-        task = doc["task"] = CommentedMap()
-    task["name"] = name
     before = loaded.loaded
     if design.phases and (before is None or (design.phases, design.max_steps)
                           != (before.phases, before.max_steps)):  # fmt: skip
+        task = doc.get("task")
+        if task is None:
+            task = doc["task"] = CommentedMap({"name": name})
         task["protocol"] = CommentedMap(
             {"max_steps": int(design.max_steps), "phases": [CommentedMap(p) for p in design.phases]}
         )
-    text = dump(doc)
-    if not text.startswith("# @package _global_"):
-        text = "# @package _global_\n" + text
-    return text
+    return task_file_text(doc, name)
 
 
 def _inside(folder: Path, path: Path) -> Path:

@@ -15,10 +15,10 @@ from typing import Annotated, Any, NoReturn
 import typer
 
 from cobelrun.commands.common import (
-    ALLOW_TARGET_HELP,
     EXIT_INTERRUPTED,
     EXIT_USER_ERROR,
     STATUS_STYLE,
+    AllowTarget,
     allow_targets,
     debug_enabled,
     fail,
@@ -43,13 +43,6 @@ def _version(value: bool) -> None:
 
         typer.echo(f"cobel {__version__}")
         raise typer.Exit()
-
-
-#: ``--allow-target``: the user's own classes a config may build (see docs/reliability.md)
-AllowTarget = Annotated[
-    list[str] | None,
-    typer.Option("--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False),
-]
 
 
 @app.callback()

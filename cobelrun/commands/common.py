@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import NoReturn
+from typing import Annotated, NoReturn
 
 import typer
 
@@ -27,6 +27,12 @@ ALLOW_TARGET_HELP = (
     "Allow configs to build this class or function (a dotted path, or a package with .*, "
     "e.g. mypkg.envs.*); repeatable. Also: COBEL_ALLOW_TARGETS."
 )
+
+#: ``--allow-target``: the user's own classes a config may build (see docs/reliability.md)
+AllowTarget = Annotated[
+    list[str] | None,
+    typer.Option("--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False),
+]
 
 #: exit code of a user error (bad config, name or folder)
 EXIT_USER_ERROR = 2

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+from cobelrun.commands.common import AllowTarget, allow_targets
 
 HELP = """Run a run folder's saved config again into a new folder (same config + seed = same tables).
 
@@ -39,12 +39,7 @@ def register(app: typer.Typer) -> None:
             typer.Option("--out", "-o", help="The new run folder (default: a new dated folder)."),
         ] = None,
         quiet: Annotated[bool, typer.Option("--quiet", help="No end-of-run summary.")] = False,
-        allow_target: Annotated[
-            list[str] | None,
-            typer.Option(
-                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
-            ),
-        ] = None,
+        allow_target: AllowTarget = None,
     ) -> None:
         allow_targets(allow_target)
         from cobelrun.api import rerun

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+from cobelrun.commands.common import AllowTarget, allow_targets
 
 HELP = """Continue a stopped run from its checkpoint, in its own folder (docs/clusters.md).
 
@@ -30,12 +30,7 @@ def register(app: typer.Typer) -> None:
     def resume_cmd(
         run_dir: Annotated[Path, typer.Argument(help="A stopped run folder.", show_default=False)],
         quiet: Annotated[bool, typer.Option("--quiet", help="No end-of-run summary.")] = False,
-        allow_target: Annotated[
-            list[str] | None,
-            typer.Option(
-                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
-            ),
-        ] = None,
+        allow_target: AllowTarget = None,
     ) -> None:
         allow_targets(allow_target)
         from cobelrun.api import resume

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from cobelrun.commands.common import ALLOW_TARGET_HELP, allow_targets
+from cobelrun.commands.common import AllowTarget, allow_targets
 
 HELP = """Draw an env's maze, arena or graph (PNG) and print it in the terminal; nothing runs.
 
@@ -45,12 +45,7 @@ def register(app: typer.Typer) -> None:
                 show_default=False,
             ),
         ] = None,
-        allow_target: Annotated[
-            list[str] | None,
-            typer.Option(
-                "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
-            ),
-        ] = None,
+        allow_target: AllowTarget = None,
     ) -> None:
         allow_targets(allow_target)
         from cobelrun.commands.common import fail

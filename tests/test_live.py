@@ -44,6 +44,8 @@ def _topics(path: Path) -> dict[str, int]:
     return counts
 
 
+@pytest.mark.slow  # timing: on a loaded machine (xdist) the run can outpace the client's
+# subscriptions; test_series_reach_a_client_in_trial_order checks a real client deterministically
 def test_live_run_streams_to_a_client(cli, tmp_path: Path) -> None:  # noqa: F811
     """A run with --live on a free port: a real client connecting while it goes gets the
     channel advertisements, the maze, poses and trial events; run.mcap is as without --live."""

@@ -215,7 +215,7 @@ def relay(upstream_port: int) -> tuple[int, Any]:
     return ready["port"], ready["stop"]
 
 
-def browser(width: int, height: int):  # noqa: ANN201 (selenium's type)
+def browser(width: int, height: int) -> Any:
     from selenium import webdriver
 
     opts = webdriver.ChromeOptions()
@@ -264,6 +264,7 @@ def main() -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     run = subprocess.Popen(cmd, env=env, cwd=folder)
     driver = None
+    stop_relay = None
     try:
         time.sleep(5.0)  # the run builds its env and starts its server
         relay_port, stop_relay = relay(ws_port)
@@ -289,6 +290,8 @@ def main() -> None:
         if driver is not None:
             driver.quit()
         server.shutdown()
+        if stop_relay is not None:
+            stop_relay()
         if run.poll() is None:
             run.terminate()
         run.wait(30)

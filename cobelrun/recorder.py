@@ -770,7 +770,7 @@ class RunRecorder:
         with self.guard.critical():
             poses = batch.with_poses(self.env).poses()
             if poses is not None:
-                self._writer.submit(self.mcap.write_poses, run, t, poses)
+                self._writer.submit(self.mcap.write_poses, run, t, poses, end_pos)
             if self._frames is not None:
                 for t_ns, image in zip(t, self._frames.take(n_poses), strict=False):
                     self._writer.submit(self.mcap.write_image, run, int(t_ns), image)

@@ -12,7 +12,8 @@ A live view never stops a run: a port in use is one line on stderr and the run g
 without it; a client that disconnects is one line. Nothing is sent on a channel no client
 subscribes to, and a slow client loses its oldest messages (foxglove-sdk keeps at most
 ``message_backlog_size`` per client) instead of slowing the run. A piece of a phase reaches a
-client at once, so it gets at most :data:`~cobelrun.io.mcap.LIVE_POSES` poses and the events
+client at once, so it gets :data:`~cobelrun.io.mcap.LIVE_POSES` poses of it (and the arrival of
+each of its last :data:`~cobelrun.io.mcap.LIVE_TRIALS` trials) and the events
 of the last :data:`~cobelrun.io.mcap.LIVE_TRIALS` trials of each piece (the file gets all).
 """
 

@@ -135,6 +135,8 @@ __all__ = [
     "McapRecorder",
     "McapSink",
     "heading_to_quaternion",
+    "live_pose_indices",
+    "per_run_cut",
 ]
 
 #: ``task.record.mcap_timeline``: runs one after another on the log clock (``sequential``), or
@@ -329,6 +331,45 @@ def live_pose_indices(k: int, arrivals: np.ndarray | None = None) -> np.ndarray 
             raise ValueError(f"write_poses: arrivals must index the {k} poses")
         keep = np.concatenate([keep, last])
     return np.unique(keep)
+
+
+def per_run_cut(start_ns: int, run_clocks_ns: Mapping[int, int]) -> Any:
+    """Where to cut each message of a ``per_run`` timeline's MCAP when a resumed run joins
+    the stopped process's file with its own (:func:`cobelrun.io.mcap_repair.join_mcap`).
+
+    With ``task.record.mcap_timeline=per_run`` every run's clock starts at ``start_ns``, so
+    no single time separates what was written before a checkpoint from what came after; each
+    run's clock at the checkpoint (``run_clocks_ns``, the recorder's watermark) does. A
+    message of run ``r`` (its ``/run_NNNN/...`` topic, or the ``run`` field of a
+    ``/trial`` event or a ``/trials`` table) is cut at ``start_ns + run_clocks_ns[r]`` (0
+    for a run not started by then); the scene on ``/maze``, logged once at ``start_ns``, is
+    taken from the first file; other topics are kept from both.
+
+    Returns
+    -------
+    callable
+        ``cut(topic, data) -> int | None``: the log time from which a message is the
+        resumed process's.
+    """
+    start = int(start_ns)
+    clocks = {int(r): int(ns) for r, ns in run_clocks_ns.items()}
+
+    def at(run: int) -> int:
+        return start + clocks.get(int(run), 0)
+
+    def cut(topic: str, data: bytes) -> int | None:
+        if topic.startswith("/run_"):
+            head = topic[5:].split("/", 1)[0]
+            return at(int(head)) if head.isdigit() else None
+        if topic == FoxgloveStream.TRIAL_TOPIC:
+            return at(json.loads(data)["run"])
+        if topic == FoxgloveStream.TRIALS_TOPIC:
+            return at(_trial_table_type()[0].FromString(data).run)
+        if topic == FoxgloveStream.SCENE_TOPIC:
+            return start + 1
+        return None
+
+    return cut
 
 
 class FoxgloveSink:

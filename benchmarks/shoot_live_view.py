@@ -24,8 +24,9 @@ Usage (from the repository root)::
     python benchmarks/shoot_live_view.py                       # docs/img/live-studio*.png
     python benchmarks/shoot_live_view.py --task dyna_maze --out /tmp/shots
 
-Needs ``npm`` (registry access), ``/usr/bin/chromium``, ``/usr/bin/chromedriver`` and the
-``selenium`` package (the dev extra). It is a docs tool, not a test: nothing here is asserted.
+Needs ``npm`` (registry access), ``/usr/bin/chromium``, ``/usr/bin/chromedriver``, and the
+``selenium`` (dev extra) and ``websockets`` packages (the relay: :func:`relay`). It is a docs
+tool, not a test: nothing here is asserted.
 """
 
 from __future__ import annotations
@@ -248,6 +249,11 @@ def main() -> None:
     if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
         sys.exit(f"shoot_live_view: needs {CHROMIUM} and {CHROMEDRIVER} "
                  "(apt-get install chromium chromium-driver)")  # fmt: skip
+    for module in ("selenium", "websockets"):
+        try:
+            __import__(module)
+        except ImportError:
+            sys.exit(f"shoot_live_view: needs the {module} package (pip install {module})")
     width, height = (int(v) for v in args.size.split("x"))
     folder = args.folder.resolve()
     install(folder)

@@ -147,10 +147,22 @@ def install(folder: Path) -> None:
                     "--prefix", str(folder), *PACKAGES], check=True)  # fmt: skip
 
 
-def write_page(folder: Path) -> None:
-    """The app's page and glue, with cobel's shipped layout in it."""
+def write_page(folder: Path, center: tuple[float, float] | None = None) -> None:
+    """The app's page and glue, with cobel's shipped layout in it (its 3D camera looking down
+    on ``center`` from above at a slant, when given: the shipped layout keeps Studio's default
+    view of the frame's origin, which suits no one maze in particular)."""
     (folder / "index.html").write_text(INDEX_HTML.replace("BUNDLE", BUNDLE), encoding="utf-8")
-    js = MOUNT_JS.replace("LAYOUT_JSON", json.dumps(lichtblick_layout()))
+    layout = lichtblick_layout()
+    for name, topic in layout["configById"]["3D!maze"]["topics"].items():
+        if name.endswith("/pose"):  # thick enough to stand out of the goal's disk it ends on
+            topic["arrowScale"] = [0.7, 0.4, 0.4]
+    if center is not None:
+        layout["configById"]["3D!maze"]["cameraState"] = {
+            "distance": 13.0, "perspective": True, "phi": 35.0, "thetaOffset": 0.0,
+            "target": [0, 0, 0], "targetOffset": [center[0], center[1], 0],
+            "targetOrientation": [0, 0, 0, 1], "fovy": 45.0, "near": 0.5, "far": 5000,
+        }  # fmt: skip
+    js = MOUNT_JS.replace("LAYOUT_JSON", json.dumps(layout))
     (folder / "cobel-live.js").write_text(js.replace("LAYOUT_ID", LAYOUT_ID), encoding="utf-8")
 
 
@@ -230,6 +242,18 @@ def browser(width: int, height: int) -> Any:
     return webdriver.Chrome(options=opts, service=service)
 
 
+def _dismiss_hints(driver: Any) -> None:
+    """Close the app's first-use hints (the 3D panel's "Open settings" bubble)."""
+    from selenium.webdriver.common.by import By
+
+    path = "//*[contains(text(), 'Open settings to configure')]/ancestor::div[1]//button"
+    for button in driver.find_elements(By.XPATH, path):
+        try:
+            button.click()
+        except Exception:  # a hint that went away meanwhile
+            pass
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--folder", type=Path, default=Path("/tmp/cobel-studio"),
@@ -238,12 +262,15 @@ def main() -> None:
     parser.add_argument("--task", default="gridworld")
     parser.add_argument("--runs", type=int, default=4)
     parser.add_argument("--env", default="blodgett")
-    parser.add_argument("--trials", type=int, default=4000, help="trials of the first phase")
-    parser.add_argument("--overrides", nargs="*", default=["+env.world.goal_reward=1.0"],
+    parser.add_argument("--trials", type=int, default=10000, help="trials of the first phase")
+    parser.add_argument("--overrides", nargs="*",
+                        default=["+env.world.goal_reward=1.0", "task.record.flush_seconds=0.25"],
                         help="more cobel run overrides")  # fmt: skip
-    parser.add_argument("--shots", type=float, nargs="+", default=[20.0],
+    parser.add_argument("--shots", type=float, nargs="+", default=[40.0],
                         help="seconds after the page opens at which to take screenshots")  # fmt: skip
     parser.add_argument("--name", default="live-studio")
+    parser.add_argument("--center", type=float, nargs=2, default=[3.5, 2.0],
+                        help="where the 3D view looks (world units; the Blodgett maze's middle)")  # fmt: skip
     parser.add_argument("--size", default="1600x1000")
     args = parser.parse_args()
     if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
@@ -257,7 +284,7 @@ def main() -> None:
     width, height = (int(v) for v in args.size.split("x"))
     folder = args.folder.resolve()
     install(folder)
-    write_page(folder)
+    write_page(folder, tuple(args.center))
     server, http_port = serve(folder)
     ws_port = _free_port()
     results = Path(tempfile.mkdtemp(prefix="results-", dir=folder))
@@ -283,6 +310,7 @@ def main() -> None:
         args.out.mkdir(parents=True, exist_ok=True)
         for i, at in enumerate(sorted(args.shots)):
             time.sleep(max(0.0, at - (time.monotonic() - opened)))
+            _dismiss_hints(driver)
             suffix = "" if i == 0 else f"-{i + 1}"
             path = args.out / f"{args.name}{suffix}.png"
             driver.save_screenshot(str(path))

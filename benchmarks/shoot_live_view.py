@@ -153,9 +153,6 @@ def write_page(folder: Path, center: tuple[float, float] | None = None) -> None:
     view of the frame's origin, which suits no one maze in particular)."""
     (folder / "index.html").write_text(INDEX_HTML.replace("BUNDLE", BUNDLE), encoding="utf-8")
     layout = lichtblick_layout()
-    for name, topic in layout["configById"]["3D!maze"]["topics"].items():
-        if name.endswith("/pose"):  # thick enough to stand out of the goal's disk it ends on
-            topic["arrowScale"] = [0.7, 0.4, 0.4]
     if center is not None:
         layout["configById"]["3D!maze"]["cameraState"] = {
             "distance": 13.0, "perspective": True, "phi": 35.0, "thetaOffset": 0.0,

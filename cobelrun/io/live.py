@@ -50,6 +50,9 @@ DEFAULT_PORT = 8765
 LAYOUTS = Path(__file__).parent / "layouts"
 #: poses of this many runs are shown in the layouts' 3D panel (``record.mcap_runs``' default)
 LAYOUT_RUNS = 10
+#: the pose arrows' length and thickness in the layouts (world units; cells are 1): thicker
+#: than Foxglove's default (1, 0.15, 0.15), which hides in the goal's disk a trial ends on
+POSE_ARROW = (0.7, 0.4, 0.4)
 
 
 def foxglove_layout(runs: int = LAYOUT_RUNS) -> Any:
@@ -62,7 +65,7 @@ def foxglove_layout(runs: int = LAYOUT_RUNS) -> Any:
     topics: dict[str, Any] = {"/maze": fl.BaseRendererSceneUpdateTopicSettings(visible=True)}
     for run in range(runs):
         topics[f"/run_{run:04d}/pose"] = fl.BaseRendererPoseTopicSettings(
-            visible=True, type="arrow"
+            visible=True, type="arrow", arrow_scale=POSE_ARROW
         )
         topics[f"/run_{run:04d}/replay"] = fl.BaseRendererSceneUpdateTopicSettings(visible=True)
     maze = fl.ThreeDeePanel(
@@ -106,7 +109,8 @@ def lichtblick_layout(runs: int = LAYOUT_RUNS) -> dict[str, Any]:
     Foxglove Studio 1.x) imports: ``configById`` and a mosaic ``layout`` tree."""
     topics: dict[str, Any] = {"/maze": {"visible": True}}
     for run in range(runs):
-        topics[f"/run_{run:04d}/pose"] = {"visible": True, "type": "arrow"}
+        topics[f"/run_{run:04d}/pose"] = {"visible": True, "type": "arrow",
+                                          "arrowScale": list(POSE_ARROW)}  # fmt: skip
         topics[f"/run_{run:04d}/replay"] = {"visible": True}
 
     def plot(field: str, label: str) -> dict[str, Any]:

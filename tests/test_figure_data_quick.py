@@ -21,6 +21,7 @@ QUICK = {
     "pma": None,
     "fig9": None,
     "fig9_seeds": None,
+    "fig9_fast_seeds": None,
     "revaluation": ["reward", "transition", "policy"],
     "fig7_paper": None,
 }
@@ -31,6 +32,7 @@ TABLES = {
     "pma": ["pma", "pma_runs", "pma_criterion", "pma_events"],
     "fig9": ["fig9", "fig9_runs"],
     "fig9_seeds": ["fig9_seeds", "fig9_seeds_runs"],
+    "fig9_fast_seeds": ["fig9_fast_seeds", "fig9_fast_seeds_runs"],
     "revaluation": ["revaluation", "revaluation_runs"],
     "fig7_paper": ["fig7", "fig7_runs", "fig7_sr", "fig7_compare"],
 }

@@ -64,6 +64,7 @@ NOT_NUMBERS = [
     re.compile(r"\b\d{4}-\d{2}-\d{2}\b"),  # dates
     re.compile(r"\b(?:19|20)\d{2}\b"),  # years
     re.compile(r"\bv\d+(?:\.\d+)*\b"),  # versions
+    re.compile(r"\b\d+\.\d+\.\d+\b"),  # versions x.y.z (TensorFlow 2.15.1)
     re.compile(r"\b[A-Za-z]+\d+\b"),  # names with digits (keras-rl2, H100, issue refs)
     re.compile(r"\b[23]D\b"),  # 2D, 3D
 ]

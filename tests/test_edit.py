@@ -587,7 +587,7 @@ def test_graph_save_keeps_keys_and_comments(tmp_path: Path) -> None:
 
     conf = tmp_path / "conf"
     loaded = load_graph_template("hex_3d")
-    path = save_graph(conf, "hex_copy", loaded, loaded.design)
+    (path,) = save_graph(conf, "hex_copy", loaded, loaded.design)
     assert path.read_text() == loaded.text  # unchanged: the built-in file as it is
     d = loaded.design.copy()
     d.paint("goal", 0, 2.0)

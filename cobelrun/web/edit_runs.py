@@ -66,21 +66,24 @@ class Editor:
         return copy.deepcopy(self.initial)
 
     # ------------------------------------------------------------------ run it
-    def run_command(self, env: str, task: str, out: Path, runs: int) -> list[str]:
-        """``cobel run -cd DIR task=TASK env=ENV task.runs=N hydra.run.dir=OUT``."""
+    def run_command(self, env: str, task: str, out: Path, runs: int,
+                    extra: list[str] | None = None) -> list[str]:  # fmt: skip
+        """``cobel run -cd DIR task=TASK env=ENV task.runs=N [EXTRA...] hydra.run.dir=OUT``."""
         quoted = "'" + str(out).replace("\\", "\\\\").replace("'", "\\'") + "'"  # Hydra's quoting
         return [*_cobel(), "run", "-cd", str(self.folder), f"task={task}", f"env={env}",
-                f"task.runs={int(runs)}", f"hydra.run.dir={quoted}"]  # fmt: skip
+                f"task.runs={int(runs)}", *(extra or []), f"hydra.run.dir={quoted}"]  # fmt: skip
 
-    def start_run(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> Child:
+    def start_run(self, env: str, task: str, runs: int = RUN_IT_RUNS,
+                  extra: list[str] | None = None) -> Child:  # fmt: skip
         stamp = time.strftime("%Y%m%d-%H%M%S")
         out = (self.results / "edit" / env / f"{stamp}-{len(self.runs)}").resolve()
         out.parent.mkdir(parents=True, exist_ok=True)
         log = out.parent / f"{out.name}.log"
         with open(log, "wb") as f:
-            proc = subprocess.Popen(self.run_command(env, task, out, runs), stdout=f,
+            proc = subprocess.Popen(self.run_command(env, task, out, runs, extra), stdout=f,
                                     stderr=subprocess.STDOUT, env=_child_env())  # fmt: skip
-        child = Child(proc, f"cobel run task={task} env={env} task.runs={runs}", log, out)
+        what = " ".join([f"cobel run task={task} env={env} task.runs={runs}", *(extra or [])])
+        child = Child(proc, what, log, out)
         self.runs.append(child)
         return child
 
@@ -121,7 +124,7 @@ def _free_port() -> int:
 
 class RunPanel:
     """ "Run it": the run's status line, the dashboard link, and the timer that follows the
-    child process (shared by the gridworld and arena pages)."""
+    child process (shared by the three pages)."""
 
     def __init__(self, editor: Editor) -> None:
         from nicegui import ui
@@ -133,9 +136,10 @@ class RunPanel:
         self.link.set_visibility(False)
         self.timer = ui.timer(1.0, self.poll, active=False)
 
-    def start(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> None:
+    def start(self, env: str, task: str, runs: int = RUN_IT_RUNS,
+              extra: list[str] | None = None) -> None:  # fmt: skip
         try:
-            self.run = self.editor.start_run(env, task, runs)
+            self.run = self.editor.start_run(env, task, runs, extra)
         except (OSError, CobelError) as exc:
             self.status.text = f"cannot start the run: {exc}"
             return

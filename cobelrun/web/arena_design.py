@@ -422,7 +422,7 @@ class ArenaDesign:
                 else:
                     a = float(np.deg2rad(heading))
                 ex, ey = sx + arrow * np.cos(a), sy + arrow * np.sin(a)
-                out.append(f'<polyline class="cobel-heading" data-deg="{np.rad2deg(a):.1f}" '
+                out.append(f'<polyline class="cobel-heading" data-deg="{np.rad2deg(a) % 360:.1f}" '
                            f'points="{P(sx, sy)} {P(ex, ey)}" stroke="#0b3d91" stroke-width="3" '
                            f'marker-end="url(#cobel-arrow)" opacity="{op}"/>')  # fmt: skip
             out.append(f'<circle class="{cls}" data-name="{html.escape(name)}" '

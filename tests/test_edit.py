@@ -204,6 +204,31 @@ def test_run_it_command_quotes_the_run_folder() -> None:
     assert override.key_or_group == "hydra.run.dir" and override.value() == str(out)
 
 
+def test_run_it_overrides_go_before_the_run_folder() -> None:
+    from cobelrun.web.editor import Editor
+
+    editor = Editor(folder=Path("/tmp/conf"), results=Path("/tmp/results"))
+    cmd = editor.run_command("g", "g", Path("/tmp/out"), 1, ["task.protocol.phases.0.trials=2"])
+    assert cmd[-4:-1] == ["env=g", "task.runs=1", "task.protocol.phases.0.trials=2"]
+    assert cmd[-1] == "hydra.run.dir='/tmp/out'"
+
+
+def test_the_three_pages_share_one_scaffold() -> None:
+    from cobelrun.web.arena_editor import ArenaPage
+    from cobelrun.web.edit_page import EditPage
+    from cobelrun.web.editor import Page
+    from cobelrun.web.graph_editor import GraphPage
+
+    shared = ("header", "load_rows", "tool_grid", "phase_rows", "save_panel", "change", "undo",
+              "use", "save", "run_it", "export", "on_open", "on_load_template")  # fmt: skip
+    for page in (Page, GraphPage, ArenaPage):
+        assert issubclass(page, EditPage)
+        assert not set(shared) & set(vars(page)), f"{page.__name__} writes out shared parts"
+        for hook in ("load_template", "load_existing", "existing_names", "write", "figure",
+                     "run_target", "refresh"):  # fmt: skip
+            assert hook in vars(page), f"{page.__name__} lacks {hook}"
+
+
 def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
     r = cli("edit", "env=../../etc")
     assert r.returncode != 0 and "is not a valid config name" in r.stderr

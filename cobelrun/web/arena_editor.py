@@ -177,7 +177,8 @@ class ArenaPage(EditPage):
     here = "/arena"
     title = "cobel edit: 2D arena"
     phase_tools = ("The goal tool (on a goal: switch it on or off; elsewhere: a new goal this "
-                   "phase switches on), the start and erase tools")  # fmt: skip
+                   "phase switches on) and the start and erase tools now change what this "
+                   "phase sets")  # fmt: skip
     task_label = "also write task/NAME.yaml (the protocol's task)"
     existing_label = "arena in the folder"
 

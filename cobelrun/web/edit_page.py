@@ -41,8 +41,7 @@ def phase_text(phase: dict[str, Any] | None, n_phases: int, what: str) -> str:
     if phase.get("cycle"):
         sets.append(f"a per-trial cycle of {len(phase['cycle'])} changes")
     told = "; ".join(sets) or "nothing (the world as the phase before left it)"
-    return (f"{phase.get('name')} ({phase.get('trials')} trials) sets {told}. {what} now changes "
-            "what this phase sets.")  # fmt: skip
+    return f"{phase.get('name')} ({phase.get('trials')} trials) sets {told}. {what}."
 
 
 class EditPage:
@@ -56,7 +55,7 @@ class EditPage:
     here = "/"  # the page's own path (left out of the header's links)
     title = "cobel edit"
     #: what the tools do while a phase is picked (the phase hint's last sentence)
-    phase_tools = "Painting starts and goals"
+    phase_tools = "Painting starts and goals now changes what this phase sets"
     task_label = "also write task/NAME.yaml (protocol, agent, monitors)"
     existing_label = "env in the folder"
 
@@ -119,9 +118,9 @@ class EditPage:
         ui.label("phase").classes("font-bold mt-2")
         with ui.row().classes("items-center no-wrap"):
             self.phase_select = ui.select({ENV_NONE: "env (as built)"}, value=ENV_NONE,
-                                          on_change=self.on_phase).classes("w-56 cobel-phase")  # fmt: skip
+                                          on_change=self.on_phase).classes("w-44 cobel-phase")  # fmt: skip
             ui.button("add phase", on_click=self.add_phase).props("dense no-caps").classes(
-                "cobel-add-phase"
+                "whitespace-nowrap cobel-add-phase"
             )
         self.phase_hint = ui.label().classes("text-xs text-gray-600 cobel-phase-hint")
         self.trials = ui.number("trials in this phase", min=1, precision=0).classes(
@@ -142,6 +141,7 @@ class EditPage:
         with ui.row():
             ui.button("save", on_click=self.on_save).classes("cobel-save")
             ui.button("run it", on_click=self.run_it).classes("cobel-run")
+        self.run_options()
         self.status = ui.label(self.error).classes("text-sm cobel-status")
         self.runner = RunPanel(self.editor)
         with ui.row():
@@ -315,6 +315,9 @@ class EditPage:
         ui.download.content(data, f"{name}.{fmt}")
 
     # ------------------------------------------------------------------ hooks
+    def run_options(self) -> None:
+        """Hook: widgets under "run it" that set how it runs."""
+
     def refresh(self) -> None:  # pragma: no cover - every page has its own
         raise NotImplementedError
 

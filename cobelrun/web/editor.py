@@ -51,7 +51,7 @@ class Page(EditPage):
     (the parts shared with the other pages come from :class:`EditPage`)."""
 
     here = "/"
-    phase_tools = "Painting starts, goals, rewards and terminals"
+    phase_tools = "Painting starts, goals, rewards and terminals now changes what this phase sets"
 
     def __init__(self, editor: Editor, env: str = "") -> None:
         self.editor = editor

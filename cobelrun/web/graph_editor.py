@@ -260,7 +260,7 @@ class GraphPage(EditPage):
 
     here = "/graph"
     title = "cobel edit: topology graph"
-    phase_tools = "The start, goal, terminal and clear tools"
+    phase_tools = "The start, goal, terminal and clear tools now change what this phase sets"
     task_label = "also write task/NAME.yaml (the graph's task: protocol, agent, monitors)"
     existing_label = "graph in the folder"
 
@@ -304,9 +304,6 @@ class GraphPage(EditPage):
                     ui.image().classes("w-96 cobel-view").style("image-rendering: pixelated")
                 )
             with ui.column().classes("w-96 gap-1"):
-                self.quick = ui.number("run it: at most this many trials per phase",
-                                       value=RUN_IT_TRIALS, min=1, precision=0)  # fmt: skip
-                self.quick.classes("w-72 cobel-run-trials")
                 self.save_panel()
         self.refresh()
 
@@ -333,6 +330,13 @@ class GraphPage(EditPage):
             self.yaml.content = graph_text(self.loaded, d)
         except CobelError as exc:
             self.yaml.content = f"# {exc}"
+
+    def run_options(self) -> None:
+        from nicegui import ui
+
+        self.quick = ui.number("run it: at most this many trials per phase",
+                               value=RUN_IT_TRIALS, min=1, precision=0)  # fmt: skip
+        self.quick.classes("w-72 cobel-run-trials")
 
     def set_tool(self, name: str) -> None:
         self.tool, self.selected = name, None

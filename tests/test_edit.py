@@ -644,11 +644,8 @@ def _plant_cache(design, cache_dir: Path) -> np.ndarray:
 
     from cobelrun.render import cache
     from cobelrun.render.scene import pybullet_version
-    from cobelrun.web.grid_design import build_with
 
-    obs = design.camera()
-    obs.bind(build_with("env.topology", design.topology_node()))
-    request = obs.cache_request()
+    request = design.cache_request()
     n, k, cam = request.n_nodes, request.n_directions, request.camera
     images = np.zeros((n, k, cam.height, cam.width, 3), np.uint8)
     images[:] = (np.arange(n)[:, None] * 10 + np.arange(k)[None, :])[..., None, None, None]
@@ -673,6 +670,14 @@ def test_view_preview_reads_the_render_cache(tmp_path: Path) -> None:
     assert img.shape == (6, 8, 3) and (img == 122).all()  # the cache's image, its size
     assert np.array_equal(img, images[12, 2])
     assert source.startswith("read from the render cache ") and str(tmp_path / "cache") in source
+    # the key is the run's: a cache cobel render-cache built for the built-in hex_3d is found
+    from cobelrun.config import instantiate
+
+    hexd = load_graph_template("hex_3d").design
+    env = instantiate("env", ec.plain(ec.read_yaml(REPO / "conf/env/hex_3d.yaml")))
+    assert hexd.cache_request().key() == env.unwrapped.observation_module.cache_request().key()
+    hexd.toggle_edge(0, 1)  # an edited graph is saved as a manual topology: another scene
+    assert hexd.cache_request().key() != env.unwrapped.observation_module.cache_request().key()
 
 
 # -- per-phase variants of graphs and arenas --------------------------------------------------

@@ -81,6 +81,9 @@ class GraphDesign:
     spacing: float = 1.0
     phases: list[dict[str, Any]] = field(default_factory=list)
     max_steps: int = 100
+    #: the loaded topology node and the graph it built (the run builds that node while the
+    #: graph is unchanged: its exact positions, so its render-cache key)
+    source: tuple[dict[str, Any], Any] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def from_env_config(cls, node: dict[str, Any], where: str) -> GraphDesign:
@@ -116,6 +119,7 @@ class GraphDesign:
             extra={k: v for k, v in node.items()
                    if k not in ("_target_", "topology", "rewards", "terminals", "starts")},
         )  # fmt: skip
+        d.source = (copy.deepcopy(topo_node), d._graph())
         d.rewards = {d.node(k): float(v) for k, v in (node.get("rewards") or {}).items()}
         terms = node.get("terminals") or []
         d.terminals = {d.node(t) for t in ([terms] if isinstance(terms, int | str) else terms)}
@@ -155,6 +159,16 @@ class GraphDesign:
         if self.places:
             out["places"] = dict(self.places)
         return out
+
+    def _graph(self) -> tuple[Any, ...]:
+        return (list(self.nodes), set(self.edges), self.n_directions, dict(self.places))
+
+    def run_topology_node(self) -> dict[str, Any]:
+        """The topology node a run of the saved env builds: the loaded one while nodes, edges,
+        headings and places are as loaded (the file keeps it), else :meth:`topology_node`."""
+        if self.source is not None and self.source[1] == self._graph():
+            return copy.deepcopy(self.source[0])
+        return self.topology_node()
 
     def env_node(self) -> dict[str, Any]:
         """The env config (plain data): TopologyEnv, the manual topology, rewards, terminals,
@@ -421,31 +435,34 @@ class GraphDesign:
         from: the env's render cache (``cobel render-cache``: the same scene, camera and poses,
         so the same key) when it has one for this graph, else rendered with pybullet."""
         from cobelrun.render import cache
+
+        request = self.cache_request()
+        try:
+            path = cache.locate(request)
+            images = cache.load(request)
+        except CobelError as exc:
+            why = str(exc).split(";")[0]
+        else:
+            h = int(np.argmin(np.abs(np.angle(np.exp(1j * (np.asarray(request.directions)
+                                                           - np.deg2rad(heading_deg)))))))  # fmt: skip
+            return np.array(images[i, h]), f"read from the render cache {path}"
+        return self.agent_view(i, heading_deg), f"rendered with pybullet ({why})"
+
+    def cache_request(self) -> Any:
+        """The render-cache request of the saved env's camera (scene, camera, every node and
+        heading, renderer, cache folder): what ``cobel render-cache`` builds for it."""
         from cobelrun.web.grid_design import build_with
 
-        topology = build_with("env.topology", self.topology_node())
         obs = self.camera()
-        obs.bind(topology)
-        try:
-            request = obs.cache_request()
-            try:
-                path = cache.locate(request)
-                images = cache.load(request)
-            except CobelError as exc:
-                why = str(exc).split(";")[0]
-            else:
-                h = topology.heading_index(float(heading_deg))
-                return np.array(images[i, h]), f"read from the render cache {path}"
-        finally:
-            obs.close()
-        return self.agent_view(i, heading_deg), f"rendered with pybullet ({why})"
+        obs.bind(build_with("env.topology", self.run_topology_node()))
+        return obs.cache_request()
 
     def agent_view(self, i: int, heading_deg: float) -> np.ndarray:
         """The agent's camera image at node ``i`` facing ``heading_deg`` (HxWx3 uint8),
         rendered by the run's pybullet scene for this graph."""
         from cobelrun.web.grid_design import build_with
 
-        topology = build_with("env.topology", self.topology_node())
+        topology = build_with("env.topology", self.run_topology_node())
         obs = self.camera()
         obs.bind(topology)
         try:

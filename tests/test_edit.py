@@ -1091,3 +1091,22 @@ def test_arena_page_moves_the_platform_in_the_reversal(server: str, browser, wor
     rev = cfg.task.protocol.phases[2]
     assert (rev.name, rev.rewards.goal_0, rev.terminals.goal_0) == ("reversal", 1.0, True)
     assert rev.rewards.platform_reversal == 0.0 and cfg.env.goals.goal_0.reward == 0.0
+
+
+def test_the_address_and_env_in_the_address_open_the_page_that_edits_it(tmp_path: Path) -> None:
+    from cobelrun.web.editor import page_of, prepare, url_of
+
+    conf = tmp_path / "conf"  # not there yet: built-in envs
+    assert [
+        page_of(conf, e) for e in ("water_maze", "hex_3d", "tmaze_paper", "../x", "bandit")
+    ] == ["arena", "graph", None, None, None]  # None: the gridworld page (or its message)
+    assert url_of("127.0.0.1", 8090, prepare(conf, "water_maze", tmp_path)) == \
+        "http://127.0.0.1:8090/arena?env=water_maze"  # fmt: skip
+    assert url_of("::1", 8090, prepare(conf, None, tmp_path)) == "http://[::1]:8090/"
+
+
+@pytest.mark.slow  # the arena page draws the open square's place cells: ~5 s
+def test_env_in_the_address_of_the_gridworld_page_goes_to_its_page(server: str, browser) -> None:
+    browser.get(server + "/?env=arena")  # an arena named on the gridworld page's address
+    _wait_text(browser, ".cobel-origin", "template arena")
+    assert browser.current_url.endswith("/arena?env=arena")

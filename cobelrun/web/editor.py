@@ -215,8 +215,11 @@ def build(editor: Editor) -> None:
 
     @ui.page("/", title="cobel edit")
     def index(env: str = "") -> None:
-        if not env and editor.graph_env:
-            ui.navigate.to(f"/{editor.graph_page}?env={quote(editor.graph_env)}")
+        page = page_of(editor.folder, env) if env else None  # /?env=NAME as env=NAME does
+        if page is None and not env and editor.graph_env:
+            env, page = editor.graph_env, editor.graph_page
+        if page is not None:
+            ui.navigate.to(f"/{page}?env={quote(env)}")
             return
         Page(editor, env).build()
 
@@ -252,6 +255,30 @@ def prepare(folder: Path | None, env: str | None, results: Path) -> Editor:
             name = "my_maze"
     return Editor(folder=folder, results=results, name=name, initial=initial,
                   graph_env=graph_env, graph_page=page)  # fmt: skip
+
+
+def page_of(folder: Path, env: str) -> str | None:
+    """The page (``graph`` or ``arena``) that edits ``env`` where it is a topology graph or an
+    arena; ``None`` where the gridworld page takes it or says why it cannot."""
+    try:
+        ec.check_name(env)
+        ec.load(folder, env) if folder.is_dir() else ec.load_template(env)
+    except ConfigError as exc:
+        if "is not a gridworld env config" in str(exc):
+            try:
+                return _other_page(folder, env, exc)[1]
+            except CobelError:
+                return None
+    except CobelError:
+        return None
+    return None
+
+
+def url_of(host: str, port: int, editor: Editor) -> str:
+    """The address ``cobel edit`` prints: the page that opens what the command line named."""
+    shown = f"[{host}]" if ":" in host else host
+    page = f"{editor.graph_page}?env={quote(editor.graph_env)}" if editor.graph_env else ""
+    return f"http://{shown}:{port}/{page}"
 
 
 def _other_page(folder: Path, env: str, gridworld_error: ConfigError) -> tuple[str, str]:
@@ -297,6 +324,8 @@ def edit(folder: Path | None = None, env: str | None = None, *, host: str = "127
     except ImportError:
         raise CobelError("cobel edit needs NiceGUI: pip install 'cobelrun[web]'") from None
     build(editor)
+    print(f"cobel edit: open {url_of(host, port, editor)} (config folder {editor.folder}); "
+          "Ctrl-C ends it", flush=True)  # fmt: skip
     try:
         ui.run(host=host, port=port, title="cobel edit", reload=False, show=False,
                show_welcome_message=False, uvicorn_logging_level="warning")  # fmt: skip

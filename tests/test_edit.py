@@ -1110,3 +1110,34 @@ def test_env_in_the_address_of_the_gridworld_page_goes_to_its_page(server: str, 
     browser.get(server + "/?env=arena")  # an arena named on the gridworld page's address
     _wait_text(browser, ".cobel-origin", "template arena")
     assert browser.current_url.endswith("/arena?env=arena")
+
+
+def test_export_marks_the_goals_of_the_chosen_phase() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    from cobelrun.web.grid_design import _draw_payoffs
+
+    d = ec.load_template("tmaze_paper").design
+    left, right = d.state(d.places["left_arm"]), d.state(d.places["right_arm"])
+    for phase, goal in ((0, right), (1, left)):  # acquisition pays right, extinction left
+        fig, ax = plt.subplots()
+        world = d.phase_world(phase)
+        _draw_payoffs(GridWorldEnv(world), ax)
+        marks = {c.get_label(): c.get_offsets().tolist() for c in ax.collections}
+        plt.close(fig)
+        assert marks["goal"] == [world.coords[goal].tolist()]
+        assert marks["start"] == [world.coords[38].tolist()]
+    from cobelrun.web.arena_editor import load_arena
+
+    pool = load_arena(None, "water_maze").design
+    pool.node["observation"] = [{"kind": "pose"}]  # the 493 place cells are not drawn here
+    reversal = pool.phase_names().index("reversal")
+    fig, ax = plt.subplots()
+    _draw_payoffs(pool.phase_env(reversal), ax)
+    (rim,) = [p for p in ax.patches if isinstance(p, Circle)]
+    plt.close(fig)
+    assert rim.center == pytest.approx((-0.42, -0.42))  # the moved platform, not the old one

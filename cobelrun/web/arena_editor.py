@@ -368,4 +368,4 @@ class ArenaPage(EditPage):
     def figure(self, fmt: str) -> bytes:
         from cobelrun.web.grid_design import geometry_figure
 
-        return geometry_figure(self.design.export_env(), fmt)
+        return geometry_figure(self.design.phase_env(self.phase), fmt)  # as the phase leaves it

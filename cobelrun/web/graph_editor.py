@@ -422,4 +422,4 @@ class GraphPage(EditPage):
     def figure(self, fmt: str) -> bytes:
         from cobelrun.web.grid_design import geometry_figure
 
-        return geometry_figure(self.design.export_env(), fmt)
+        return geometry_figure(self.design.phase_env(self.phase), fmt)  # as the phase leaves it

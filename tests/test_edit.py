@@ -1141,3 +1141,20 @@ def test_export_marks_the_goals_of_the_chosen_phase() -> None:
     (rim,) = [p for p in ax.patches if isinstance(p, Circle)]
     plt.close(fig)
     assert rim.center == pytest.approx((-0.42, -0.42))  # the moved platform, not the old one
+
+
+@pytest.mark.slow  # a page in Chromium: ~5 s
+def test_resize_beyond_the_limit_says_so(server: str, browser) -> None:
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-info", r"^10 x 10 cells")
+    _fill(browser, ".cobel-width", "100")
+    _fill(browser, ".cobel-height", "100")
+    _press(browser, ".cobel-resize")  # not clamped to 32 x 32 without a word
+    _wait_text(browser, ".cobel-status", r"a 100 x 100 grid is too large to edit comfortably here "
+               r"\(at most 32 x 32\)")  # fmt: skip
+    assert _wait_text(browser, ".cobel-info", r"^10 x 10 cells")
+    from selenium.webdriver.common.keys import Keys
+
+    _fill(browser, ".cobel-width", Keys.BACKSPACE)  # an empty box
+    _press(browser, ".cobel-resize")
+    _wait_text(browser, ".cobel-status", r"grid width must be a whole number >= 1, got None")

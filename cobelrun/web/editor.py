@@ -23,7 +23,7 @@ from cobelrun.errors import CobelError, ConfigError
 from cobelrun.web import edit_config as ec
 from cobelrun.web.edit_page import ENV_NONE, EditPage  # noqa: F401 (re-exported)
 from cobelrun.web.edit_runs import RUN_IT_RUNS, Child, Editor, RunPanel  # noqa: F401 (re-exported)
-from cobelrun.web.grid_design import MAX_SIDE, TOOLS, GridDesign, Problem
+from cobelrun.web.grid_design import TOOLS, GridDesign, Problem
 
 #: the cells' click handler: which cell, and where in it (for the side of a door or wall)
 CLICK_JS = """(e) => {
@@ -96,10 +96,11 @@ class Page(EditPage):
         self.load_rows({k: v[0] for k, v in ec.TEMPLATES.items()})
         ui.label("size").classes("font-bold mt-2")
         with ui.row().classes("items-center no-wrap"):
-            self.width = ui.number("width", value=self.design.width, min=1, max=MAX_SIDE,
-                                   precision=0).classes("w-20 cobel-width")  # fmt: skip
-            self.height = ui.number("height", value=self.design.height, min=1, max=MAX_SIDE,
-                                    precision=0).classes("w-20 cobel-height")  # fmt: skip
+            # no min/max on the boxes: they would clamp 100 to 32 silently; resize says why
+            self.width = ui.number("width", value=self.design.width, precision=0)
+            self.width.classes("w-20 cobel-width")
+            self.height = ui.number("height", value=self.design.height, precision=0)
+            self.height.classes("w-20 cobel-height")
             ui.button("resize", on_click=self._resize).props("dense").classes("cobel-resize")
         ui.label("paint").classes("font-bold mt-2")
         self.tool_grid(TOOLS)
@@ -165,7 +166,8 @@ class Page(EditPage):
                                               name=name))  # fmt: skip
 
     def _resize(self) -> None:
-        w, h = int(self.width.value or 0), int(self.height.value or 0)
+        # an empty box is None; check_size names it (at most MAX_SIDE cells a side)
+        w, h = (v if v is None else int(v) for v in (self.width.value, self.height.value))
         self.change(lambda: self.design.resize(w, h))
 
     def after_use(self) -> None:

@@ -1158,3 +1158,26 @@ def test_resize_beyond_the_limit_says_so(server: str, browser) -> None:
     _fill(browser, ".cobel-width", Keys.BACKSPACE)  # an empty box
     _press(browser, ".cobel-resize")
     _wait_text(browser, ".cobel-status", r"grid width must be a whole number >= 1, got None")
+
+
+def test_run_it_links_the_dashboard_only_once_it_listens(tmp_path: Path) -> None:
+    from cobelrun.web.edit_runs import Child, Editor
+
+    results = tmp_path / "results"
+    out = results / "edit" / "maze" / "stamp-0"
+    out.mkdir(parents=True)
+    (out / "manifest.json").write_text("{}")
+    editor = Editor(folder=tmp_path / "conf", results=results)
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    editor.dashboard = Child(sleeper, "cobel serve")  # started, not listening yet
+    editor.dashboard_port = _free_port()
+    run = Child(sleeper, "cobel run", out=out)
+    try:
+        assert editor.dashboard_url(run) is None  # a link now would be refused
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", editor.dashboard_port))
+            s.listen()
+            url = editor.dashboard_url(run)
+        assert url == f"http://127.0.0.1:{editor.dashboard_port}/run?p=edit/maze/stamp-0"
+    finally:
+        editor.dashboard.stop()

@@ -18,6 +18,8 @@ from cobelrun.web import edit_config as ec
 
 #: runs of a "run it"
 RUN_IT_RUNS = 3
+#: seconds "run it" waits, after the run, for the dashboard to listen before giving up its link
+DASHBOARD_WAIT_S = 60.0
 
 
 def _cobel() -> list[str]:
@@ -101,6 +103,8 @@ class Editor:
             proc = subprocess.Popen(cmd, env=_child_env(), stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)  # fmt: skip
             self.dashboard, self.dashboard_port = Child(proc, "cobel serve"), port
+        if port_free("127.0.0.1", self.dashboard_port):  # not listening yet: no dead link
+            return None
         rel = run.out.relative_to(self.results.resolve()).as_posix()
         return f"http://127.0.0.1:{self.dashboard_port}/run?p={quote(rel)}"
 
@@ -134,6 +138,7 @@ class RunPanel:
         self.status = ui.label().classes("text-sm cobel-run-status")
         self.link = ui.link("", "#", new_tab=True).classes("cobel-dashboard")
         self.link.set_visibility(False)
+        self.finished_at: float | None = None  # when the run's process ended
         self.timer = ui.timer(1.0, self.poll, active=False)
 
     def start(self, env: str, task: str, runs: int = RUN_IT_RUNS,
@@ -144,6 +149,7 @@ class RunPanel:
             self.status.text = f"cannot start the run: {exc}"
             return
         self.status.text = f"running: {self.run.what} -> {self.run.out}"
+        self.finished_at = None
         self.link.set_visibility(False)
         self.timer.activate()
 
@@ -160,12 +166,19 @@ class RunPanel:
             self.link.set_visibility(True)
         if rc is None:
             return
+        if self.finished_at is None:
+            self.finished_at = time.monotonic()
+            if rc == 0:
+                self.status.text = f"finished: {run.what} -> {run.out}"
+            else:
+                tail = ""
+                if run.log is not None and run.log.is_file():
+                    lines = run.log.read_text(errors="replace").strip().splitlines()
+                    tail = lines[-1] if lines else ""
+                self.status.text = f"failed (exit {rc}): {tail}"
+        dashboard = self.editor.dashboard
+        starting = (rc == 0 and not self.link.visible and dashboard is not None
+                    and dashboard.proc.poll() is None)  # fmt: skip
+        if starting and time.monotonic() - self.finished_at < DASHBOARD_WAIT_S:
+            return  # the dashboard is still starting: its link comes when it listens
         self.timer.deactivate()
-        if rc == 0:
-            self.status.text = f"finished: {run.what} -> {run.out}"
-        else:
-            tail = ""
-            if run.log is not None and run.log.is_file():
-                lines = run.log.read_text(errors="replace").strip().splitlines()
-                tail = lines[-1] if lines else ""
-            self.status.text = f"failed (exit {rc}): {tail}"

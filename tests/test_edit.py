@@ -1181,3 +1181,21 @@ def test_run_it_links_the_dashboard_only_once_it_listens(tmp_path: Path) -> None
         assert url == f"http://127.0.0.1:{editor.dashboard_port}/run?p=edit/maze/stamp-0"
     finally:
         editor.dashboard.stop()
+
+
+def test_graph_problem_is_drawn_next_to_its_node() -> None:
+    from cobelrun.web.graph_editor import load_graph
+
+    g = load_graph(REPO / "conf", "hex_3d").design
+    goal = 38  # the centre: every edge to it removed
+    for a, b in [e for e in g.edges if goal in e]:
+        g.toggle_edge(a, b)
+    (msg,) = g.problems()
+    assert msg.startswith(f"goal node {goal} is unreachable from every start")
+    svg = g.svg(problems=[msg])
+    ring = re.search(rf'<circle class="cobel-node" data-node="{goal}" [^>]*>', svg).group(0)
+    assert 'stroke="#d00000"' in ring and 'stroke-width="4"' in ring
+    assert re.findall(r'class="cobel-problem-at"[^>]*>([^<]*)<', svg) == [
+        f"goal node {goal} is unreachable from every start"
+    ]
+    assert "cobel-problem-at" not in g.svg(problems=[])

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import html
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -371,10 +372,14 @@ class GraphDesign:
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
     def svg(self, px: float = 48.0, selected: int | None = None,
-            phase: int | None = None) -> str:  # fmt: skip
+            phase: int | None = None, problems: list[str] | None = None) -> str:  # fmt: skip
         """Nodes (``circle.cobel-node``, ``data-node``), edges, and a background
         (``rect.cobel-bg``) whose clicks give world coordinates through ``data-*``; goals,
-        terminals and starts as they are during ``phase`` (None: as designed)."""
+        terminals and starts as they are during ``phase`` (None: as designed). A node that
+        one of ``problems`` names (``goal node N``) gets a red ring and the message beside it
+        (``text.cobel-problem-at``)."""
+        bad = {int(m.group(1)): msg for msg in problems or ()
+               for m in [re.search(r"\bgoal node (\d+) ", msg)] if m}  # fmt: skip
         try:
             rewards, terminals, starts = self.phase_state(phase)
         except CobelError:  # a phase the run would refuse: drawn as designed (the message says why)
@@ -403,9 +408,16 @@ class GraphDesign:
                 fill = "#cfe0ff"
             else:
                 fill = "#ffffff"
-            stroke = "#d00000" if i == selected else "#333"
+            stroke = "#d00000" if i == selected or i in bad else "#333"
             out.append(f'<circle class="cobel-node" data-node="{i}" cx="{cx:.1f}" cy="{cy:.1f}" '
-                       f'r="{r:.1f}" fill="{fill}" stroke="{stroke}" stroke-width="2"/>')  # fmt: skip
+                       f'r="{r:.1f}" fill="{fill}" stroke="{stroke}" '
+                       f'stroke-width="{4 if i in bad else 2}"/>')  # fmt: skip
+            if i in bad:  # the message up to its advice, on the side with more room
+                left = cx > w / 2
+                tx, anchor = (cx - r - 3, "end") if left else (cx + r + 3, "start")
+                out.append(f'<text class="cobel-problem-at" x="{tx:.1f}" y="{cy - r:.1f}" '
+                           f'text-anchor="{anchor}" font-size="11" fill="#b00000" '
+                           f'pointer-events="none">{html.escape(bad[i].split(";")[0])}</text>')  # fmt: skip
             label = str(i) if not rewards.get(i) else f"{i}:{rewards[i]:g}"
             out.append(f'<text x="{cx:.1f}" y="{cy + 4:.1f}" font-size="{max(8, px / 5):.0f}" '
                        f'text-anchor="middle" pointer-events="none">{label}</text>')  # fmt: skip

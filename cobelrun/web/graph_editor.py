@@ -312,8 +312,8 @@ class GraphPage(EditPage):
 
         d = self.design
         self.refresh_common()
-        self.graph.content = d.svg(selected=self.selected, phase=self.phase)
         problems = d.problems()
+        self.graph.content = d.svg(selected=self.selected, phase=self.phase, problems=problems)
         self.problem_list.clear()
         with self.problem_list:
             for p in problems:

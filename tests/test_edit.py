@@ -1199,3 +1199,17 @@ def test_graph_problem_is_drawn_next_to_its_node() -> None:
         f"goal node {goal} is unreachable from every start"
     ]
     assert "cobel-problem-at" not in g.svg(problems=[])
+
+
+@pytest.mark.slow  # the arena page in Chromium: ~10 s
+def test_arena_outline_menu_reads_polygon_after_drawing_one(server: str, browser) -> None:
+    browser.get(server + "/arena?env=arena")  # the open unit square
+    _wait_text(browser, ".cobel-outline-shape", r"\bsquare\b")
+    _wait_text(browser, ".cobel-ok", "no problems", timeout=30)
+    _press(browser, ".cobel-tool-outline")
+    for x, y in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.5, 1.2), (0.0, 1.0)]:  # a house
+        _click_world(browser, x, y)
+        time.sleep(0.5)  # each vertex is drawn before the next click
+    _press(browser, ".cobel-finish")
+    _wait_text(browser, ".cobel-yaml", r"arena: \{shape: polygon")
+    _wait_text(browser, ".cobel-outline-shape", r"\bpolygon\b")

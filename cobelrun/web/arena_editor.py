@@ -308,7 +308,8 @@ class ArenaPage(EditPage):
 
     def _finish(self) -> None:
         what = "outline" if self.tool == "outline" else "obstacle"
-        self.change(lambda: self.design.finish(what))
+        if self.change(lambda: self.design.finish(what)) and what == "outline":
+            self.after_use()  # the outline menu reads polygon now, not the shape it had
 
     def _outline(self) -> None:
         self.change(lambda: self.design.set_outline(str(self.shape.value),

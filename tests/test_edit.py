@@ -1213,3 +1213,19 @@ def test_arena_outline_menu_reads_polygon_after_drawing_one(server: str, browser
     _press(browser, ".cobel-finish")
     _wait_text(browser, ".cobel-yaml", r"arena: \{shape: polygon")
     _wait_text(browser, ".cobel-outline-shape", r"\bpolygon\b")
+
+
+def test_an_arena_with_too_many_place_cells_is_refused_in_one_line(tmp_path: Path) -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    conf = tmp_path / "conf"
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "dense.yaml").write_text(
+        "_target_: cobelrun.envs.Continuous2DEnv\n"
+        "arena: {shape: circle, x: 0.0, y: 0.0, radius: 1.0}\n"
+        "observation:\n  - {kind: pose}\n  - {kind: place_cells, n: 2000000, sigma: 0.1}\n"
+    )  # building its env took minutes on every click
+    with pytest.raises(CobelError, match=r"dense\.yaml: 2000000 place cells are too many to draw "
+                       r"here \(at most 5000\); edit its YAML instead"):  # fmt: skip
+        load_arena(conf, "dense")
+    assert len(load_arena(conf, "water_maze").design.node["observation"]) == 1  # 493: opened

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from cobelrun.errors import CobelError, ConfigError
+from cobelrun.errors import CobelError, ConfigError, LayoutError
 
 __all__ = ["ARENA_TOOLS", "ArenaDesign"]
 
@@ -35,6 +35,26 @@ ARENA_TOOLS: dict[str, str] = {
     "rays": "preview the boundary-vector rays (and nearby place cells) at the click",
 }
 _NAMED = re.compile(r"(?:goal|start) '([^']+)'|starts\.(\w+)|obstacles\[(\d+)\]")
+
+
+#: place cells the arena page draws (and rebuilds on every click); the water maze has 493
+MAX_PLACE_CELLS = 5000
+
+
+def check_place_cells(observation: Any, where: str) -> None:
+    """Refuse an arena whose place cells are too many to draw and rebuild on every click (one
+    line, saying what to do); what the run itself accepts is the run's check."""
+    parts = observation if isinstance(observation, list) else [observation]
+    for part in parts:
+        if not isinstance(part, dict) or part.get("kind") != "place_cells":
+            continue
+        centres, n = part.get("centres"), part.get("n", 100)
+        count = len(centres) if isinstance(centres, list) else n
+        if isinstance(count, int) and not isinstance(count, bool) and count > MAX_PLACE_CELLS:
+            raise LayoutError(
+                f"{where}: {count} place cells are too many to draw here (at most "
+                f"{MAX_PLACE_CELLS}); edit its YAML instead"
+            )
 
 
 @dataclass
@@ -63,6 +83,7 @@ class ArenaDesign:
         if node.get("_target_") not in ENV_TARGETS:
             raise ConfigError(f"{where} is not an arena env config (its _target_ is "
                               f"{node.get('_target_')!r})")  # fmt: skip
+        check_place_cells(node.get("observation"), where)
         d = cls(copy.deepcopy(node))
         starts = d.node.get("starts")
         if isinstance(starts, list):  # named, so each can be picked and removed

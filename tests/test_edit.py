@@ -1229,3 +1229,14 @@ def test_an_arena_with_too_many_place_cells_is_refused_in_one_line(tmp_path: Pat
                        r"here \(at most 5000\); edit its YAML instead"):  # fmt: skip
         load_arena(conf, "dense")
     assert len(load_arena(conf, "water_maze").design.node["observation"]) == 1  # 493: opened
+
+
+def test_a_saved_graph_lists_its_edges_one_a_line(tmp_path: Path) -> None:
+    from cobelrun.web.graph_editor import graph_text, load_graph
+
+    loaded = load_graph(tmp_path, "hex_3d")
+    d = loaded.design.copy()
+    d.toggle_edge(0, 1)  # changed: written as a manual topology
+    text = graph_text(loaded, d)
+    lines = text[text.index("  edges:") :].splitlines()[1:196]
+    assert all(re.fullmatch(r"\s+- \[\d+, \d+\]", line) for line in lines), lines[:3]

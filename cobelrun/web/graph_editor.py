@@ -195,7 +195,8 @@ def graph_text(loaded: LoadedGraph, design: GraphDesign) -> str:
     node = design.env_node()
     topo = CommentedMap(node["topology"])
     topo["nodes"] = ec._block([ec._flow(p) for p in topo["nodes"]])
-    topo["edges"] = ec._flow([ec._flow(e) for e in topo["edges"]])
+    pairs = [ec._flow(e) for e in topo["edges"]]  # one a line where many (as gridworld doors):
+    topo["edges"] = ec._flow(pairs) if len(pairs) <= 8 else ec._block(pairs)  # no [\n 6, 11]
     doc["topology"] = topo
     for key in ("rewards", "terminals", "starts"):
         if key in node:

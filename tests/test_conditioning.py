@@ -3,6 +3,8 @@ which does not (stated in the task's YAML)."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -275,3 +277,41 @@ def test_pearce_hall_agent_checks_and_saves(tmp_path):
     agent.end_trial(learn=True)
     # V 1, delta 0: weights stay, associabilities halve
     np.testing.assert_allclose(agent.get_state()["alpha"], [0.5, 0.5])
+
+
+@pytest.mark.parametrize(
+    "args, rows, message",
+    [
+        (["task=second_order", "agent=td_conditioning", "task.protocol.max_steps=6"],
+         {"choice": [1, 0], "reward": [1.0, 0.0]},
+         "protocol stops trials after 6 steps, but its trials last 10"),
+        (["task=second_order", "agent=td_conditioning"],
+         {"choice": [1, 0], "reward": [1.0, 0.0], "learn": [1, 2]},
+         r"learn must lie in 0..1, got 2 in row 1"),
+        (["task=second_order", "agent=td_conditioning"],
+         {"choice": [1, 0], "reward": [1.0, float("nan")]},
+         "reward must be a finite number, got nan in row 1"),
+        (["task=second_order", "agent=td_conditioning"],
+         {"choice": [1, 0], "reward": [1.0, 0.0], "state": [0, 3]},
+         "state must lie in 0..2, got 3 in row 1"),
+        (["task=latent_inhibition", "agent=pearce_hall"],
+         {"choice": [1, 2], "reward": [1.0, 0.0]},
+         "choices 0..2 (3 actions) but task latent_inhibition's env has 2 actions"),
+        (["task=reversal_bandit", "model=td_response"],
+         {"choice": [1, 0], "reward": [1.0, 0.0]},
+         "model td_response needs the cues of every trial type: fit it with a conditioning task"),
+    ],
+    ids=["short_trials", "learn_value", "non_finite", "state", "action_set", "no_trial_types"],
+)  # fmt: skip
+def test_conditioning_fit_bad_input_is_one_line(tmp_path, monkeypatch, args, rows, message):
+    from typer.testing import CliRunner
+
+    from cobelrun.cli import app
+
+    pd.DataFrame(rows).to_csv(tmp_path / "c.csv", index=False)
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["fit", *args, "data=c.csv"])
+    lines = [line for line in out.stderr.strip().splitlines() if line]
+    assert out.exit_code != 0 and len(lines) == 1, out.stderr
+    assert re.search(message, lines[0]) or message in lines[0], lines[0]
+    assert not (tmp_path / "fit.json").exists()

@@ -229,9 +229,10 @@ def test_likelihood_replays_the_agent_exactly(task, agent, model, tmp_path):
     [
         ("acquisition_extinction", "td_conditioning",
          {"agent.learning_rate": 0.15, "agent.response_beta": 8.0}, []),
-        ("latent_inhibition", "pearce_hall",
-         {"agent.learning_rate": 0.3, "agent.response_beta": 8.0}, ["params=[agent.learning_rate,"
-                                                                    "agent.response_beta]"]),
+        pytest.param("latent_inhibition", "pearce_hall",
+                     {"agent.learning_rate": 0.3, "agent.response_beta": 8.0},
+                     ["params=[agent.learning_rate,agent.response_beta]"],
+                     marks=pytest.mark.slow),
     ],
     ids=["td_conditioning", "pearce_hall"],
 )  # fmt: skip

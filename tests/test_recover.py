@@ -183,6 +183,17 @@ def test_recovery_does_not_depend_on_the_number_of_jobs(reversal):
     pd.testing.assert_frame_equal(table, again)
 
 
+def test_recovery_job_checks_its_share():
+    from cobelrun.recover import RecoveryJob
+
+    with pytest.raises(ConfigError, match=r"task\.job\.chunk must lie in 0\.\.1, got 2"):
+        RecoveryJob(["q_learning"], 4, chunk=2, chunks=2)
+    with pytest.raises(ConfigError, match=r"task\.job\.n must be an integer >= 1"):
+        RecoveryJob(["q_learning"], 0)
+    with pytest.raises(ConfigError, match="empty support"):
+        RecoveryJob(["q_learning"], 4, priors=["agent.beta=uniform(2,1)"])
+
+
 @pytest.mark.parametrize(
     "text, message",
     [
@@ -256,8 +267,15 @@ def test_recovery_of_conditioning_models(tmp_path):
     assert data["learn"].tolist() == [1] * 100 + [0] * 10
     table = recover(task, ["rw_response", "td_response"], 2, seed=1, n_starts=1)
     assert len(table) == 2 * 2 * 2 and table["nll"].notna().all()
-    assert set(parameter_recovery(table)["param"]) == {"agent.learning_rate",
-                                                       "agent.response_beta"}  # fmt: skip
+    params = parameter_recovery(table)
+    assert set(params["param"]) == {"agent.learning_rate", "agent.response_beta"}
+    import matplotlib
+
+    from cobelrun.figures.recovery import plot_parameter_recovery
+
+    matplotlib.use("Agg")
+    fig = plot_parameter_recovery(table, params)
+    assert len([ax for ax in fig.axes if ax.get_visible()]) == 4  # fitted parameters only
     with pytest.raises(ConfigError, match="have no likelihood on conditioning tasks; models "
                                           "that can be fitted: rw_response, td_response"):  # fmt: skip
         recover(task, ["q_learning"], 2)

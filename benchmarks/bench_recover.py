@@ -17,6 +17,9 @@ Prints and writes ``benchmarks/results/recover.json``:
 * model recovery among q_learning, rescorla_wagner, dyna_q, wsls on the reversal bandit
   (200 trials) and on ``protocol=reversal_blocks`` (8 blocks of 50 trials): the confusion
   diagonal by AIC, BIC and held-out log-likelihood;
+* ``--long-reversal BLOCKS``: model recovery of the four models with agents that exploit what
+  they learn (``prior.agent.beta=loguniform(3,20)``) on BLOCKS blocks of 50 trials, the better
+  arm (0.8 vs 0.2) switching every block;
 * conditioning (``--conditioning``): recovery of ``rw_response``, ``ph_response`` and
   ``td_response`` on ``task=latent_inhibition`` and ``task=second_order``.
 """
@@ -65,6 +68,7 @@ def main() -> None:
     parser.add_argument("--skip-acceptance", action="store_true")
     parser.add_argument("--skip-speed", action="store_true")
     parser.add_argument("--conditioning", action="store_true")
+    parser.add_argument("--long-reversal", type=int, default=0, metavar="BLOCKS")
     args = parser.parse_args()
     from cobelrun.recover import recover
 
@@ -110,6 +114,23 @@ def main() -> None:
         blocks = _task(["task=reversal_bandit", "protocol=reversal_blocks"])
         out["reversal_blocks_4_models"] = _summary(recover(blocks, four, args.n))
         print("reversal_blocks:", json.dumps(out["reversal_blocks_4_models"]), flush=True)
+    if args.long_reversal:
+        from cobelrun.recover import Prior
+
+        arms = [("0.8", "0.2"), ("0.2", "0.8")]
+        blocks = ",".join(
+            f"{{name:b{i + 1},trials:50,rewards:{{0:{arms[i % 2][0]},1:{arms[i % 2][1]}}}}}"
+            for i in range(args.long_reversal)
+        )
+        task = _task(["task=reversal_bandit", f"task.protocol.phases=[{blocks}]"])
+        t, c = time.perf_counter(), time.process_time()
+        four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
+        table = recover(task, four, args.n, priors={"agent.beta": Prior("loguniform", 3.0, 20.0)})
+        key = f"reversal_{args.long_reversal}_blocks_beta_3_20"
+        out[key] = _summary(table)
+        out[key]["seconds"] = round(time.perf_counter() - t, 1)
+        out[key]["cpu_s"] = round(time.process_time() - c, 1)
+        print(f"{key}:", json.dumps(out[key]), flush=True)
     if args.conditioning:
         models = ["rw_response", "ph_response", "td_response"]
         for name in ("latent_inhibition", "second_order"):

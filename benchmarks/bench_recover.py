@@ -18,8 +18,8 @@ Prints and writes ``benchmarks/results/recover.json``:
   (200 trials) and on ``protocol=reversal_blocks`` (8 blocks of 50 trials): the confusion
   diagonal by AIC, BIC and held-out log-likelihood;
 * ``--long-reversal BLOCKS``: model recovery of the four models with agents that exploit what
-  they learn (``prior.agent.beta=loguniform(3,20)``) on BLOCKS blocks of 50 trials, the better
-  arm (0.8 vs 0.2) switching every block;
+  they learn (``prior.agent.beta=loguniform(3,20)``; ``--default-priors``: the defaults) on
+  BLOCKS blocks of 50 trials, the better arm (0.8 vs 0.2) switching every block;
 * conditioning (``--conditioning``): recovery of ``rw_response``, ``ph_response`` and
   ``td_response`` on ``task=latent_inhibition`` and ``task=second_order``.
 """
@@ -69,6 +69,11 @@ def main() -> None:
     parser.add_argument("--skip-speed", action="store_true")
     parser.add_argument("--conditioning", action="store_true")
     parser.add_argument("--long-reversal", type=int, default=0, metavar="BLOCKS")
+    parser.add_argument(
+        "--default-priors",
+        action="store_true",
+        help="--long-reversal with the default priors (beta logU(1,10))",
+    )
     args = parser.parse_args()
     from cobelrun.recover import recover
 
@@ -125,8 +130,10 @@ def main() -> None:
         task = _task(["task=reversal_bandit", f"task.protocol.phases=[{blocks}]"])
         t, c = time.perf_counter(), time.process_time()
         four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
-        table = recover(task, four, args.n, priors={"agent.beta": Prior("loguniform", 3.0, 20.0)})
-        key = f"reversal_{args.long_reversal}_blocks_beta_3_20"
+        exploit = {"agent.beta": Prior("loguniform", 3.0, 20.0)}
+        table = recover(task, four, args.n, priors={} if args.default_priors else exploit)
+        prior = "default_priors" if args.default_priors else "beta_3_20"
+        key = f"reversal_{args.long_reversal}_blocks_{prior}"
         out[key] = _summary(table)
         out[key]["seconds"] = round(time.perf_counter() - t, 1)
         out[key]["cpu_s"] = round(time.process_time() - c, 1)

@@ -109,13 +109,18 @@ def test_conditioning_quick_predictions_per_paradigm_and_model(tmp_path):
     _, files = build_quick("conditioning", tmp_path)
     table = pd.read_csv(files["csv"])
     assert set(table["task"]) == {"acquisition_extinction", "blocking", "overshadowing",
-                                  "conditioned_inhibition", "second_order", "renewal"}  # fmt: skip
-    assert {"rescorla_wagner", "td_conditioning"} <= set(table["model"])
+                                  "conditioned_inhibition", "second_order", "renewal",
+                                  "latent_inhibition"}  # fmt: skip
+    assert {"rescorla_wagner", "pearce_hall", "td_conditioning"} <= set(table["model"])
     assert np.isfinite(table["V"]).all()
     acq = table[(table["task"] == "acquisition_extinction") & (table["model"] == "rescorla_wagner")]
     # Rescorla-Wagner: V near the asymptote after acquisition, near 0 after extinction
     v = acq.set_index("probe")["V"]
     assert v["acquisition"] > 0.9 and v["extinction"] < 0.1
+    # latent inhibition: Pearce-Hall's preexposed A lags the novel B while conditioning
+    li = table[(table["task"] == "latent_inhibition") & (table["model"] == "pearce_hall")]
+    v = li.set_index("probe")["V"]
+    assert v["A"] < v["B"]
 
 
 def test_fig8_stable_quick(tmp_path):

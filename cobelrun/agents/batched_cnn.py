@@ -40,6 +40,7 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 from cobelrun.agents.batched_dqn import BatchedDQN, DQNRunView, resolve_device
 from cobelrun.agents.batched_ops import ACTIVATION_NAMES, activation
+from cobelrun.agents.dqn import ACTIVATIONS
 from cobelrun.agents.torch_init import INITS
 
 __all__ = [
@@ -160,6 +161,8 @@ class BatchedCNNDQN(BatchedDQN):
         if conv not in (*CONV_MODES, "auto"):
             raise ValueError(f"conv must be one of {CONV_MODES} or 'auto', got {conv!r}")
         self._conv_setting = conv
+        # on the CPU the sequential agents' own (single-tensor) Adam: updates bit for bit theirs
+        self.fused_adam = False if resolve_device(device).type == "cpu" else None
         super().__init__(template, seeds, capacity, device)
         self.conv = (
             conv if conv != "auto" else ("grouped" if self.device.type == "cuda" else "loop")
@@ -197,6 +200,7 @@ class BatchedCNNDQN(BatchedDQN):
         self.dropout = float(drop[0].p) if drop else 0.0
         self.n_head = sum(isinstance(mod, torch.nn.Linear) for mod in q_net.q_net)
         self.head_act = activation(template.hyper["activation"])
+        self.head_module = ACTIVATIONS[template.hyper["activation"]]()  # the sequential head's
         self.torch_gens: list[torch.Generator] = []  # each run's dropout stream
 
     def _initial_params(self, torch_seed: int) -> list[torch.Tensor]:
@@ -269,21 +273,8 @@ class BatchedCNNDQN(BatchedDQN):
                 h = torch.relu(h)
             h = h.reshape(n, Rp, -1).transpose(0, 1)
             dense = params[2 * nc :]
-        else:  # a plain convolution per run: oneDNN's fastest on the CPU
-            convs = [p.unbind(0) for p in params[: 2 * nc]]  # one backward node per tensor
-            outs = []
-            for i, r in enumerate(runs):
-                hr = h[i]
-                for j, (stride, pad) in enumerate(self.conv_plan):
-                    if pad is not None:
-                        hr = F.pad(hr, pad)
-                    hr = torch.relu(F.conv2d(hr, convs[2 * j][r], convs[2 * j + 1][r], stride))
-                outs.append(hr.reshape(n, -1))
-            h = torch.stack(outs)
-            dense = params[2 * nc :]
-            if Rp != int(params[0].shape[0]):
-                idx = torch.as_tensor(runs, device=x.device)
-                dense = [p[idx] for p in dense]
+        else:
+            return torch.stack(self._per_run(params, h, runs, dropout))
         w, b = dense[0], dense[1]
         h = torch.relu(torch.baddbmm(b[:, None], h, w.transpose(1, 2)))  # the analysis layer
         if dropout and self.dropout > 0:
@@ -294,6 +285,34 @@ class BatchedCNNDQN(BatchedDQN):
             if i < self.n_head - 1:
                 h = self.head_act(h)
         return h
+
+    def _per_run(
+        self, params: Sequence[torch.Tensor], h: torch.Tensor, runs: np.ndarray, dropout: bool
+    ) -> list[torch.Tensor]:
+        """``conv="loop"``: each run's network on its images ``h[i]`` (scaled floats) with the
+        very operations the sequential ``q_net`` performs (``conv2d``, ``relu``, ``linear``,
+        dropout's product, the head's activation module), so its outputs and gradients are
+        bit for bit the sequential network's. Returns each run's Q values ``(n, A)``."""
+        nc = len(self.conv_plan)
+        per = [p.unbind(0) for p in params]  # one backward node per stacked tensor
+        n = int(h.shape[1])
+        out = []
+        for i, r in enumerate(runs):
+            hr = h[i]
+            for j, (stride, pad) in enumerate(self.conv_plan):
+                if pad is not None:
+                    hr = F.pad(hr, pad)
+                hr = torch.relu(F.conv2d(hr, per[2 * j][r], per[2 * j + 1][r], stride))
+            hr = torch.relu(F.linear(hr.reshape(n, -1), per[2 * nc][r], per[2 * nc + 1][r]))
+            if dropout and self.dropout > 0:
+                hr = hr * self._dropout_noise([r], (n, int(hr.shape[1])))[0]
+            for k in range(self.n_head):
+                first = 2 * (nc + 1 + k)
+                hr = F.linear(hr, per[first][r], per[first + 1][r])
+                if k < self.n_head - 1:
+                    hr = self.head_module(hr)
+            out.append(hr)
+        return out
 
     def _greedy(self, obs: np.ndarray, runs: np.ndarray) -> np.ndarray:
         x = torch.as_tensor(obs[runs], device=self.device)[:, None]
@@ -328,13 +347,18 @@ class BatchedCNNDQN(BatchedDQN):
         q = self.forward(self.params, obs, runs=runs, dropout=True)
         current = q.gather(2, act[..., None])[..., 0]
         loss_fn = F.smooth_l1_loss if self.huber else F.mse_loss
-        loss = loss_fn(current, target, reduction="none").mean(dim=1).sum()
+        # each run's loss as SB3 computes it ((B, 1) columns, mean), summed: each run's
+        # gradient is its sequential twin's
+        loss = torch.stack([loss_fn(c[:, None], t[:, None])
+                            for c, t in zip(current, target, strict=True)]).sum()  # fmt: skip
         grads = torch.autograd.grad(loss, self._leaves)
         with torch.no_grad():
             full = len(runs) == self.R
             grad = torch.cat([(g if full else g[rt]).reshape(len(runs), -1) for g in grads], dim=1)
-            if self.max_grad_norm is not None:  # clip_grad_norm_ over all of a run's gradients
-                total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+            if self.max_grad_norm is not None:  # clip_grad_norm_: the norm of tensor norms
+                norms = [torch.linalg.vector_norm(piece.reshape(len(runs), -1), dim=1)
+                         for piece in self.layers(grad)]  # fmt: skip
+                total = torch.linalg.vector_norm(torch.stack(norms, dim=1), dim=1, keepdim=True)
                 grad.mul_(torch.clamp(self.max_grad_norm / (total + 1e-6), max=1.0))
             self.version += 1
             self.adam.step([grad], runs)

@@ -151,6 +151,9 @@ class BatchedDQN:
         torch device (``"auto"``: CUDA when present).
     """
 
+    #: Adam's fused kernel (None: on CPU and CUDA); False: the sequential agents' own Adam
+    fused_adam: bool | None = None
+
     def __init__(
         self,
         template: Any,
@@ -209,7 +212,7 @@ class BatchedDQN:
         self.flat_target = self.flat.clone()
         self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
         # Adam with a step count per run (a waiting run does not step)
-        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps)
+        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps, fused=self.fused_adam)
         self.version = 0  # bumped at every parameter change (caches of predictions)
         self._cache: tuple[int, bytes, np.ndarray] | None = None
         self.num_timesteps = np.zeros(R, np.int64)

@@ -7,9 +7,14 @@ cobel's :class:`~cobelrun.agents.dqn.ConvFeatures` network in place of the MLP:
 - each run's parameters are the sequential ``q_net``'s parameters in their order and shapes
   (``features_extractor.cnn.*``, ``features_extractor.linear.0``, the Q head), one row of the
   ``(R, P)`` parameter tensor;
-- the convolutions of R runs are one grouped convolution (``groups=R``: run r's filters see
-  run r's channels only; ``conv="grouped"``) or one plain convolution per run
-  (``conv="loop"``); the dense layers are batched matrix products (``torch.baddbmm``);
+- on the CPU (``conv="loop"``) each run's network is computed with the sequential ``q_net``'s
+  own operations (``conv2d``, ``relu``, ``linear``), each run's loss as SB3's, clipping as
+  ``clip_grad_norm_`` and Adam as torch's single-tensor Adam, so a batched run is bit for bit
+  its sequential twin (tested): what batching saves is SB3's per-step Python, not arithmetic
+  (oneDNN's grouped convolutions measured slower per image than plain ones);
+  ``conv="grouped"`` (the CUDA default) computes R runs' convolutions as one grouped
+  convolution (``groups=R``) and the dense layers as batched matrix products
+  (``torch.baddbmm``): equal within float32 rounding;
 - observations are stored as the sequential replay memory stores them (uint8, channels first)
   and scaled by ``/ 255`` as SB3's ``preprocess_obs`` does;
 - dropout (Fig. 8: 0.35 after the dense "analysis" layer, while learning only) draws each
@@ -80,8 +85,9 @@ def cnn_unsupported(agent: Any) -> str | None:
 
 
 #: multiply-adds per image of a CNN up to which batched runs pay on a CPU, measured on the
-#: 2-core benchmark VM (docs/speed.md, "CNN agents"): Fig. 6A's network on 36 x 36 images
-#: (0.35 M) trains 8 runs ~1.6-1.9x faster batched; Fig. 8's (3.3 M) ~1.07x, arithmetic-bound
+#: 2-core benchmark VM (docs/speed.md, "CNN agents"; process CPU time, 8 runs): Fig. 6A's
+#: network on 36 x 36 images (0.35 M) trains 1.5x faster batched; Fig. 8's (3.3 M) 1.04x, its
+#: step arithmetic-bound either way
 CPU_MACS_LIMIT = 1_000_000
 
 

@@ -1,5 +1,6 @@
 """What one click in ``cobel edit`` costs on the server: the check (``cobel run``'s builder and
-protocol code) plus the redraw, by grid size, for the graph and arena pages too.
+protocol code) plus the redraw, by grid size, for the graph and arena pages too (also with a
+phase picked), and the graph page's view preview (pybullet, or the render cache).
 
 Run on demand (not a test)::
 
@@ -28,6 +29,30 @@ def _median(fn: Callable[[], object], repeat: int) -> float:
         fn()
         times.append(time.perf_counter() - t)
     return statistics.median(times)
+
+
+def _previews(repeat: int) -> dict[str, float]:
+    """The graph page's view preview (grid template, 84 x 84 camera): rendered with pybullet
+    (no cache), and read from a render cache built here (in a temporary folder)."""
+    import tempfile
+
+    from cobelrun.render import cache
+    from cobelrun.web.graph_editor import load_graph_template
+    from cobelrun.web.grid_design import build_with
+
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load_graph_template("grid").design
+        d.extra["observation"]["cache_dir"] = tmp
+        out["graph view preview, pybullet (no cache)"] = _median(
+            lambda: d.preview(12, 90.0), repeat
+        )
+        obs = d.camera()
+        obs.bind(build_with("env.topology", d.topology_node()))
+        cache.build(obs.cache_request(), jobs=1)
+        assert d.preview(12, 90.0)[1].startswith("read from the render cache")
+        out["graph view preview, render cache"] = _median(lambda: d.preview(12, 90.0), repeat)
+    return out
 
 
 def main() -> None:
@@ -73,6 +98,23 @@ def main() -> None:
         pool.svg(pose=(0.2, 0.1))
 
     out["water maze arena (493 place cells, rays)"] = _median(arena_click, args.repeat)
+    rev = pool.phase_names().index("reversal")
+
+    def arena_phase_click() -> None:
+        pool.paint_phase("goal", -0.42, -0.42, rev)  # the reversal platform off, then on
+        pool.problems()
+        pool.svg(phase=rev)
+
+    out["water maze, reversal phase click"] = _median(arena_phase_click, args.repeat)
+    hexg.phases.append({"name": "moved", "trials": 10})
+
+    def graph_phase_click() -> None:
+        hexg.paint("clear", 38, phase=len(hexg.phases) - 1)
+        hexg.svg(phase=len(hexg.phases) - 1)
+        hexg.problems()
+
+    out["hex_3d graph, click in a phase"] = _median(graph_phase_click, args.repeat)
+    out.update(_previews(args.repeat))
     for k, v in out.items():
         print(f"{k:45s} {v * 1000:8.1f} ms per click")
     res = Path(__file__).parent / "results"

@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -197,6 +198,35 @@ def micro(repeats: int, poses: int = 40_000, trials: int = 2_000) -> dict[str, d
     return out
 
 
+def paired_ratios(samples: dict[str, list[dict[str, float]]]) -> dict[str, dict[str, Any]]:
+    """Each setting against "off" of the same repeat (run back to back, so that machine load
+    hits both alike): per key, the median, min and max of the per-repeat ratios, and the
+    spread of "off" itself (max / min over the repeats), printed and returned."""
+    keys = ("run_s", "phases_s", "run_cpu_s", "process_cpu_s")
+    off = samples["off"]
+    out: dict[str, dict[str, Any]] = {}
+    print("\nper repeat, against off of the same repeat: median [min, max] of the ratios")
+    spread = {k: max(x[k] for x in off) / min(x[k] for x in off) for k in keys
+              if min(x[k] for x in off) > 0}  # fmt: skip
+    print("off itself, max/min over repeats: " + ", ".join(
+        f"{k} x{v:.2f}" for k, v in spread.items()))  # fmt: skip
+    out["off_spread"] = spread
+    for setting, rows in samples.items():
+        if setting == "off":
+            continue
+        out[setting] = {}
+        parts = []
+        for k in keys:
+            r = [a[k] / b[k] for a, b in zip(rows, off, strict=True) if b[k] > 0]
+            if not r:
+                continue
+            med, lo, hi = statistics.median(r), min(r), max(r)
+            out[setting][k] = {"median": med, "min": lo, "max": hi, "ratios": r}
+            parts.append(f"{k} x{med:.3f} [{lo:.3f}, {hi:.3f}]")
+        print(f"{setting:16s} " + "; ".join(parts))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
@@ -234,11 +264,12 @@ def main() -> None:
               f"{r['phases_ratio']:6.3f} {r['run_cpu_s']:11.3f} {r['run_cpu_ratio']:6.3f} "
               f"{r['process_cpu_s']:15.3f} {r['extra_cpu_per_run_s']:8.3f} "
               f"{r['messages']:9.0f} {r['mbytes']:6.1f}")  # fmt: skip
+    paired = paired_ratios(samples)
     out = HERE / "results" / "live.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({"task": TASK, "runs": opts.runs, "extra": opts.extra,
                                "repeats": opts.repeats, "median": rows, "stream": stream,
-                               "samples": samples}, indent=2))  # fmt: skip
+                               "paired": paired, "samples": samples}, indent=2))  # fmt: skip
     print(f"wrote {out}")
 
 

@@ -29,17 +29,26 @@ both alike) it measures
   loop, ``cobel run``'s manifest ``phase_wall_time_s`` (everything a run does per phase:
   the simulation, monitors and recording; numba's once-per-process start too, unless the
   runner calls the agent's ``prepare()`` before the phase: docs/speed.md);
-* the whole process: wall time of the subprocess, from start to exit.
+* the whole process: wall time of the subprocess, from start to exit, and its CPU time (user +
+  system, from ``os.wait4``; steadier than wall time on a shared machine).
 
 and reports medians, steps per second and the cobel / neuro-nav ratios, as a Markdown table
-(and ``--json`` for the raw numbers). The mean episode length of the last 20 episodes shows
-both learned the shortest path.
+(and ``--json`` for the raw numbers), after one untimed tiny run of each (numba's cache of
+the kernels, the files in the page cache). The mean episode length of the last 20 episodes shows
+both learned the shortest path. ``--baseline CHECKOUT`` also runs ``cobel run`` from another
+checkout of cobel (``PYTHONPATH``), interleaved, as the row's "baseline" process columns.
+
+cobel's bytecode is compiled first (``compileall`` of the checkout's ``cobelrun``), as an
+installed package has it: with ``PYTHONDONTWRITEBYTECODE=1`` (set in some development
+shells) a checkout is otherwise compiled from source in every process (~80 modules, ~0.3-0.5 s
+of CPU), which no installed cobel pays and neuro-nav's venv does not pay either.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import subprocess
@@ -164,7 +173,28 @@ def cobel_cmd() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "cobelrun.cli"]
 
 
-def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
+def compile_bytecode(checkout: Path) -> None:
+    """Compile ``checkout``'s ``cobelrun`` to bytecode (as ``pip install`` does)."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(checkout / "cobelrun")],
+                   check=True, stdout=subprocess.DEVNULL)  # fmt: skip
+
+
+def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, str, str, int]:
+    """Wall and CPU (user + system) seconds of one child process, its output and exit code."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, env=env)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        out.seek(0)
+        err.seek(0)
+        return (wall, usage.ru_utime + usage.ru_stime, out.read().decode(), err.read().decode(),
+                os.waitstatus_to_exitcode(status))  # fmt: skip
+
+
+def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path,
+              checkout: Path | None = None) -> dict:  # fmt: skip
+    """One ``cobel run`` of ``name``; ``checkout``: run that checkout of cobel instead."""
     out = tmp / f"cobel_{name}_{time.monotonic_ns()}"
     args = [*cobel_cmd(), "run", "task=gridworld", "env.world.width=9", "env.world.height=9",
             "+env.world.starts=[0]", "+env.world.goal=80", *COBEL[name],
@@ -172,11 +202,10 @@ def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -
             f"task.runs={seeds}", f"task.protocol.phases.0.trials={episodes}",
             f"task.protocol.max_steps={max_steps}", "task.record.steps=false",
             "task.record.mcap=false", "task.save_agents=none", f"hydra.run.dir={out}"]  # fmt: skip
-    t0 = time.perf_counter()
-    proc = subprocess.run(args, capture_output=True, text=True, check=False)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise SystemExit(f"cobel run failed for {name}: {proc.stderr.strip()[-400:]}")
+    env = None if checkout is None else {**os.environ, "PYTHONPATH": str(checkout)}
+    wall, cpu, _, stderr, code = timed(args, env)
+    if code != 0:
+        raise SystemExit(f"cobel run failed for {name}: {stderr.strip()[-400:]}")
     manifest = json.loads((out / "manifest.json").read_text())
     import pyarrow.parquet as pq
 
@@ -188,7 +217,7 @@ def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -
     last20 = statistics.mean(statistics.mean(v[-20:]) for v in per_run.values())
     shutil.rmtree(out, ignore_errors=True)
     return {"steps": steps, "loop_s": sum(manifest["phase_wall_time_s"].values()),
-            "process_s": wall, "last20": last20}  # fmt: skip
+            "process_s": wall, "process_cpu_s": cpu, "last20": last20}  # fmt: skip
 
 
 def run_cobel_warm(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
@@ -208,14 +237,13 @@ def run_cobel_warm(name: str, seeds: int, episodes: int, max_steps: int, tmp: Pa
 
 def run_neuronav(python: str, script: Path, name: str, seeds: int, episodes: int,
                  max_steps: int) -> dict:  # fmt: skip
-    t0 = time.perf_counter()
-    proc = subprocess.run([python, str(script), name, str(seeds), str(episodes), str(max_steps)],
-                          capture_output=True, text=True, check=False)  # fmt: skip
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise SystemExit(f"neuro-nav run failed for {name}: {proc.stderr.strip()[-400:]}")
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
-    return {**out, "process_s": wall}
+    wall, cpu, stdout, stderr, code = timed(
+        [python, str(script), name, str(seeds), str(episodes), str(max_steps)]
+    )
+    if code != 0:
+        raise SystemExit(f"neuro-nav run failed for {name}: {stderr.strip()[-400:]}")
+    out = json.loads(stdout.strip().splitlines()[-1])
+    return {**out, "process_s": wall, "process_cpu_s": cpu}
 
 
 def main() -> None:
@@ -227,6 +255,13 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=100)
     ap.add_argument("--agents", default=",".join(COBEL))
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
+    ap.add_argument(
+        "--baseline",
+        type=Path,
+        metavar="CHECKOUT",
+        help="also run cobel run from this checkout (interleaved)",
+    )
+    ap.add_argument("--no-warm", action="store_true", help="skip the in-process warm runs")
     ap.add_argument("--add-warm", type=Path, metavar="JSON",
                     help="only measure cobel warm and add it to an earlier --json file")  # fmt: skip
     args = ap.parse_args()
@@ -245,12 +280,20 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown agent {unknown[0]!r}; allowed: {', '.join(COBEL)}")
     raw: dict[str, dict[str, list[dict]]] = {
-        a: {"neuronav": [], "cobel": [], "cobel_warm": []} for a in agents
+        a: {"neuronav": [], "cobel": [], "cobel_warm": [], "baseline": []} for a in agents
     }
+    compile_bytecode(HERE.parent)
+    if args.baseline:
+        compile_bytecode(args.baseline)
     with tempfile.TemporaryDirectory() as tmpdir:
         tmp = Path(tmpdir)
         script = tmp / "neuronav_run.py"
         script.write_text(NEURONAV_SCRIPT)
+        for a in agents:  # untimed: numba's cache of the kernels, the files in the page cache
+            run_neuronav(args.neuronav_python, script, a, 1, 2, args.max_steps)
+            run_cobel(a, 1, 2, args.max_steps, tmp)
+            if args.baseline:
+                run_cobel(a, 1, 2, args.max_steps, tmp, args.baseline)
         for rep in range(args.repeats):
             for a in agents:
                 raw[a]["neuronav"].append(run_neuronav(args.neuronav_python, script, a,
@@ -258,8 +301,12 @@ def main() -> None:
                                                        args.max_steps))  # fmt: skip
                 raw[a]["cobel"].append(run_cobel(a, args.seeds, args.episodes, args.max_steps,
                                                  tmp))  # fmt: skip
-                raw[a]["cobel_warm"].append(run_cobel_warm(a, args.seeds, args.episodes,
-                                                           args.max_steps, tmp))  # fmt: skip
+                if args.baseline:
+                    raw[a]["baseline"].append(run_cobel(a, args.seeds, args.episodes,
+                                                        args.max_steps, tmp, args.baseline))  # fmt: skip
+                if not args.no_warm:
+                    raw[a]["cobel_warm"].append(run_cobel_warm(a, args.seeds, args.episodes,
+                                                               args.max_steps, tmp))  # fmt: skip
                 print(f"rep {rep + 1}/{args.repeats} {a}: neuro-nav "
                       f"{raw[a]['neuronav'][-1]['loop_s']:.2f} s, cobel "
                       f"{raw[a]['cobel'][-1]['loop_s']:.2f} s", file=sys.stderr, flush=True)  # fmt: skip
@@ -274,7 +321,8 @@ def _med(rows: list[dict], key: str) -> float:
 
 def table(raw: dict[str, dict[str, list[dict]]]) -> str:
     """The Markdown table of medians: steps per second of the run loop and of the whole
-    process (steps over the process's wall time), and cobel / neuro-nav ratios."""
+    process (steps over the process's wall time), and cobel / neuro-nav ratios; then the
+    processes' CPU seconds (and the baseline checkout's process, where measured)."""
     lines = [
         "| agent | neuro-nav loop | cobel loop | ratio | cobel warm | ratio "
         "| neuro-nav process | cobel process | ratio | last 20 episodes (nn / cobel) |",
@@ -294,6 +342,31 @@ def table(raw: dict[str, dict[str, list[dict]]]) -> str:
             f"| {nn_proc:,.0f} | {cb_proc:,.0f} | {cb_proc / nn_proc:.1f}x "
             f"| {_med(nn, 'last20'):.1f} / {_med(cb, 'last20'):.1f} |"
         )
+    if not all("process_cpu_s" in x for r in raw.values() for x in (*r["neuronav"], *r["cobel"])):
+        return "\n".join(lines)  # an older --json file: wall times only
+    base = any(r.get("baseline") for r in raw.values())
+    lines += [
+        "",
+        "| agent | neuro-nav process s (CPU s) | cobel process s (CPU s) | steps/s ratio "
+        "| CPU ratio |"
+        + (" baseline process s (CPU s) | steps/s ratio | CPU ratio |" if base else ""),
+        "|---|---:|---:|---:|---:|" + ("---:|---:|---:|" if base else ""),
+    ]
+    for a, r in raw.items():
+        nn = r["neuronav"]
+        nn_proc = statistics.median(x["steps"] / x["process_s"] for x in nn)
+        nn_cpu = statistics.median(x["steps"] / x["process_cpu_s"] for x in nn)
+        row = f"| {NAMES[a]} | {_med(nn, 'process_s'):.2f} ({_med(nn, 'process_cpu_s'):.2f}) "
+        for key in ("cobel", "baseline") if base else ("cobel",):
+            cb = r.get(key) or []
+            if not cb:
+                row += "| | | |"
+                continue
+            cb_proc = statistics.median(x["steps"] / x["process_s"] for x in cb)
+            cb_cpu = statistics.median(x["steps"] / x["process_cpu_s"] for x in cb)
+            row += (f"| {_med(cb, 'process_s'):.2f} ({_med(cb, 'process_cpu_s'):.2f}) "
+                    f"| {cb_proc / nn_proc:.1f}x | {cb_cpu / nn_cpu:.1f}x ")  # fmt: skip
+        lines.append(row + "|")
     return "\n".join(lines)
 
 

@@ -9,12 +9,19 @@ Prints and writes ``benchmarks/results/recover.json``:
 * speed: wall time of a 100-agent x 3-model recovery (q_learning, rescorla_wagner, wsls; every
   model fitted to every agent: 900 fits plus 900 held-out fits) on the 200-trial
   ``task=reversal_bandit``, in this process (compile time excluded by a warm-up), for each
-  ``--jobs``; and ``cobel recover`` end to end (process start, figures) with ``jobs=1``;
+  ``--jobs``; and ``cobel recover`` end to end (process start, Hydra's launcher, figures) with
+  ``jobs=1`` (the basic launcher, in its process) and ``jobs=2`` (the joblib launcher, 2
+  worker processes): wall time and CPU time (the process and its children);
 * parameter recovery of Q-learning on ``task=two_afc`` with 200 trials (Pearson r, bias,
   95 % interval coverage) and on the reversal bandit;
 * model recovery among q_learning, rescorla_wagner, dyna_q, wsls on the reversal bandit
   (200 trials) and on ``protocol=reversal_blocks`` (8 blocks of 50 trials): the confusion
-  diagonal by AIC, BIC and held-out log-likelihood.
+  diagonal by AIC, BIC and held-out log-likelihood;
+* ``--long-reversal BLOCKS``: model recovery of the four models with agents that exploit what
+  they learn (``prior.agent.beta=loguniform(3,20)``; ``--default-priors``: the defaults) on
+  BLOCKS blocks of 50 trials, the better arm (0.8 vs 0.2) switching every block;
+* conditioning (``--conditioning``): recovery of ``rw_response``, ``ph_response`` and
+  ``td_response`` on ``task=latent_inhibition`` and ``task=second_order``.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
@@ -58,6 +66,14 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=100)
     parser.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--skip-acceptance", action="store_true")
+    parser.add_argument("--skip-speed", action="store_true")
+    parser.add_argument("--conditioning", action="store_true")
+    parser.add_argument("--long-reversal", type=int, default=0, metavar="BLOCKS")
+    parser.add_argument(
+        "--default-priors",
+        action="store_true",
+        help="--long-reversal with the default priors (beta logU(1,10))",
+    )
     args = parser.parse_args()
     from cobelrun.recover import recover
 
@@ -67,22 +83,32 @@ def main() -> None:
     three = ["q_learning", "rescorla_wagner", "wsls"]
     recover(reversal, three, 2)  # warm-up: numba caches loaded or compiled
     out["speed"] = {}
-    for jobs in args.jobs:
-        t = time.perf_counter()
+    for jobs in [] if args.skip_speed else args.jobs:
+        t, c = time.perf_counter(), time.process_time()
         recover(reversal, three, args.n, jobs=jobs)
-        out["speed"][f"jobs={jobs}"] = round(time.perf_counter() - t, 1)
-        print(f"{args.n} agents x 3 models x 3 fits, 200 trials, jobs={jobs}: "
-              f"{out['speed'][f'jobs={jobs}']} s", flush=True)  # fmt: skip
-    with tempfile.TemporaryDirectory() as tmp:
-        t = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "cobelrun.cli", "recover",
-                               "task=reversal_bandit", "models=[q_learning,rescorla_wagner,wsls]",
-                               f"n={args.n}", "jobs=1", "--out", str(Path(tmp) / "rec")],
-                              capture_output=True, text=True)  # fmt: skip
-        out["speed"]["cli_jobs=1"] = round(time.perf_counter() - t, 1)
-        if proc.returncode:
-            raise SystemExit(proc.stderr)
-        print(f"cobel recover end to end: {out['speed']['cli_jobs=1']} s", flush=True)
+        wall, cpu = round(time.perf_counter() - t, 1), round(time.process_time() - c, 1)
+        # CPU time of this process only (jobs > 1: the workers' time is not counted)
+        out["speed"][f"jobs={jobs}"] = {"wall_s": wall, "cpu_s_this_process": cpu}
+        print(f"{args.n} agents x 3 models x 3 fits, 200 trials, jobs={jobs}: {wall} s wall, "
+              f"{cpu} s CPU in this process", flush=True)  # fmt: skip
+    for jobs in () if args.skip_speed else (1, 2):
+        with tempfile.TemporaryDirectory() as tmp:
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t = time.perf_counter()
+            proc = subprocess.run([sys.executable, "-m", "cobelrun.cli", "recover",
+                                   "task=reversal_bandit",
+                                   "models=[q_learning,rescorla_wagner,wsls]", f"n={args.n}",
+                                   f"jobs={jobs}", "--out", str(Path(tmp) / "rec")],
+                                  capture_output=True, text=True)  # fmt: skip
+            wall = round(time.perf_counter() - t, 1)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = round(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, 1)
+            if proc.returncode:
+                raise SystemExit(proc.stderr)
+            launcher = "basic" if jobs == 1 else "joblib"
+            out["speed"][f"cli_jobs={jobs}"] = {"wall_s": wall, "cpu_s": cpu, "launcher": launcher}
+            print(f"cobel recover end to end, jobs={jobs} ({launcher}): {wall} s wall, "
+                  f"{cpu} s CPU", flush=True)  # fmt: skip
     if not args.skip_acceptance:
         two_afc = _task(["task=two_afc", "task.protocol.phases.0.trials=200"])
         out["two_afc_q_learning"] = _summary(recover(two_afc, ["q_learning"], args.n))
@@ -93,9 +119,38 @@ def main() -> None:
         blocks = _task(["task=reversal_bandit", "protocol=reversal_blocks"])
         out["reversal_blocks_4_models"] = _summary(recover(blocks, four, args.n))
         print("reversal_blocks:", json.dumps(out["reversal_blocks_4_models"]), flush=True)
+    if args.long_reversal:
+        from cobelrun.recover import Prior
+
+        arms = [("0.8", "0.2"), ("0.2", "0.8")]
+        blocks = ",".join(
+            f"{{name:b{i + 1},trials:50,rewards:{{0:{arms[i % 2][0]},1:{arms[i % 2][1]}}}}}"
+            for i in range(args.long_reversal)
+        )
+        task = _task(["task=reversal_bandit", f"task.protocol.phases=[{blocks}]"])
+        t, c = time.perf_counter(), time.process_time()
+        four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
+        exploit = {"agent.beta": Prior("loguniform", 3.0, 20.0)}
+        table = recover(task, four, args.n, priors={} if args.default_priors else exploit)
+        prior = "default_priors" if args.default_priors else "beta_3_20"
+        key = f"reversal_{args.long_reversal}_blocks_{prior}"
+        out[key] = _summary(table)
+        out[key]["seconds"] = round(time.perf_counter() - t, 1)
+        out[key]["cpu_s"] = round(time.process_time() - c, 1)
+        print(f"{key}:", json.dumps(out[key]), flush=True)
+    if args.conditioning:
+        models = ["rw_response", "ph_response", "td_response"]
+        for name in ("latent_inhibition", "second_order"):
+            t = time.perf_counter()
+            table = recover(_task([f"task={name}"]), models, args.n)
+            out[f"conditioning_{name}"] = _summary(table)
+            out[f"conditioning_{name}"]["seconds"] = round(time.perf_counter() - t, 1)
+            print(f"{name}:", json.dumps(out[f"conditioning_{name}"]), flush=True)
     out["load_after"] = os.getloadavg()
     (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "recover.json").write_text(json.dumps(out, indent=2) + "\n")
+    out["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    name = "recover.json" if not args.skip_acceptance else "recover_speed.json"
+    (HERE / "results" / name).write_text(json.dumps(out, indent=2) + "\n")
 
 
 if __name__ == "__main__":

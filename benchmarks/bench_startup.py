@@ -2,7 +2,7 @@
 
 Run on demand (not a test)::
 
-    python benchmarks/bench_startup.py [--repeats 10]
+    python benchmarks/bench_startup.py [--repeats 10] [--baseline CHECKOUT]
 
 Whole processes, interleaved round by round (so machine load hits all alike), median wall time
 and median CPU time (user + system of the child, from ``os.wait4``) of
@@ -11,7 +11,11 @@ and median CPU time (user + system of the child, from ``os.wait4``) of
 * the numba floor: ``import numba`` and one call of a cached ``@njit(cache=True)`` function
   (what any process that runs compiled code pays; the function is compiled once beforehand);
 * the Hydra floor: ``import cobelrun.hydra_app`` and one composition of the task's config;
-* ``cobel --help``; ``cobel run task=tmaze_extinction`` (100 runs, everything recorded).
+* ``cobel --help``; ``cobel run task=tmaze_extinction`` (100 runs, everything recorded);
+  with ``--baseline CHECKOUT`` the same run from another checkout of cobel (``PYTHONPATH``).
+
+cobel's bytecode is compiled first (``compileall``), as an installed package has it (a shell
+with ``PYTHONDONTWRITEBYTECODE=1`` would otherwise compile a checkout in every process).
 
 Then one run of the task split into stages: imports by top-level package (``python -X
 importtime``, the modules' own times), and, in a process that imported those modules first,
@@ -122,27 +126,37 @@ def timed_child(cmd: list[str], env: dict[str, str] | None = None) -> tuple[floa
     return wall, usage.ru_utime + usage.ru_stime
 
 
-def commands(tmp: Path) -> dict[str, list[str]]:
+#: the run whose start-up this measures
+RUN = "cobel run task=tmaze_extinction"
+
+
+def compile_bytecode(checkout: Path) -> None:
+    """Compile ``checkout``'s ``cobelrun`` to bytecode (as ``pip install`` does)."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(checkout / "cobelrun")],
+                   check=True, stdout=subprocess.DEVNULL)  # fmt: skip
+
+
+def commands(tmp: Path, baseline: Path | None = None) -> dict[str, list[str]]:
     py = sys.executable
     floor = tmp / "numba_floor.py"
     floor.write_text(NUMBA_FLOOR)
+    run = [*cobel_cmd(), "run", "task=tmaze_extinction", f"hydra.run.dir={tmp / 'run'}"]
+    extra = {f"{RUN} (baseline)": ["env", f"PYTHONPATH={baseline}", *run]} if baseline else {}
     return {
         "python -c pass": [py, "-c", "pass"],
         "import cobelrun": [py, "-c", "import cobelrun"],
         "numba floor": [py, str(floor)],
         "hydra floor": [py, "-c", HYDRA_FLOOR],
         "cobel --help": [*cobel_cmd(), "--help"],
-        "cobel run task=tmaze_extinction": [
-            *cobel_cmd(),
-            "run",
-            "task=tmaze_extinction",
-            f"hydra.run.dir={tmp / 'run'}",
-        ],
+        RUN: run,
+        **extra,
     }
 
 
-def whole_processes(repeats: int, tmp: Path) -> dict[str, dict[str, float]]:
-    cmds = commands(tmp)
+def whole_processes(
+    repeats: int, tmp: Path, baseline: Path | None = None
+) -> dict[str, dict[str, float]]:
+    cmds = commands(tmp, baseline)
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp / "numba_cache")}
     for cmd in cmds.values():  # warm-up: compile the floor's function, fill the file cache
         shutil.rmtree(tmp / "run", ignore_errors=True)
@@ -195,10 +209,13 @@ def stage_breakdown(tmp: Path, modules: list[str]) -> dict[str, list[float]]:
     return stats
 
 
-def measure(repeats: int = 10) -> dict:
+def measure(repeats: int = 10, baseline: Path | None = None) -> dict:
+    compile_bytecode(HERE.parent)
+    if baseline is not None:
+        compile_bytecode(baseline)
     with tempfile.TemporaryDirectory(prefix="cobel-startup-") as name:
         tmp = Path(name)
-        procs = whole_processes(repeats, tmp)
+        procs = whole_processes(repeats, tmp, baseline)
         imports, modules = import_breakdown(tmp)
         stages = stage_breakdown(tmp, modules)
     run = procs["cobel run task=tmaze_extinction"]
@@ -233,7 +250,10 @@ def report(res: dict) -> None:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=10)
-    res = measure(ap.parse_args(argv).repeats)
+    ap.add_argument("--baseline", type=Path, metavar="CHECKOUT",
+                    help="also time the run from this checkout of cobel (interleaved)")  # fmt: skip
+    args = ap.parse_args(argv)
+    res = measure(args.repeats, args.baseline)
     report(res)
     out = HERE / "results" / "startup.json"
     out.parent.mkdir(exist_ok=True)

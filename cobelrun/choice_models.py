@@ -32,8 +32,22 @@ using computational models"):
     trial type, ``features[s]`` its conditioned stimuli; ``V = w . features[s]``, the choice is
     the response at the cue's onset, ``P(respond) = 1 / (1 + exp(-response_beta (V -
     response_threshold)))``, and ``w += alpha (asymptote * US - V) features[s]`` (saliences 1).
+``td_response``
+    Classical conditioning (``agent=td_conditioning``): Sutton & Barto's (1990) TD(lambda) over
+    the complete serial compound, step by step through the trial exactly as the agent learns
+    (``V_t = w . x_t``, ``delta = r_t + gamma V_{t+1} - V_t``, ``e = gamma lambda e + x_t``,
+    ``w += alpha delta e``, traces cleared at each trial's start); the choice is the response
+    at the first cue's onset on ``V`` there (after the trial's earlier steps' learning), with
+    the same logistic response; ``gamma`` and ``lambda`` fixed from the config.
+``ph_response``
+    Classical conditioning (``agent=pearce_hall``): the hybrid Rescorla-Wagner / Pearce-Hall
+    model (Pearce & Hall 1980; Pearce, Kaye & Hall 1982; Le Pelley 2004): ``w_i += kappa
+    alpha_i delta``, then each shown cue's associability ``alpha_i = eta |delta| + (1 - eta)
+    alpha_i``; logistic response on ``V``; threshold, asymptote and the initial
+    associability fixed from the config.
 
-Values restart at 0 at every session.
+Values restart at 0 at every session. Trials with ``learns`` 0 (a test phase with learning
+off) are predicted but teach nothing.
 """
 
 from __future__ import annotations
@@ -44,7 +58,16 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-__all__ = ["MODELS", "ChoiceModel", "ParamSpec", "model_logp", "model_probs", "model_update"]
+__all__ = [
+    "MODELS",
+    "ChoiceModel",
+    "ModelAgent",
+    "ParamSpec",
+    "ScriptArrays",
+    "model_logp",
+    "model_probs",
+    "model_update",
+]
 
 #: reward rate of the Dyna-Q model's memory (cobel's ``memory_reward_rate``)
 DYNA_MEMORY_RATE = 0.9
@@ -117,7 +140,14 @@ BETA = ParamSpec("agent.beta", (1e-3, 50.0), "log")
 EPSILON = ParamSpec("agent.epsilon", (0.0, 1.0), "logit")
 RESPONSE_BETA = ParamSpec("agent.response_beta", (1e-3, 50.0), "log")
 THRESHOLD = ParamSpec("agent.response_threshold", (-10.0, 10.0), "logit", 0.5)
-ASYMPTOTE = ParamSpec("agent.asymptote", (1e-3, 10.0), "log")
+ASYMPTOTE = ParamSpec("agent.asymptote", (1e-3, 10.0), "log", 1.0)
+GAMMA = ParamSpec("agent.gamma", (0.0, 1.0), "logit", 0.95)
+TRACE = ParamSpec("agent.trace_decay", (0.0, 1.0), "logit", 0.8)
+ASSOC_RATE = ParamSpec("agent.associability_rate", (0.0, 1.0), "logit")
+ASSOC0 = ParamSpec("agent.initial_associability", (0.0, 1.0), "logit", 1.0)
+
+#: kernel codes of the conditioning models (trial type, cue script, one response per trial)
+RW_RESPONSE, TD_RESPONSE, PH_RESPONSE = 4, 5, 6
 
 #: every model with a likelihood, by name
 MODELS: dict[str, ChoiceModel] = {
@@ -148,23 +178,80 @@ MODELS: dict[str, ChoiceModel] = {
             "response_beta; threshold and asymptote fixed)",
             fitted=2,
         ),
+        ChoiceModel(
+            "td_response",
+            TD_RESPONSE,
+            (LR, RESPONSE_BETA, THRESHOLD, GAMMA, TRACE),
+            1,
+            "TD(lambda) over the complete serial compound, logistic response at the cue's "
+            "onset (alpha, response_beta; threshold, gamma and lambda fixed)",
+            fitted=2,
+        ),
+        ChoiceModel(
+            "ph_response",
+            PH_RESPONSE,
+            (LR, RESPONSE_BETA, ASSOC_RATE, THRESHOLD, ASYMPTOTE, ASSOC0),
+            1,
+            "Pearce-Hall hybrid attention model, logistic response on V (kappa, response_beta, "
+            "eta; threshold, asymptote and initial associability fixed)",
+            fitted=3,
+        ),
     )
 }
 
+#: the models of classical conditioning (``env=sequence``), by kernel code
+CONDITIONING = (RW_RESPONSE, TD_RESPONSE, PH_RESPONSE)
+
+
+@dataclass(frozen=True)
+class ScriptArrays:
+    """What a conditioning model needs of the task's trial types (:func:`script_arrays`).
+
+    Attributes
+    ----------
+    cues
+        ``(n_types, n_cs)``: 1 where a trial type shows a conditioned stimulus (RW, PH).
+    steps
+        ``(n_types, length, d)``: the TD agent's features at every step of a trial type (the
+        observation with the cues' presence cleared: serial compound and contexts).
+    onset
+        ``(n_types,)``: the step of the first cue's onset (-1: a trial type without cues).
+    us
+        ``(n_types,)``: the step at which the outcome arrives.
+    """
+
+    cues: np.ndarray
+    steps: np.ndarray
+    onset: np.ndarray
+    us: np.ndarray
+
+    @property
+    def n_states(self) -> int:
+        return int(self.cues.shape[0])
+
+    def as_tuple(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The arrays as the compiled kernels take them."""
+        return (np.ascontiguousarray(self.cues, np.float64),
+                np.ascontiguousarray(self.steps, np.float64),
+                np.ascontiguousarray(self.onset, np.int64),
+                np.ascontiguousarray(self.us, np.int64))  # fmt: skip
+
+
+def as_script(features: ScriptArrays | np.ndarray | None, n_states: int) -> tuple:
+    """``features`` as the kernels' tuple: a :class:`ScriptArrays`, an ``(n_states, k)`` cue
+    array (the other arrays empty) or None (all empty)."""
+    if isinstance(features, ScriptArrays):
+        return features.as_tuple()
+    cues = (np.zeros((int(n_states), 0)) if features is None
+            else np.ascontiguousarray(features, np.float64))  # fmt: skip
+    n = cues.shape[0]
+    return (cues, np.zeros((n, 0, 0)), np.full(n, -1, np.int64), np.zeros(n, np.int64))
+
 
 @numba.njit(cache=True)
-def model_probs(code, theta, mem, w, features, s, n_actions, out):  # pragma: no cover
-    """Choice probabilities of state ``s`` into ``out`` (length ``n_actions``); ``w`` and
-    ``features`` (n_states, n_features) are the cue weights and cues of ``rw_response``."""
-    if code == 4:  # rw_response: theta = lr, response_beta, threshold, asymptote
-        v = 0.0
-        for j in range(features.shape[1]):
-            v += w[j] * features[s, j]
-        z = theta[1] * (v - theta[2])
-        z = min(max(z, -700.0), 700.0)
-        out[1] = 1.0 / (1.0 + math.exp(-z))
-        out[0] = 1.0 - out[1]
-        return
+def model_probs(code, theta, mem, s, n_actions, out):  # pragma: no cover
+    """Choice probabilities of state ``s`` into ``out`` (length ``n_actions``) for the choice
+    models (codes 0-3)."""
     if code == 3:  # wsls: mem[0, 0, 0] last action (-1: none), mem[0, 0, 1] last reward > 0
         eps = theta[0]
         last = int(mem[0, 0, 0])
@@ -194,9 +281,9 @@ def model_probs(code, theta, mem, w, features, s, n_actions, out):  # pragma: no
 
 
 @numba.njit(cache=True)
-def model_choose(code, theta, mem, w, features, s, n_actions, out, u):  # pragma: no cover
+def model_choose(code, theta, mem, s, n_actions, out, u):  # pragma: no cover
     """Sample a choice in state ``s`` from a uniform draw ``u`` (probabilities into ``out``)."""
-    model_probs(code, theta, mem, w, features, s, n_actions, out)
+    model_probs(code, theta, mem, s, n_actions, out)
     acc = 0.0
     for b in range(n_actions):
         acc += out[b]
@@ -206,16 +293,8 @@ def model_choose(code, theta, mem, w, features, s, n_actions, out, u):  # pragma
 
 
 @numba.njit(cache=True)
-def model_update(code, theta, mem, w, features, s, a, r):  # pragma: no cover
-    """Learn from choosing ``a`` in state ``s`` and receiving ``r``."""
-    if code == 4:
-        v = 0.0
-        for j in range(features.shape[1]):
-            v += w[j] * features[s, j]
-        delta = theta[3] * r - v
-        for j in range(features.shape[1]):
-            w[j] += theta[0] * delta * features[s, j]
-        return
+def model_update(code, theta, mem, s, a, r):  # pragma: no cover
+    """Learn from choosing ``a`` in state ``s`` and receiving ``r`` (choice models)."""
     if code == 3:
         mem[0, 0, 0] = a
         mem[0, 0, 1] = 1.0 if r > 0 else 0.0
@@ -240,27 +319,121 @@ def model_update(code, theta, mem, w, features, s, a, r):  # pragma: no cover
                     mem[0, s2, b] += lr * (mem[1, s2, b] - mem[0, s2, b])
 
 
+def state_size(code: int, script: tuple) -> int:
+    """Length of the conditioning models' state vector ``w`` (weights, then traces or
+    associabilities)."""
+    return 2 * max(script[0].shape[1], script[1].shape[2])
+
+
+@numba.njit(cache=True)
+def reset_state(code, theta, w, script):  # pragma: no cover
+    """A session's start: weights 0, traces 0, associabilities at their initial value."""
+    w[:] = 0.0
+    if code == 6:
+        k = script[0].shape[1]
+        for j in range(k):
+            w[k + j] = theta[5]
+
+
+@numba.njit(cache=True)
+def cond_trial(code, theta, w, script, s, r, learn):  # pragma: no cover
+    """One conditioning trial of type ``s`` with outcome ``r``: returns the prediction the
+    response is made on and, if ``learn``, learns from the trial (codes 4-6)."""
+    cues, steps, onset, us = script
+    if code == 5:  # td_response: theta = lr, response_beta, threshold, gamma, lambda
+        lr, gamma, lam = theta[0], theta[3], theta[4]
+        length, d = steps.shape[1], steps.shape[2]
+        for j in range(d):
+            w[d + j] = 0.0  # traces cleared at the trial's start
+        v_on = 0.0
+        for t in range(length):
+            v = 0.0
+            for j in range(d):
+                v += w[j] * steps[s, t, j]
+            if t == onset[s]:
+                v_on = v
+            if not learn:
+                continue
+            v2 = 0.0
+            if t + 1 < length:
+                for j in range(d):
+                    v2 += w[j] * steps[s, t + 1, j]
+            delta = (r if t == us[s] else 0.0) + gamma * v2 - v
+            for j in range(d):
+                w[d + j] = gamma * lam * w[d + j] + steps[s, t, j]
+                w[j] += lr * delta * w[d + j]
+        return v_on
+    k = cues.shape[1]
+    v = 0.0
+    for j in range(k):
+        v += w[j] * cues[s, j]
+    if learn:
+        if code == 4:  # rw_response: theta = lr, response_beta, threshold, asymptote
+            delta = theta[3] * r - v
+            for j in range(k):
+                w[j] += theta[0] * delta * cues[s, j]
+        else:  # ph_response: theta = kappa, response_beta, eta, threshold, asymptote, alpha0
+            delta = theta[4] * r - v
+            for j in range(k):
+                if cues[s, j] != 0.0:
+                    w[j] += theta[0] * w[k + j] * delta * cues[s, j]
+                    w[k + j] = theta[2] * abs(delta) + (1.0 - theta[2]) * w[k + j]
+    return v
+
+
+@numba.njit(cache=True)
+def response_prob(code, theta, v):  # pragma: no cover
+    """``P(respond)`` of a conditioning model on the prediction ``v``."""
+    z = theta[1] * (v - theta[3 if code == 6 else 2])
+    z = min(max(z, -700.0), 700.0)
+    return 1.0 / (1.0 + math.exp(-z))
+
+
 @numba.njit(cache=True)
 def _logp_kernel(
-    code, theta, n_memory, choices, rewards, states, sessions, n_states, n_actions, features
+    code,
+    theta,
+    n_memory,
+    choices,
+    rewards,
+    states,
+    sessions,
+    learns,
+    n_states,
+    n_actions,
+    script,
+    values,
 ):  # pragma: no cover
+    """Per-trial log-probabilities; ``values`` (length n, or 0 for none) receives the
+    conditioning models' predictions the responses were made on."""
     n = choices.shape[0]
     out = np.empty(n)
     mem = np.zeros((n_memory, n_states, n_actions))
     if code == 3:
         mem[0, 0, 0] = -1.0
     p = np.empty(n_actions)
-    w = np.zeros(features.shape[1])
+    w = np.zeros(2 * max(script[0].shape[1], script[1].shape[2]))
+    reset_state(code, theta, w, script)
     for t in range(n):
         if t > 0 and sessions[t] != sessions[t - 1]:
             mem[:, :, :] = 0.0
-            w[:] = 0.0
+            reset_state(code, theta, w, script)
             if code == 3:
                 mem[0, 0, 0] = -1.0
         s, a = states[t], choices[t]
-        model_probs(code, theta, mem, w, features, s, n_actions, p)
+        if code >= 4:
+            v = cond_trial(code, theta, w, script, s, rewards[t], learns[t])
+            if code == 5 and script[2][s] < 0:
+                v = 0.0  # no cue: the TD agent responds on 0
+            if values.shape[0] > 0:
+                values[t] = v
+            p1 = response_prob(code, theta, v)
+            out[t] = math.log(max(p1 if a == 1 else 1.0 - p1, 1e-300))
+            continue
+        model_probs(code, theta, mem, s, n_actions, p)
         out[t] = math.log(max(p[a], 1e-300))
-        model_update(code, theta, mem, w, features, s, a, rewards[t])
+        if learns[t]:
+            model_update(code, theta, mem, s, a, rewards[t])
     return out
 
 
@@ -273,7 +446,9 @@ def model_logp(
     sessions: np.ndarray,
     n_states: int,
     n_actions: int,
-    features: np.ndarray | None = None,
+    features: ScriptArrays | np.ndarray | None = None,
+    learns: np.ndarray | None = None,
+    values: np.ndarray | None = None,
 ) -> np.ndarray:
     """Log-probability of each observed choice given the history before it (compiled).
 
@@ -289,23 +464,29 @@ def model_logp(
     n_states, n_actions
         Table size.
     features
-        ``(n_states, n_features)`` cues of every state (``rw_response``: which conditioned
-        stimuli a trial type shows); default none.
+        The trial types' cues of the conditioning models: a :class:`ScriptArrays`
+        (:func:`cobelrun.fit.task_features`), or an ``(n_states, n_cs)`` cue array
+        (``rw_response``, ``ph_response``); default none.
+    learns
+        Per trial, whether the subject learns from it (default: every trial).
+    values
+        A float64 array of one item per trial that receives the prediction ``V`` each
+        response of a conditioning model was made on (what the agent's trials table calls
+        ``V``; 0 on trials without a cue); default none.
     """
+    learn = (np.ones(len(choices), np.bool_) if learns is None
+             else np.ascontiguousarray(learns, np.bool_))  # fmt: skip
+    out = np.empty(0) if values is None else values
+    if values is not None and (values.shape != (len(choices),) or values.dtype != np.float64):
+        raise ValueError(f"values must be a float64 array of {len(choices)} items")
     return _logp_kernel(model.code, np.asarray(theta, np.float64), model.n_memory, choices,
-                        rewards, states, sessions, int(n_states), int(n_actions),
-                        as_features(features, n_states))  # fmt: skip
-
-
-def as_features(features: np.ndarray | None, n_states: int) -> np.ndarray:
-    """``features`` as a C-contiguous float64 (n_states, k) array (``(n_states, 0)`` for none)."""
-    if features is None:
-        return np.zeros((int(n_states), 0))
-    return np.ascontiguousarray(features, np.float64)
+                        rewards, states, sessions, learn, int(n_states), int(n_actions),
+                        as_script(features, n_states), out)  # fmt: skip
 
 
 class ModelAgent:
-    """A model as a synthetic subject: :meth:`act` samples a choice, :meth:`learn` updates.
+    """A model as a synthetic subject: :meth:`act` samples a choice, :meth:`learn` updates
+    (choice models); :meth:`trial` runs a whole conditioning trial (conditioning models).
 
     Parameters
     ----------
@@ -315,28 +496,48 @@ class ModelAgent:
         Table size.
     rng
         Random generator of the choices.
+    features
+        The trial types' cues (conditioning models; see :func:`model_logp`).
     """
 
     def __init__(self, model: ChoiceModel, theta: np.ndarray, n_states: int, n_actions: int,
-                 rng: np.random.Generator, features: np.ndarray | None = None) -> None:  # fmt: skip
+                 rng: np.random.Generator,
+                 features: ScriptArrays | np.ndarray | None = None) -> None:  # fmt: skip
         self.model, self.theta = model, np.asarray(theta, np.float64)
-        self.features = as_features(features, n_states)
-        self.w = np.zeros(self.features.shape[1])
+        self.script = as_script(features, n_states)
+        self.w = np.zeros(state_size(model.code, self.script))
+        reset_state(model.code, self.theta, self.w, self.script)
         self.n_actions, self.rng = int(n_actions), rng
         self.mem = np.zeros((model.n_memory, n_states, n_actions))
         if model.code == 3:
             self.mem[0, 0, 0] = -1.0
         self._p = np.empty(self.n_actions)
 
+    @property
+    def conditioning(self) -> bool:
+        """Whether the model is a conditioning model (one response per scripted trial)."""
+        return self.model.code in CONDITIONING
+
     def act(self, state: int) -> int:
-        """Sample a choice in ``state``."""
-        return int(model_choose(self.model.code, self.theta, self.mem, self.w, self.features,
-                                int(state), self.n_actions, self._p, self.rng.random()))  # fmt: skip
+        """Sample a choice in ``state`` (choice models)."""
+        return int(model_choose(self.model.code, self.theta, self.mem, int(state),
+                                self.n_actions, self._p, self.rng.random()))  # fmt: skip
 
     def learn(self, state: int, action: int, reward: float) -> None:
-        """Update after the outcome."""
-        model_update(self.model.code, self.theta, self.mem, self.w, self.features, int(state),
-                     int(action), float(reward))  # fmt: skip
+        """Update after the outcome (choice models)."""
+        model_update(self.model.code, self.theta, self.mem, int(state), int(action),
+                     float(reward))  # fmt: skip
+
+    def trial(self, state: int, outcome: float, learn: bool = True) -> int:
+        """A conditioning trial of type ``state`` with its ``outcome``: the sampled response
+        (0/1) at the cue's onset; learns from the trial if ``learn`` (the response does not
+        change the trial, so the order is the agent's)."""
+        code = self.model.code
+        v = cond_trial(code, self.theta, self.w, self.script, int(state), float(outcome),
+                       bool(learn))  # fmt: skip
+        if code == TD_RESPONSE and self.script[2][int(state)] < 0:
+            v = 0.0
+        return int(self.rng.random() < response_prob(code, self.theta, v))
 
 
 # ------------------------------------------------------------ compiled objective and optimiser
@@ -353,10 +554,10 @@ def _theta(phi, idx, base, lo, hi, islog):  # pragma: no cover
 
 @numba.njit(cache=True)
 def _objective(code, phi, idx, base, lo, hi, islog, weights, n_memory, choices, rewards,
-               states, sessions, n_states, n_actions, features):  # pragma: no cover  # fmt: skip
+               states, sessions, learns, n_states, n_actions, script):  # pragma: no cover  # fmt: skip
     theta = _theta(phi, idx, base, lo, hi, islog)
-    lp = _logp_kernel(code, theta, n_memory, choices, rewards, states, sessions, n_states,
-                      n_actions, features)  # fmt: skip
+    lp = _logp_kernel(code, theta, n_memory, choices, rewards, states, sessions, learns,
+                      n_states, n_actions, script, np.empty(0))  # fmt: skip
     total = 0.0
     for t in range(lp.shape[0]):
         total -= weights[t] * lp[t]
@@ -384,14 +585,14 @@ def _positive_definite(A):  # pragma: no cover
 
 @numba.njit(cache=True)
 def newton_fit(code, phi0, phi_lo, phi_hi, idx, base, lo, hi, islog, weights, n_memory,
-               choices, rewards, states, sessions, n_states, n_actions, features, max_iter):  # pragma: no cover  # fmt: skip
+               choices, rewards, states, sessions, learns, n_states, n_actions, script, max_iter):  # pragma: no cover  # fmt: skip
     """Minimise the weighted negative log-likelihood over ``phi`` (the transformed fitted
     parameters) inside the box ``[phi_lo, phi_hi]`` by Levenberg-Marquardt-damped Newton
     steps with central-difference derivatives; returns ``(phi, value, iterations)``."""
     k = phi0.shape[0]
     phi = np.minimum(np.maximum(phi0.copy(), phi_lo), phi_hi)
     args = (idx, base, lo, hi, islog, weights, n_memory, choices, rewards, states, sessions,
-            n_states, n_actions, features)  # fmt: skip
+            learns, n_states, n_actions, script)  # fmt: skip
     f = _objective(code, phi, *args)
     lam = 1e-3
     h = 1e-4

@@ -1,563 +1,35 @@
-"""The ``cobel`` command line.
+"""The ``cobel`` command line: the console script's entry point (:func:`main`).
 
-``cobel run`` hands its arguments to Hydra unchanged (single runs and ``-m`` multiruns); the
-other commands read configs or run folders. User errors print one line and exit 2; add
-``--debug`` (or set HYDRA_FULL_ERROR=1) for the traceback.
+A plain ``cobel run`` (Hydra's arguments and ``--quiet``/``--debug``/``--live``) runs without
+importing typer and the other commands (:mod:`cobelrun.commands.run`); everything else goes
+through the typer app (:mod:`cobelrun.commands.app`; ``from cobelrun.cli import app`` gives
+it). ``cobel run`` pauses Python's cyclic garbage collector until its job starts
+(:mod:`cobelrun.startup`), and a finished command leaves without the interpreter's teardown
+(:func:`exit_now`). User errors print one line and exit 2; add ``--debug`` (or set
+HYDRA_FULL_ERROR=1) for the traceback.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
-from typing import Annotated, Any, NoReturn
-
-import typer
-
-from cobelrun.commands.common import (
-    EXIT_INTERRUPTED,
-    EXIT_USER_ERROR,
-    STATUS_STYLE,
-    AllowTarget,
-    allow_targets,
-    debug_enabled,
-    fail,
-)
-from cobelrun.errors import CobelError
-
-app = typer.Typer(
-    name="cobel",
-    help=(
-        "Config-driven experiments for neuroscience-oriented reinforcement learning "
-        "(CoBeL-RL rebuilt). Start with `cobel list` and `cobel run task=tmaze_extinction`."
-    ),
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+from typing import Any, NoReturn
 
 
-def _version(value: bool) -> None:
-    if value:
-        from cobelrun import __version__
+def __getattr__(name: str) -> Any:
+    """The typer app and its commands (``from cobelrun.cli import app``), imported on use.
 
-        typer.echo(f"cobel {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def _root(
-    version: Annotated[
-        bool,
-        typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
-    ] = False,
-    allow_target: AllowTarget = None,
-) -> None:
-    """Config-driven experiments for neuroscience-oriented reinforcement learning."""
-    allow_targets(allow_target)
-
-
-RUN_HELP = """Run a task: `cobel run task=NAME [KEY=VALUE ...]` (Hydra overrides, passed unchanged).
-
-\b
-Examples:
-  cobel run task=tmaze_extinction
-  cobel run task=tmaze_extinction seed=3 task.runs=20 agent.epsilon=0.2
-  cobel run -m task=tmaze_extinction seed=1,2,3          # a sweep (multirun)
-  cobel run task=tmaze_extinction hydra.run.dir=out/x    # choose the output folder
-  cobel run task=gridworld --live                        # watch it (docs/seeing.md)
-\b
-Hydra flags work as usual: -m/--multirun, --cfg job (print the config), --info, -c.
-Results go to results/<task>/<date>/<time>_<id>/ (COBEL_RESULTS changes the root).
-Sweeps (-m) run on all cores (joblib; hydra/launcher=slurm for SLURM) into
-results/<task>/sweeps/<id>/, <id> a hash of the jobs: the same command resumes the
-sweep, skipping finished jobs. Then: cobel status DIR, cobel collect DIR.
-Add --debug for a full traceback on errors. `cobel list` shows tasks, envs and agents.
-Configs build only cobel's own classes and installed plugins'; --allow-target mypkg.envs.*
-(repeatable) or COBEL_ALLOW_TARGETS allows your own.
-"""
-
-
-@app.command(
-    "run",
-    help=RUN_HELP,
-    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
-)
-def run_cmd(
-    ctx: typer.Context,
-    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks.")] = False,
-    quiet: Annotated[
-        bool, typer.Option("--quiet", help="No end-of-run summary (the folder is still printed).")
-    ] = False,
-    allow_target: AllowTarget = None,
-    live: Annotated[
-        bool,
-        typer.Option(
-            "--live",
-            help="Stream the run to a live view (Foxglove/Lichtblick on ws://127.0.0.1:PORT; "
-            "task.record.live=true).",
-        ),
-    ] = False,
-    port: Annotated[
-        int | None,
-        typer.Option(
-            "--port",
-            min=0,
-            max=65535,
-            help="The live view's port (default 8765; 0: any free port). Implies --live.",
-        ),
-    ] = None,
-) -> None:
-    allow_targets(allow_target)
-    if debug:
-        os.environ["COBEL_DEBUG"] = "1"
-        os.environ["HYDRA_FULL_ERROR"] = "1"
-    from cobelrun.hydra_app import launch
-
-    args = list(ctx.args)
-    extra = []  # the record keys, so that config.yaml says how the run ran
-    if live or port is not None:
-        extra.append("task.record.live=true")
-    if port is not None:
-        extra.append(f"task.record.live_port={port}")
-    if extra:
-        # Hydra's parser takes the overrides only as one unbroken run of words: put these at
-        # its start (the user's own task.record.live_port=... comes later and wins)
-        at = next((i for i, a in enumerate(args) if "=" in a and not a.startswith("-")), 0)
-        args[at:at] = extra
-    try:
-        code = launch(args, quiet=quiet)
-    except CobelError as exc:
-        fail(str(exc))
-    except KeyboardInterrupt:
-        fail("interrupted", EXIT_INTERRUPTED)
-    raise typer.Exit(code)
-
-
-@app.command("list")
-def list_cmd(
-    group: Annotated[
-        str | None, typer.Argument(help="task, env, agent or protocol (default: all of them).")
-    ] = None,
-    config_dir: Annotated[
-        str | None,
-        typer.Option(
-            "--config-dir", "-cd", help="A config folder searched first (as cobel run -cd)."
-        ),
-    ] = None,
-    config_path: Annotated[
-        str | None, typer.Option("--config-path", "-cp", help="The same as --config-dir.")
-    ] = None,
-) -> None:
-    """List the available tasks, environments, agents and protocols with one-line descriptions."""
-    from rich.console import Console
-    from rich.table import Table
-
-    from cobelrun.compose import announce_shadows, check_yaml_folder, user_config_dir
-    from cobelrun.config import GROUPS, describe, group_options, user_conf_dir
-    from cobelrun.errors import suggest
-
-    try:
-        first = user_config_dir(config_dir or config_path)
-        user = first or user_conf_dir()
-        if user is not None:
-            check_yaml_folder(user)
-            announce_shadows(user)
-    except CobelError as exc:
-        fail(str(exc))
-    groups = list(GROUPS)
-    if group is not None and group not in groups:
-        fail(f"unknown group {group!r}{suggest(group, groups)}; allowed: {', '.join(groups)}")
-    console = Console()
-    for g in [group] if group else groups:
-        table = Table(title=f"{g}  (choose with {g}=NAME)", title_justify="left", box=None)
-        table.add_column("name", style="bold cyan", no_wrap=True)
-        table.add_column("description")
-        for name, path in group_options(g, first).items():
-            table.add_row(name, describe(path))
-        console.print(table)
-        console.print()
-
-
-@app.command("plot")
-def plot_cmd(
-    run_dirs: Annotated[
-        list[Path],
-        typer.Argument(
-            help="Run folder(s) written by `cobel run` (Fig. 7 takes a latent and a direct "
-            "one), or a sweep folder (`cobel run -m`).",
-            show_default=False,
-            metavar="RUN_DIR",
-        ),
-    ],
-    out: Annotated[
-        Path | None,
-        typer.Option(
-            "--out",
-            "-o",
-            help="Output PNG (default: FIRST_RUN_DIR/plot.png; plot_KIND.png "
-            "with --kind, a sweep's plot_Y.png with --y Y).",
-        ),
-    ] = None,
-    kind: Annotated[
-        str | None,
-        typer.Option(
-            "--kind",
-            "-k",
-            help="occupancy, trajectories (on the saved world.json), latency, response or "
-            "reward (curves with a 95% band), value, policy, q, sr (saved agents) or rate "
-            "(recorded units) instead of the task's figure; a run offers only what it has.",
-        ),
-    ] = None,
-    hue: Annotated[
-        str | None,
-        typer.Option("--hue", help="Sweeps: one curve per value of this swept key."),
-    ] = None,
-    y: Annotated[
-        str | None,
-        typer.Option("--y", help="Sweeps: latency, response, reward or a trials column."),
-    ] = None,
-    run: Annotated[
-        int | None, typer.Option("--run", help="--kind trajectories/value/policy/q/sr/rate: run.")
-    ] = None,
-    trials: Annotated[
-        str | None, typer.Option("--trials", help="--kind trajectories/rate: trials A:B.")
-    ] = None,
-    state: Annotated[int | None, typer.Option("--state", help="--kind sr: the state.")] = None,
-) -> None:
-    """Plot a run: the task's own figure (Fig. 7, Fig. 9) or Fig. 6B-style response/latency.
-
-    Several folders are drawn together where the task's figure compares groups, e.g.
-    `cobel plot LATENT_DIR DIRECT_DIR` for Fig. 7B. A sweep folder gives one curve per value
-    of `--hue KEY` (n = jobs x runs per curve, 95% confidence band); `--kind` draws
-    occupancy, trajectories or one curve of any run.
+    Dunder names are never forwarded: the import system asks every module for ``__path__``
+    (``from cobelrun.cli import main``), which must not import the app.
     """
-    from cobelrun.figures import plot_run
-
-    first = run_dirs[0]
-    try:
-        if (first / "sweep.json").is_file():
-            if kind is not None or len(run_dirs) > 1:
-                fail("a sweep folder takes --hue/--y, not --kind or more folders")
-            from cobelrun.figures.runs import plot_sweep_file
-
-            path = plot_sweep_file(first, hue, y, out)
-        elif hue is not None:
-            fail(f"--hue needs a sweep folder (cobel run -m); {first} is not one")
-        elif kind is not None:
-            from cobelrun.figures.kinds import plot_kind
-
-            if len(run_dirs) > 1:
-                fail("--kind draws one run; use `cobel compare` for several")
-            if run is not None or trials is not None or state is not None:
-                from cobelrun.figures.kinds import plot_selection
-
-                path = plot_selection(first, kind, out, run=run, trials=trials, state=state)
-            else:
-                path = plot_kind(first, kind, out)
-        else:
-            path = plot_run(first, out, *run_dirs[1:])
-    except CobelError as exc:
-        fail(str(exc))
-    typer.echo(str(path))
-
-
-@app.command("compare")
-def compare_cmd(
-    run_dirs: Annotated[
-        list[Path], typer.Argument(help="Two or more run folders.", show_default=False)
-    ],
-    y: Annotated[
-        str | None,
-        typer.Option("--y", help="latency, response, reward or a trials column."),
-    ] = None,
-    labels: Annotated[
-        str | None, typer.Option("--labels", help="Comma-separated curve labels.")
-    ] = None,
-    out: Annotated[
-        Path | None,
-        typer.Option(
-            "--out",
-            "-o",
-            help="Output PNG (default: FIRST_RUN_DIR/compare.png; compare_Y.png with --y Y).",
-        ),
-    ] = None,
-) -> None:
-    """Overlay runs: one curve per run folder (mean and 95% band over its runs, n in the legend)."""
-    from cobelrun.figures.runs import compare_file
+    if name.startswith("__"):
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from cobelrun.commands import app
 
     try:
-        path = compare_file(run_dirs, y, out, labels.split(",") if labels else None)
-    except CobelError as exc:
-        fail(str(exc))
-    typer.echo(str(path))
-
-
-from cobelrun.commands.render_cache import register as _register_render_cache  # noqa: E402
-
-_register_render_cache(app)
-
-from cobelrun.commands.export import register as _register_export  # noqa: E402
-
-_register_export(app)
-
-from cobelrun.commands.rerun import register as _register_rerun  # noqa: E402
-
-_register_rerun(app)
-
-from cobelrun.commands.resume import register as _register_resume  # noqa: E402
-
-_register_resume(app)
-
-from cobelrun.commands.show import register as _register_show  # noqa: E402
-
-_register_show(app)
-
-from cobelrun.commands.fit import register as _register_fit  # noqa: E402
-
-_register_fit(app)
-
-from cobelrun.commands.recover import register as _register_recover  # noqa: E402
-
-_register_recover(app)
-
-from cobelrun.commands.serve import register as _register_serve  # noqa: E402
-
-_register_serve(app)
-
-from cobelrun.commands.replay import register as _register_replay  # noqa: E402
-
-_register_replay(app)
-
-from cobelrun.commands.edit import register as _register_edit  # noqa: E402
-
-_register_edit(app)
-
-
-@app.command("status")
-def status_cmd(
-    sweep_dir: Annotated[
-        Path,
-        typer.Argument(
-            help="A sweep folder (`cobel run -m`) or a run folder.", metavar="RUN_OR_SWEEP_DIR"
-        ),
-    ],
-    problems: Annotated[
-        bool, typer.Option("--problems", "-p", help="List only jobs that are not done.")
-    ] = False,
-) -> None:
-    """A run's status and tables, or a sweep's jobs: done, failed (with the error), running
-    and missing.
-
-    For a sweep, rebuilds its job index (SWEEP_DIR/jobs.csv) and exits 1 when a job is not done.
-    """
-    from rich.console import Console
-    from rich.table import Table
-
-    from cobelrun.io.run_folder import RunFolder
-    from cobelrun.io.sweep_folder import SWEEP_FILE, job_rows, read_sweep, summary
-
-    folder = RunFolder(sweep_dir)
-    if folder.manifest.is_file():  # a single run folder
-        run_status(folder)
-        return
-    if sweep_dir.is_dir() and not (sweep_dir / SWEEP_FILE).is_file():
-        fail(
-            f"{sweep_dir} is neither a run folder (no {folder.manifest.name}; made by `cobel "
-            f"run`) nor a sweep folder (no {SWEEP_FILE}; made by `cobel run -m`)"
-        )
-    try:
-        sweep = read_sweep(sweep_dir)
-        rows = job_rows(sweep_dir)
-    except CobelError as exc:
-        fail(str(exc))
-    console = Console()
-    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
-    table.add_column("job", justify="right")
-    for key in sweep["swept"]:
-        table.add_column(key, style="cyan")
-    table.add_column("status")
-    table.add_column("time \\[s]", justify="right")
-    table.add_column("error", overflow="fold")
-    for r in rows:
-        if problems and r["status"] == "done":
-            continue
-        dur = r["duration_s"]
-        table.add_row(
-            str(r["job"]),
-            *[str(r[k]) for k in sweep["swept"]],
-            f"[{STATUS_STYLE[r['status']]}]{r['status']}[/]",
-            "" if dur is None or dur != dur else f"{float(dur):.1f}",
-            "" if not isinstance(r["error"], str) else r["error"],
-        )
-    console.print(table)
-    counts = summary(rows)
-    parts = [f"{n} {s}" for s, n in counts.items() if n]
-    console.print(f"{len(rows)} jobs: " + ", ".join(parts))
-    if counts["done"] < len(rows):
-        console.print(f"resume (runs only what is not done): {sweep.get('command', '')}")
-        raise typer.Exit(1)
-
-
-def run_status(folder: Any) -> None:
-    """``cobel status RUN_DIR`` (:func:`cobelrun.commands.summary.run_status`: validated)."""
-    from cobelrun.commands.summary import run_status as status
-
-    status(folder)
-
-
-@app.command("collect")
-def collect_cmd(
-    sweep_dir: Annotated[Path, typer.Argument(help="A sweep folder written by `cobel run -m`.")],
-    tables: Annotated[
-        str, typer.Option("--tables", help="Comma-separated tables to collect.")
-    ] = "trials,steps",
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", "-o", help="Output folder (default SWEEP_DIR/collected)."),
-    ] = None,
-) -> None:
-    """Combine a sweep's done jobs into one Parquet file per table, swept params as columns.
-
-    Writes SWEEP_DIR/collected/trials.parquet and steps.parquet (streamed: memory stays flat),
-    with `job` and one column per swept key; load with pandas.read_parquet or
-    cobelrun.results.load_collected.
-    """
-    from cobelrun.io.sweep_collect import collect
-    from cobelrun.io.sweep_folder import job_rows, summary
-    from cobelrun.progress import counter_progress
-
-    try:
-        with counter_progress("collect", total=0, unit="files") as update:
-            written = collect(
-                sweep_dir, [t for t in tables.split(",") if t], out_dir=out, progress=update
-            )
-        counts = summary(job_rows(sweep_dir, write=False))
-    except CobelError as exc:
-        fail(str(exc))
-    total = sum(counts.values())
-    if counts["done"] < total:
-        typer.echo(
-            f"cobel: collected {counts['done']} of {total} jobs; the others are not done "
-            f"(see cobel status {sweep_dir})",
-            err=True,
-        )
-    for path in written.values():
-        typer.echo(str(path))
-
-
-@app.command("figure")
-def figure_cmd(
-    name: Annotated[
-        str | None, typer.Argument(help="Figure name (e.g. fig6b) or `all`; see --list.")
-    ] = None,
-    quick: Annotated[
-        bool, typer.Option("--quick", help="Small budget (few runs) for a fast check or CI.")
-    ] = False,
-    list_: Annotated[bool, typer.Option("--list", help="List the figures and exit.")] = False,
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", "-o", help="Output folder (default $COBEL_RESULTS/figures)."),
-    ] = None,
-    from_: Annotated[
-        list[Path] | None,
-        typer.Option(
-            "--from",
-            help="Take finished runs the figure needs (same config hash) from this sweep or "
-            "run folder, e.g. a `cobel run -m` of its jobs; repeatable.",
-        ),
-    ] = None,
-    jobs: Annotated[
-        int | None,
-        typer.Option(
-            "--jobs",
-            "-j",
-            help="Run up to N of the figure's missing runs at once, one process each (Hydra's "
-            "joblib launcher, as cobel run -m; a deep agent uses one core: N up to the number "
-            "of cores); 1: one after another. Default: the figure's own (1; one per core for "
-            "fig8 and fig8_stable).",
-        ),
-    ] = None,
-    launcher: Annotated[
-        str | None,
-        typer.Option(
-            "--launcher",
-            help="Run the missing runs through this Hydra launcher instead (a name as in "
-            "`cobel run -m hydra/launcher=NAME`: slurm, slurm_gpu, local, submitit_local, ...).",
-        ),
-    ] = None,
-    launcher_arg: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--launcher-arg",
-            help="KEY=VALUE for the launcher (hydra.launcher.KEY=VALUE), e.g. partition=gpu; "
-            "repeatable.",
-        ),
-    ] = None,
-    finished_only: Annotated[
-        bool,
-        typer.Option(
-            "--finished-only",
-            help="Run nothing: draw from the figure's runs that are already finished (e.g. "
-            "while its other runs go on), to NAME_partial.*; the runs left out are listed.",
-        ),
-    ] = False,
-) -> None:
-    """Build a paper figure: run what it needs (finished runs are reused), then draw it.
-
-    Writes NAME.png, NAME.pdf and NAME.csv (the plotted numbers) to results/figures/
-    (NAME_quick.* with --quick). Specs live in experiments/ (./experiments is searched first).
-    """
-    from rich.console import Console
-    from rich.table import Table
-
-    from cobelrun.figures.registry import build, figures, get
-
-    try:
-        known = figures()
-        if list_ or name is None:
-            table = Table(title="figures  (build with cobel figure NAME)", title_justify="left",
-                          box=None)  # fmt: skip
-            table.add_column("name", style="bold cyan", no_wrap=True)
-            table.add_column("description")
-            table.add_column("runs")
-            for fig in known.values():
-                runs = "; ".join(f"{k}: {' '.join(v)}" for k, v in fig.runs.items())
-                table.add_row(fig.name, fig.title, runs)
-            Console().print(table)
-            return
-        chosen = list(known.values()) if name == "all" else [get(name)]
-        hydra_launcher = _launcher_overrides(launcher, launcher_arg or [])
-        for fig in chosen:
-            files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (), jobs=jobs,
-                          finished_only=finished_only, launcher=hydra_launcher,
-                          log=lambda m: typer.echo(m, err=True))  # fmt: skip
-            for path in files.values():
-                typer.echo(str(path))
-    except CobelError as exc:
-        fail(str(exc))
-    except KeyboardInterrupt:
-        fail("interrupted", EXIT_INTERRUPTED)
-
-
-def _launcher_overrides(name: str | None, args: list[str]) -> list[str]:
-    """``cobel figure --launcher NAME --launcher-arg K=V``: the Hydra overrides that choose the
-    launcher of the figure's sweeps; a malformed argument is one line."""
-    import re
-
-    if name is None:
-        if args:
-            raise CobelError("--launcher-arg needs --launcher NAME (the launcher it configures)")
-        return []
-    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
-        raise CobelError(f"--launcher {name!r}: give a launcher config name (e.g. slurm, local)")
-    out = [f"hydra/launcher={name}"]
-    for arg in args:
-        key, sep, value = arg.partition("=")
-        if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.]*", key):
-            raise CobelError(f"--launcher-arg {arg!r}: give KEY=VALUE (e.g. partition=gpu)")
-        out.append(f"hydra.launcher.{key}={value}")
-    return out
+        return getattr(app, name)
+    except AttributeError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
 
 
 def _shell_completion_args(argv: list[str]) -> list[str] | None:
@@ -588,19 +60,43 @@ def main() -> None:
     # reads this once, before its first allocation; an explicit setting wins.
     os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
     import cobelrun.signals
+    from cobelrun import startup
 
     cobelrun.signals.HOLD_AFTER_STOP = True  # a stopped run exits 130, whatever comes after
+    argv = sys.argv[1:]
+    if argv[:1] == ["run"]:
+        startup.pause_gc()  # until the job starts (hydra_app.job); see cobelrun.startup
     try:
-        forwarded = _shell_completion_args(sys.argv[1:])
+        code = _command(argv)
+    finally:
+        startup.resume_gc()  # a run that ended before its job (a bad config, --help)
+    exit_now(code)
+
+
+def _command(argv: list[str]) -> Any:
+    """Run the command ``argv``; return its exit code (as ``sys.exit`` takes it)."""
+    from cobelrun.commands.run import plain_run, run_plain
+
+    plain = plain_run(argv)
+    if plain is not None:  # the fast path: no typer
+        return run_plain(plain)
+    import typer
+
+    from cobelrun.commands.app import app
+    from cobelrun.commands.common import EXIT_USER_ERROR, debug_enabled
+    from cobelrun.errors import CobelError
+
+    try:
+        forwarded = _shell_completion_args(argv)
         app(args=forwarded) if forwarded is not None else app()
     except CobelError as exc:  # errors raised outside a command body
         if debug_enabled():
             raise
         typer.echo(f"cobel: error: {exc}", err=True)
-        exit_now(EXIT_USER_ERROR)
+        return EXIT_USER_ERROR
     except SystemExit as exc:  # how click ends every command, successful or not
-        exit_now(exc.code)
-    exit_now(0)
+        return exc.code
+    return 0
 
 
 def exit_now(code: Any) -> NoReturn:

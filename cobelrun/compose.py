@@ -383,7 +383,8 @@ def composer(
     from hydra.errors import HydraException, MissingConfigException
 
     def _compose(overrides: list[str], return_hydra_config: bool = False) -> DictConfig:
-        _check_choices(_parse(overrides), config_dir)
+        parsed = _parse(overrides)  # once (~2 ms an override): both checks read it
+        _check_choices(parsed, config_dir)
         try:
             cfg = compose(config_name, overrides=overrides,
                           return_hydra_config=return_hydra_config)  # fmt: skip
@@ -409,7 +410,7 @@ def composer(
                 lines = str(exc).strip().splitlines()
                 msg = f"cannot compose the config: {lines[0] if lines else type(exc).__name__}"
             raise ConfigError(msg) from None
-        _check_deletions(_parse(overrides), cfg)
+        _check_deletions(parsed, cfg)
         check_config(cfg)  # the instantiation gate: every _target_, before anything is built
         return cfg
 
@@ -446,8 +447,11 @@ def validate(
     again.
     """
     from cobelrun.runner import build_task
+    from cobelrun.startup import resume_gc
     from cobelrun.sweep_plan import plan
 
+    if multirun:
+        resume_gc()  # a sweep's launcher runs long: its garbage is collected as usual
     first, jobs = overrides, []
     if multirun:  # a swept _target_: every value through the gate, not only the first job's
         for o in _parse(overrides):

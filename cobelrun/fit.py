@@ -144,7 +144,7 @@ def simulate_choices(
 
 #: columns a choice table may have: required, then optional
 REQUIRED_COLUMNS = ("choice", "reward")
-OPTIONAL_COLUMNS = ("trial", "state", "session")
+OPTIONAL_COLUMNS = ("trial", "state", "session", "learn")
 #: largest state count accepted when the task does not say how many states it has
 MAX_STATES = 100_000
 
@@ -218,7 +218,9 @@ def check_choices(
     Parameters
     ----------
     data
-        One row per trial: ``choice``, ``reward`` (``trial``, ``state``, ``session`` optional).
+        One row per trial: ``choice``, ``reward`` (``trial``, ``state``, ``session`` and
+        ``learn`` optional; ``learn`` 0 marks trials the subject does not learn from, e.g. a
+        test phase with learning off).
     n_actions
         The task's number of actions; choices must lie in ``0..n_actions - 1`` (default: the
         largest choice + 1).
@@ -231,7 +233,7 @@ def check_choices(
     Returns
     -------
     tuple
-        ``choices, rewards, states, sessions, n_states, n_actions``.
+        ``choices, rewards, states, sessions, n_states, n_actions, learns``.
 
     Raises
     ------
@@ -257,9 +259,14 @@ def check_choices(
         if "session" in data
         else np.zeros(len(data), np.int64)
     )
+    learns = (
+        _integer_column(data, "learn", source, 0, 1, "(1: learns from the trial, 0: not)") > 0
+        if "learn" in data
+        else np.ones(len(data), np.bool_)
+    )
     n_a = int(n_actions) if n_actions is not None else int(choices.max()) + 1
     n_s = int(n_states) if n_states is not None else int(states.max()) + 1
-    return choices, rewards, states, sessions, n_s, n_a
+    return choices, rewards, states, sessions, n_s, n_a, learns
 
 
 @dataclass(frozen=True)
@@ -278,7 +285,8 @@ class ChoiceData:
     sessions: np.ndarray
     n_states: int
     n_actions: int
-    features: np.ndarray | None = None
+    learns: np.ndarray | None = None
+    features: Any = None
 
     @classmethod
     def from_table(
@@ -325,16 +333,58 @@ def task_sizes(env: Any) -> tuple[int | None, int | None]:
     return (None if n_actions is None else int(n_actions)), n_states
 
 
-def task_features(env: Any) -> np.ndarray | None:
-    """``(n_trial_types, n_cs)``: the conditioned stimuli of every trial type of a conditioning
-    env (the ``trial_script`` contract), else None."""
+def task_features(env: Any) -> Any:
+    """The trial types of a conditioning env (the ``trial_script`` contract) as the arrays the
+    conditioning models need (:class:`cobelrun.choice_models.ScriptArrays`), else None.
+
+    Each trial type is played once through the env's public interface (a phase's ``starts``
+    and ``rewards``, then ``reset`` and ``step``) on the env given, which is restored after
+    (``reset_world``): the TD model's features are the observations the agent sees, the
+    outcome's step is where a unit outcome arrives.
+    """
+    from cobelrun.choice_models import ScriptArrays
     from cobelrun.envs.base import TrialScript
 
     base = getattr(env, "unwrapped", env)
     if not isinstance(base, TrialScript):
         return None
-    n_types = len(getattr(base, "observations", []))
-    return np.array([base.trial_cues(i)[: base.n_cs] for i in range(n_types)], np.float64)
+    names = list(getattr(base, "type_names", []))
+    n_cs = int(base.n_cs)
+    cues = np.array([base.trial_cues(i)[:n_cs] for i in range(len(names))], np.float64)
+    rows, onset, us = [], np.full(len(names), -1, np.int64), np.zeros(len(names), np.int64)
+    for i, name in enumerate(names):
+        base.apply_changes(starts=[name], rewards={name: 1.0})
+        obs, _ = base.reset()
+        seen, t, done = [], 0, False
+        while not done:
+            x = np.asarray(obs, np.float64).copy()
+            if onset[i] < 0 and np.any(x[:n_cs]):
+                onset[i] = t
+            x[:n_cs] = 0.0  # the TD agent's features: serial compound and contexts
+            seen.append(x)
+            obs, r, done, truncated, _ = base.step(0)
+            done = done or truncated
+            if r != 0.0:
+                us[i] = t
+            t += 1
+        rows.append(np.array(seen))
+    base.reset_world()
+    length = max(len(r) for r in rows)
+    steps = np.zeros((len(names), length, rows[0].shape[1]))
+    for i, r in enumerate(rows):
+        steps[i, : len(r)] = r
+    return ScriptArrays(cues, steps, onset, us)
+
+
+def check_trial_length(script: Any, max_steps: Sequence[int | None], task: str) -> None:
+    """Refuse a conditioning task whose protocol cuts its trials short (``max_steps`` below
+    the trial's length): the conditioning models replay whole trials."""
+    length = int(script.steps.shape[1])
+    short = sorted({int(m) for m in max_steps if m is not None and int(m) < length})
+    if short:
+        raise ConfigError(f"task {task}'s protocol stops trials after {short[0]} steps, but its "
+                          f"trials last {length} (env.length); the conditioning models need "
+                          f"whole trials: set task.protocol.max_steps to {length}")  # fmt: skip
 
 
 def check_action_set(data: pd.DataFrame, n_actions: int | None, task: str,
@@ -576,7 +626,7 @@ def fit_choices(
     params: Sequence[str] | None = None,
     *,
     model: str = "q_learning",
-    features: np.ndarray | None = None,
+    features: Any = None,
     initial: Mapping[str, float] | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     n_actions: int | None = None,
@@ -604,7 +654,9 @@ def fit_choices(
     model
         A model of :data:`cobelrun.choice_models.MODELS`.
     features
-        ``(n_states, k)`` cues of every state, for ``rw_response`` (default: the table's).
+        The trial types of a conditioning task, for the conditioning models (``rw_response``,
+        ``td_response``, ``ph_response``): :func:`task_features` of its env (an ``(n_states,
+        k)`` cue array does for ``rw_response`` and ``ph_response``; default: the table's).
     initial
         Values of every model parameter (the fixed ones and the first start), by config key.
     bounds
@@ -635,7 +687,15 @@ def fit_choices(
     """
     from scipy.optimize import minimize
 
-    from cobelrun.choice_models import MODELS, as_features, model_logp, newton_fit
+    from cobelrun.choice_models import (
+        CONDITIONING,
+        MODELS,
+        TD_RESPONSE,
+        ScriptArrays,
+        as_script,
+        model_logp,
+        newton_fit,
+    )
 
     if model not in MODELS:
         raise ConfigError(f"unknown model {model!r}; models with a likelihood: "
@@ -673,24 +733,39 @@ def fit_choices(
     base = np.array([values[k] for k in spec.keys], np.float64)
     if features is None:
         features = table.features
-    if spec.name == "rw_response":
-        if features is None:
-            raise ConfigError("model rw_response needs the cues of every trial type: fit it "
-                              "with a conditioning task (env=sequence)")  # fmt: skip
+    if spec.code in CONDITIONING:
+        if features is None or (
+            spec.code == TD_RESPONSE and not isinstance(features, ScriptArrays)
+        ):
+            raise ConfigError(f"model {spec.name} needs the cues of every trial type: fit it "
+                              f"with a conditioning task (env=sequence)")  # fmt: skip
         if table.n_actions != 2:
-            raise ConfigError(f"model rw_response fits respond / no response (2 actions), the "
+            raise ConfigError(f"model {spec.name} fits respond / no response (2 actions), the "
                               f"data have {table.n_actions}")  # fmt: skip
-    feats = as_features(features, table.n_states)
-    if feats.shape[0] != table.n_states:
+    script = as_script(features, table.n_states)
+    if script[0].shape[0] != table.n_states:
         raise ConfigError(f"features must have one row per state ({table.n_states}), got "
-                          f"{feats.shape[0]}")  # fmt: skip
-    args = (table.choices, table.rewards, table.states, table.sessions, table.n_states,
+                          f"{script[0].shape[0]}")  # fmt: skip
+    learns = (np.ones(len(table), np.bool_) if table.learns is None
+              else np.ascontiguousarray(table.learns, np.bool_))  # fmt: skip
+    args = (table.choices, table.rewards, table.states, table.sessions, learns, table.n_states,
             table.n_actions)  # fmt: skip
 
     def logp(phi: np.ndarray) -> np.ndarray:
         theta = base.copy()
         theta[index] = space.to_natural(phi)
-        return model_logp(spec, theta, *args, feats)
+        return model_logp(
+            spec,
+            theta,
+            table.choices,
+            table.rewards,
+            table.states,
+            table.sessions,
+            table.n_states,
+            table.n_actions,
+            features,
+            learns,
+        )
 
     islog = space.log.astype(np.bool_)
     idx = np.array(index, np.int64)
@@ -707,7 +782,7 @@ def fit_choices(
         for x0 in starts:
             x, fx, _ = newton_fit(spec.code, np.asarray(x0, np.float64), space.phi_lo,
                                   space.phi_hi, idx, base, space.lo, space.hi, islog, weights,
-                                  spec.n_memory, *args, feats, 100)  # fmt: skip
+                                  spec.n_memory, *args, script, 100)  # fmt: skip
             if math.isfinite(fx) and (best is None or fx < best[1]):
                 best = (np.asarray(x, np.float64), float(fx))
         if best is None:
@@ -733,7 +808,7 @@ def fit_choices(
         start = x[sel] if warm[0] is None else warm[0]
         y, fy, _ = newton_fit(spec.code, np.asarray(start, np.float64), space.phi_lo[sel],
                               space.phi_hi[sel], idx[sel], fixed, space.lo[sel], space.hi[sel],
-                              islog[sel], all_trials, spec.n_memory, *args, feats, 100)  # fmt: skip
+                              islog[sel], all_trials, spec.n_memory, *args, script, 100)  # fmt: skip
         if math.isfinite(fy):
             warm[0] = np.asarray(y, np.float64)
         return float(fy)

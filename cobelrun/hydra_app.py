@@ -47,7 +47,9 @@ def job(cfg: DictConfig, task: Any = None) -> str:
     from cobelrun.progress import run_progress
     from cobelrun.runner import run
     from cobelrun.signals import Stopped
+    from cobelrun.startup import resume_gc
 
+    resume_gc()  # the start-up is over (cobel run paused the garbage collector for it)
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     log_start(cfg, run_dir, list(hc.overrides.task))

@@ -340,7 +340,7 @@ class RunRecorder:
         self.start_ns = time.time_ns() if resume is None else int(resume["start_ns"])
         #: the MCAP written before a resume, joined with this one's at close (trimmed to
         #: the checkpoint's clock)
-        self._mcap_before: tuple[Path, int] | None = None
+        self._mcap_before: tuple[Path, Any] | None = None
         if record.mcap and resume is not None and folder.mcap.is_file():
             from cobelrun.io.mcap_repair import repair_mcap
 
@@ -348,10 +348,13 @@ class RunRecorder:
             if not before.is_file():  # a resume that was stopped itself moved it already
                 folder.mcap.replace(before)
             repair_mcap(before)
-            # mcap_timeline=per_run: the runs' times overlap, so nothing can be cut by time;
-            # the file keeps what the stopped process wrote after its checkpoint
-            per_run = record.mcap_timeline == "per_run"
-            until = 2**63 - 1 if per_run else self.start_ns + int(resume.get("clock_ns", 0))
+            if record.mcap_timeline == "per_run":  # each run cut at its own clock
+                from cobelrun.io.mcap import per_run_cut
+
+                clocks = resume.get("run_clocks_ns") or {}
+                until: Any = per_run_cut(self.start_ns, clocks)
+            else:
+                until = self.start_ns + int(resume.get("clock_ns", 0))
             self._mcap_before = (before, until)
         self.mcap = self._foxglove_stream(record, geometry, metadata)
         self._active: dict[bool, list[Monitor]] = {}
@@ -770,7 +773,7 @@ class RunRecorder:
         with self.guard.critical():
             poses = batch.with_poses(self.env).poses()
             if poses is not None:
-                self._writer.submit(self.mcap.write_poses, run, t, poses)
+                self._writer.submit(self.mcap.write_poses, run, t, poses, end_pos)
             if self._frames is not None:
                 for t_ns, image in zip(t, self._frames.take(n_poses), strict=False):
                     self._writer.submit(self.mcap.write_image, run, int(t_ns), image)

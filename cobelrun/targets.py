@@ -124,6 +124,7 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.agents.mfec.MFEC",
     "cobelrun.agents.conditioning.RescorlaWagner",
     "cobelrun.agents.conditioning.TDConditioning",
+    "cobelrun.agents.conditioning.PearceHall",
     *(f"cobelrun.agents.td_control.{name}" for name in _TD_CONTROL),
     # monitors
     *(f"cobelrun.monitors.{name}" for name in _MONITORS),
@@ -140,6 +141,7 @@ BUILTIN: tuple[str, ...] = (
     "cobelrun.objectives.TrialMean",
     "cobelrun.objectives.ChoiceNLL",
     "cobelrun.revaluation.RevaluationJob",
+    "cobelrun.recover.RecoveryJob",
     "cobelrun.render.benchmark.FrameTimeBenchmark",
     # cobel's sweeper (conf/hydra/sweeper/cobel.yaml)
     "hydra_plugins.cobel_sweeper.cobel_sweeper.CobelSweeper",

@@ -9,9 +9,13 @@ With training epsilon 0.3 and two actions the expected training reward is capped
 1 - 0.3 / 2 = 0.85, so the figure also draws that ceiling and the greedy probe
 (``greedy_correct``: after every trial, the fraction of the four displays on which the greedy
 action is correct; measured without learning or environment draws, see
-``cobelrun/monitors/probe.py``), which shows what the agents have learnt. Black bars: the
-original's means over trials 6-10 and 41-50 (``choice/simulation_choice.py`` of the paper's
-simulations on CoBeL-RL v2.0.0 with keras-rl2, 200 agents, run here; docs/two_afc.md).
+``cobelrun/monitors/probe.py``), which shows what the agents have learnt. Black: the original's
+mean per trial (``choice/simulation_choice.py`` of the paper's simulations on CoBeL-RL v2.0.0 with
+keras-rl2, run by ``benchmarks/original_fig9_runs.py``; solid reward, dashed greedy), read from
+the committed tables ``docs/figures/data/fig9_original_runs*.csv`` where the source checkout has
+them, and the title gives the two-sample comparison of the figure's agents with the original's
+over trials 6-10 (:func:`~cobelrun.figures.twosample.two_sample`: difference of means with
+Welch's 95 % interval, probability of superiority).
 """
 
 from __future__ import annotations
@@ -19,10 +23,8 @@ from __future__ import annotations
 import functools
 
 from cobelrun.figures.choice import epsilon_of, plot_mean_reward
+from cobelrun.figures.data import fig9_compare_note, fig9_original_tables
 from cobelrun.figures.registry import Figure, FigureData
-
-#: the original's means (trials, training reward, greedy choice correct), 200 agents
-ORIGINAL = (((6, 10), 0.616, 0.699), ((41, 50), 0.839, 0.961))
 
 
 def draw(data: FigureData, heading: str = "Fig. 9C: two-alternative forced choice (DQN)"):
@@ -32,18 +34,23 @@ def draw(data: FigureData, heading: str = "Fig. 9C: two-alternative forced choic
     eps = epsilon_of(data.run_dirs("dqn")[0])
     fig, ax = plt.subplots(figsize=(5.2, 3.4), constrained_layout=True)
     table = plot_mean_reward(trials, ax, epsilon=eps)
-    for k, ((lo, hi), reward, greedy) in enumerate(ORIGINAL):
-        for value, ls in ((reward, "-"), (greedy, "--")):
-            ax.hlines(value, lo - 0.4, hi + 0.4, color="k", lw=2.2, ls=ls,
-                      label=("original (CoBeL-RL v2, 200 agents): reward" if ls == "-" else
-                             "original: greedy") if k == 0 else None)  # fmt: skip
+    original = fig9_original_tables()
+    if original is not None:
+        per_trial = original[1]
+        n = int(per_trial["agents"].max())
+        ax.plot(per_trial["trial"], per_trial["reward_mean"], color="k", lw=1.2,
+                label=f"original (CoBeL-RL v2 + keras-rl2, {n} agents): reward")  # fmt: skip
+        ax.plot(per_trial["trial"], per_trial["greedy_mean"], color="k", lw=1.2, ls="--",
+                label="original: greedy")  # fmt: skip
     ax.legend(frameon=False, fontsize=6.5, loc="lower right")
     early, late = trials[trials["trial"].between(6, 10)], trials[trials["trial"].between(41, 50)]
     note = f"reward: trials 6-10 {early['reward'].mean():.3f}, 41-50 {late['reward'].mean():.3f}"
     if "greedy_correct" in late:
         note += (f"; greedy: {early['greedy_correct'].mean():.2f}, "
                  f"{late['greedy_correct'].mean():.2f}")  # fmt: skip
-    ax.set_title(f"{heading}\n{note}", fontsize=9)
+    if original is not None:
+        note += "\n" + fig9_compare_note(trials, original[0])
+    ax.set_title(f"{heading}\n{note}", fontsize=8)
     ax.spines[["top", "right"]].set_visible(False)
     return fig, table
 

@@ -41,7 +41,7 @@ FIG9 = ["task=two_afc", "task.save_agents=none"]
 #: DQN in an open field (variable trial lengths), then test trials without learning;
 #: gradient clipping on (SB3's default max_grad_norm 10 is rarely reached: 0.5 is)
 GRID = [
-    "task=gridworld", "agent=dqn", "env.world.width=4", "env.world.height=4", "+env.world.goal=15",
+    "task=gridworld", "agent=dqn", "env.world.width=4", "env.world.height=4", "env.world.goal=15",
     "agent.learning_starts=20", "agent.max_grad_norm=0.5",
     "agent.net_arch=[32,32]", "task.protocol.max_steps=30", "task.save_agents=none",
     "task.record.steps=false", "task.record.mcap=false",

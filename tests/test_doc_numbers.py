@@ -1,9 +1,11 @@
-"""Every result number in README.md and docs/figures/*.md is read from a committed table.
+"""Every number in README.md's figure rows and docs/figures/*.md is read from a committed table.
 
 The docs tag results with ``<!-- data: TABLE.csv ...; settings: ... -->`` markers
 (:mod:`cobelrun.figures.doc_numbers`); a number that no named table in ``docs/figures/data``
 holds at the shown precision fails, and so does a table on a figure page, or a figure row of
-README's figure table, left without a marker.
+README's figure table, left without a marker. On the figure pages the text no marker covers is
+checked too: each number must be held by a table the page names (or ``paper.csv``) or be in
+:data:`ALLOW`, the reviewed list of settings and constants that need no table.
 """
 
 from __future__ import annotations
@@ -22,12 +24,72 @@ DATA = ROOT / "docs" / "figures" / "data"
 PAGES = sorted((ROOT / "docs" / "figures").glob("*.md"))
 README = ROOT / "README.md"
 FIGURE_ROW = re.compile(r"^\| (Fig\. \d|Mattar|Russek|Water maze)")
+#: numbers on a figure page that no table holds and need none: settings of the method and the
+#: paper's constants the page quotes (page -> {number as written: why}). Reviewed; keep small.
+ALLOW: dict[str, dict[str, str]] = {
+    "fig4.md": {"400": "the paper's steps per repetition (5 x 400)",
+                "2,000": "the paper's steps per point (5 x 400)"},
+    "fig6a.md": {"90": "the paper's 90-degree turns", "49": "seeds 0-49 (the 50 runs)"},
+    "fig7.md": {"0.01": "the paper's soft target update (a setting)"},
+    "fig8.md": {"77": "the paper's 77-node graph", "240": "the paper's 240-degree panorama",
+                "1e-3": "learning rate (setting)", "3e-5": "learning rate (setting)",
+                "1e-4": "learning rate (setting)"},
+    "fig9.md": {"299": "seeds 0-299 (the original's 300 agents)"},
+    "morris.md": {"493": "Foster et al.'s place cells (setting)", "60": "probe length, s (setting)",
+                  "0.40": "tests/test_water_maze.py's threshold, not a result"},
+}  # fmt: skip
 PROVENANCE = {"table", "source", "command", "cobel_commit", "seeds", "machine", "wall_time_s"}
 
 
 def test_every_result_number_is_in_a_table():
-    problems = doc_numbers.check([*PAGES, README], DATA, all_tables=PAGES)
+    problems = doc_numbers.check([*PAGES, README], DATA, all_tables=PAGES, pages=PAGES, allow=ALLOW)
     assert not problems, "\n".join(problems)
+
+
+def test_allow_list_is_current():
+    """Every allowed number still appears on its page (a stale entry would hide a new one)."""
+    for page, entries in ALLOW.items():
+        shown = {v for c in doc_numbers.uncovered(ROOT / "docs" / "figures" / page)
+                 for _, v, _, _ in doc_numbers.numbers(c.text)}  # fmt: skip
+        stale = [
+            k
+            for k in entries
+            if not any(abs(float(k.replace(",", "")) - v) <= 1e-9 * v for v in shown)
+        ]
+        assert not stale, f"{page}: {stale} no longer on the page"
+
+
+def test_an_untagged_number_that_drifted_fails(tmp_path):
+    """Untagged text on a page is checked against the tables it links and its allow list."""
+    (tmp_path / "t.csv").write_text("measure,mean\nlat_91_100,9.224\n")
+    (tmp_path / "paper.csv").write_text("figure,measure,value\nx,path,8\n")
+    page = tmp_path / "page.md"
+    text = (
+        "See [`data/t.csv`](data/t.csv).\n\nLatency over trials 91-100: {} steps, max {} steps.\n"
+    )
+    page.write_text(text.format("9.2", "35"))
+    allow = {"page.md": {"35": "max steps (setting)"}}
+    assert doc_numbers.check([page], tmp_path, pages=[page], allow=allow) == []
+    page.write_text(text.format("9.3", "35"))  # drifted from the table's 9.224
+    (problem,) = doc_numbers.check([page], tmp_path, pages=[page], allow=allow)
+    assert "'9.3' (untagged) is in no table the page names (t.csv, paper.csv)" in problem
+    page.write_text(text.format("9.2", "36"))  # a setting not on the list
+    assert "'36'" in doc_numbers.check([page], tmp_path, pages=[page], allow=allow)[0]
+    page.write_text(text.format("9.2", "8"))  # the paper's table counts on every page
+    assert doc_numbers.check([page], tmp_path, pages=[page], allow=allow) == []
+    page.write_text("<!-- data: none -->\n| trials | latency |\n| - | - |\n| 91-100 | 9.3 |\n")
+    assert "not a settings table" in doc_numbers.check([page], tmp_path, pages=[page])[0]
+
+
+def test_a_drifted_number_on_the_real_page_fails(tmp_path):
+    """A copy of a real figure page with one number changed in untagged text fails the test."""
+    page = ROOT / "docs" / "figures" / "fig6b.md"
+    copy = tmp_path / "fig6b.md"
+    copy.write_text(page.read_text())
+    assert doc_numbers.check([copy], DATA, pages=[copy], allow=ALLOW) == []
+    copy.write_text(page.read_text() + "\nThe original's latency was 9.87 steps.\n")
+    (problem,) = doc_numbers.check([copy], DATA, pages=[copy], allow=ALLOW)
+    assert "'9.87' (untagged)" in problem
 
 
 def test_readme_figure_rows_have_markers():

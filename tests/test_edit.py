@@ -204,6 +204,31 @@ def test_run_it_command_quotes_the_run_folder() -> None:
     assert override.key_or_group == "hydra.run.dir" and override.value() == str(out)
 
 
+def test_run_it_overrides_go_before_the_run_folder() -> None:
+    from cobelrun.web.editor import Editor
+
+    editor = Editor(folder=Path("/tmp/conf"), results=Path("/tmp/results"))
+    cmd = editor.run_command("g", "g", Path("/tmp/out"), 1, ["task.protocol.phases.0.trials=2"])
+    assert cmd[-4:-1] == ["env=g", "task.runs=1", "task.protocol.phases.0.trials=2"]
+    assert cmd[-1] == "hydra.run.dir='/tmp/out'"
+
+
+def test_the_three_pages_share_one_scaffold() -> None:
+    from cobelrun.web.arena_editor import ArenaPage
+    from cobelrun.web.edit_page import EditPage
+    from cobelrun.web.editor import Page
+    from cobelrun.web.graph_editor import GraphPage
+
+    shared = ("header", "load_rows", "tool_grid", "phase_rows", "save_panel", "change", "undo",
+              "use", "save", "run_it", "export", "on_open", "on_load_template")  # fmt: skip
+    for page in (Page, GraphPage, ArenaPage):
+        assert issubclass(page, EditPage)
+        assert not set(shared) & set(vars(page)), f"{page.__name__} writes out shared parts"
+        for hook in ("load_template", "load_existing", "existing_names", "write", "figure",
+                     "run_target", "refresh"):  # fmt: skip
+            assert hook in vars(page), f"{page.__name__} lacks {hook}"
+
+
 def test_cli_errors_are_one_line(cli, tmp_path: Path) -> None:
     r = cli("edit", "env=../../etc")
     assert r.returncode != 0 and "is not a valid config name" in r.stderr
@@ -423,9 +448,8 @@ def test_draw_a_plus_maze_and_save(server: str, browser, workdir: Path) -> None:
     _press(browser, ".cobel-tool-goal")
     _click_cell(browser, 0, 2)  # the north arm's end pays 1 and ends the trial
     _wait_text(browser, ".cobel-yaml", r"G")
-    _press(browser, ".cobel-tool-start")  # one start: the south arm's end (the others removed)
-    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
-        _click_cell(browser, r, c)
+    _press(browser, ".cobel-tool-start")  # one start: the south arm's end (the template's
+    _click_cell(browser, 4, 2)  # top-left start is walled in; its goal went with the resize)
     _wait_text(browser, ".cobel-info", r"start probabilities: \(4,2\) 1\.00;")
     _wait_text(browser, ".cobel-ok", "no problems")
     yaml_text = _wait_text(browser, ".cobel-yaml", "##G##")
@@ -455,8 +479,7 @@ def _plus_maze() -> GridDesign:
     for r, c in [(r, c) for r in (0, 1, 3, 4) for c in (0, 1, 3, 4)]:
         d.paint("wall", (r, c))
     d.paint("goal", (0, 2), value=1.0)
-    for r, c in [(1, 2), (2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (3, 2)]:
-        d.paint("start", (r, c))
+    d.paint("start", (4, 2))
     return d
 
 
@@ -587,7 +610,7 @@ def test_graph_save_keeps_keys_and_comments(tmp_path: Path) -> None:
 
     conf = tmp_path / "conf"
     loaded = load_graph_template("hex_3d")
-    path = save_graph(conf, "hex_copy", loaded, loaded.design)
+    (path,) = save_graph(conf, "hex_copy", loaded, loaded.design)
     assert path.read_text() == loaded.text  # unchanged: the built-in file as it is
     d = loaded.design.copy()
     d.paint("goal", 0, 2.0)
@@ -600,12 +623,172 @@ def test_graph_save_keeps_keys_and_comments(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_agents_view_is_the_runs_camera() -> None:
+def test_agents_view_is_the_runs_camera(tmp_path: Path, monkeypatch) -> None:
     from cobelrun.web.graph_editor import load_graph_template
 
+    monkeypatch.setenv("COBEL_CACHE", str(tmp_path / "no_cache"))
     d = load_graph_template("hex_3d").design
-    img = d.agent_view(38, 90.0)  # the run's camera: 12 x 48 panorama, rendered by pybullet
+    img, source = d.preview(38, 90.0)  # no render cache: the run's camera, rendered by pybullet
     assert img.shape == (12, 48, 3) and img.dtype == np.uint8 and img.std() > 5
+    assert source.startswith("rendered with pybullet (no render cache for this scene and camera")
+
+
+def _plant_cache(design, cache_dir: Path) -> np.ndarray:
+    """A render cache for ``design``'s camera in ``cache_dir`` whose every view is a flat
+    colour (node * 10 + heading), written in the cache's format (``pybullet-<version>.npy``
+    and its per-node CRC-32 checksums), so a preview that reads it can be told apart from a
+    rendered one."""
+    import json
+
+    from cobelrun.render import cache
+    from cobelrun.render.scene import pybullet_version
+
+    request = design.cache_request()
+    n, k, cam = request.n_nodes, request.n_directions, request.camera
+    images = np.zeros((n, k, cam.height, cam.width, 3), np.uint8)
+    images[:] = (np.arange(n)[:, None] * 10 + np.arange(k)[None, :])[..., None, None, None]
+    folder = request.folder()
+    folder.mkdir(parents=True)
+    path = folder / f"pybullet-{pybullet_version() or '0'}.npy"
+    np.save(path, images)
+    Path(f"{path}.crc32.json").write_text(
+        json.dumps({"block": "node", "crc32": cache.block_checksums(images)})
+    )
+    assert cache.locate(request) == path
+    return images
+
+
+def test_view_preview_reads_the_render_cache(tmp_path: Path) -> None:
+    from cobelrun.web.graph_editor import load_graph_template
+
+    d = load_graph_template("grid").design  # 5 x 5 nodes, 4 headings
+    d.extra["observation"].update(height=6, width=8, cache_dir=str(tmp_path / "cache"))
+    images = _plant_cache(d, tmp_path / "cache")
+    img, source = d.preview(12, 180.0)  # heading index 2 (0, 90, 180, 270 degrees)
+    assert img.shape == (6, 8, 3) and (img == 122).all()  # the cache's image, its size
+    assert np.array_equal(img, images[12, 2])
+    assert source.startswith("read from the render cache ") and str(tmp_path / "cache") in source
+    # the key is the run's: a cache cobel render-cache built for the built-in hex_3d is found
+    from cobelrun.config import instantiate
+
+    hexd = load_graph_template("hex_3d").design
+    env = instantiate("env", ec.plain(ec.read_yaml(REPO / "conf/env/hex_3d.yaml")))
+    assert hexd.cache_request().key() == env.unwrapped.observation_module.cache_request().key()
+    hexd.toggle_edge(0, 1)  # an edited graph is saved as a manual topology: another scene
+    assert hexd.cache_request().key() != env.unwrapped.observation_module.cache_request().key()
+
+
+# -- per-phase variants of graphs and arenas --------------------------------------------------
+def test_graph_phases_change_goals_and_starts_and_go_into_the_task(tmp_path: Path) -> None:
+    from cobelrun.compose import composer
+    from cobelrun.web.graph_editor import (
+        load_graph,
+        load_graph_template,
+        quick_overrides,
+        save_graph,
+    )
+
+    loaded = load_graph_template("grid")  # its DQN task: one training phase of 200 trials
+    d = loaded.design
+    assert d.phase_names() == ["training"] and d.phase_state(0)[:2] == ({24: 1.0}, {24})
+    d.phases.append({"name": "moved", "trials": 50})
+    d.paint("clear", 24, phase=1)  # the goal moves to node 20 from the second phase on
+    d.paint("goal", 20, 2.0, phase=1)
+    d.paint("start", 4, phase=1)
+    assert d.phases[1] == {"name": "moved", "trials": 50, "rewards": {24: 0.0, 20: 2.0},
+                           "terminals": {24: False, 20: True}, "starts": [0, 4]}  # fmt: skip
+    assert d.phase_state(1) == ({20: 2.0}, {20}, {0, 4})
+    assert d.phase_state(0)[:2] == ({24: 1.0}, {24}) and d.rewards == {24: 1.0}  # env as built
+    fill = r'data-node="{}"[^>]*fill="(#\w+)"'
+    assert re.search(fill.format(20), d.svg(phase=1)).group(1) == "#fac83c"  # pays, ends
+    assert re.search(fill.format(24), d.svg(phase=1)).group(1) == "#ffffff"  # no longer
+    assert re.search(fill.format(24), d.svg(phase=0)).group(1) == "#fac83c"
+    d.toggle_edge(15, 20)
+    d.toggle_edge(20, 21)  # node 20 (the bottom-left corner) cut off: the phase paying there
+    assert d.problems() == ["task.protocol phase 'moved': goal node 20 is unreachable from "
+                            "every start; add an edge to it"]  # fmt: skip
+    d.toggle_edge(20, 21)
+    conf = tmp_path / "conf"
+    written = save_graph(conf, "moving", loaded, d, with_task=True)
+    assert written == [conf / "env" / "moving.yaml", conf / "task" / "moving.yaml"]
+    with composer(conf) as compose:
+        cfg = compose(["task=moving", *quick_overrides(d.phases, 5)])
+    phases = cfg.task.protocol.phases
+    assert [(p.name, p.trials) for p in phases] == [("training", 5), ("moved", 5)]
+    assert dict(phases[1].rewards) == {20: 2.0} | {24: 0.0} and list(phases[1].starts) == [0, 4]
+    assert cfg.agent._target_.endswith("DQNAgent") or "dqn" in str(cfg.agent).lower()
+    again = load_graph(conf, "moving").design
+    assert again.phases == d.phases and again.rewards == {24: 1.0}
+
+
+def test_arena_phase_moves_the_platform_and_saves_it_in_the_task(tmp_path: Path) -> None:
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+    from cobelrun.protocol import Protocol
+    from cobelrun.web.arena_editor import load_arena, save_arena
+
+    loaded = load_arena(None, "water_maze")
+    d = loaded.design
+    rev = d.phase_names().index("reversal")
+    # the reversal platform switched off, a new one in the SE quadrant switched on instead
+    assert d.paint_phase("goal", -0.42, -0.42, rev) == "phase reversal: goal platform_reversal off"
+    assert d.paint_phase("goal", 0.42, -0.42, rev, radius=0.05) == "phase reversal: goal goal_0 on"
+    assert d.node["goals"]["goal_0"] == {"shape": "circle", "x": 0.42, "y": -0.42, "radius": 0.05,
+                                         "reward": 0.0, "terminal": False}  # fmt: skip
+    d.paint_phase("start", 0.0, 0.95, rev, tol=0.05)  # north no longer a start of the reversal
+    d.paint_phase("start", 0.5, 0.0, rev)  # a point start
+    assert d.phases[rev]["starts"] == ["east", "south", "west", [0.5, 0.0]]
+    assert d.problems() == []
+    goals = d.phase_env(rev).unwrapped.arena.goals
+    assert (goals["goal_0"].reward, goals["goal_0"].terminal) == (1.0, True)
+    assert (goals["platform_reversal"].reward, goals["platform_reversal"].terminal) == (0, False)
+    assert d.phase_env(0).unwrapped.arena.goals["goal_0"].reward == 0.0  # off before the reversal
+    with pytest.raises(CobelError, match="the obstacle tool edits the env, not a phase"):
+        d.paint_phase("obstacle", 0.0, 0.0, rev)
+    conf = tmp_path / "conf"
+    save_arena(conf, "pool", loaded, d, with_task=True)
+    with composer(conf) as compose:
+        cfg = compose(["task=pool"])
+    proto = cfg.task.protocol
+    assert [p.name for p in proto.phases] == ["acquisition", "probe", "reversal"]
+    assert dict(proto.phases[2].rewards) == {"platform": 0.0, "platform_reversal": 0.0,
+                                             "goal_0": 1.0}  # fmt: skip
+    env = instantiate("env", cfg.env)
+    from omegaconf import OmegaConf
+
+    protocol = Protocol.from_config(OmegaConf.to_container(proto))
+    for p in protocol.phases:
+        protocol.apply(p, env)  # as the run applies them: the new platform pays in the reversal
+    assert env.unwrapped.arena.goals["goal_0"].reward == 1.0
+    assert load_arena(conf, "pool").design.phases == d.phases
+
+
+def test_arena_start_heading_is_the_envs_and_drawn(tmp_path: Path) -> None:
+    from cobelrun.compose import composer
+    from cobelrun.config import instantiate
+    from cobelrun.web.arena_editor import load_arena, save_arena
+
+    loaded = load_arena(None, "arena")  # start_heading not given: the env's "centre"
+    d = loaded.design
+    assert d.start_heading() == "centre"
+    (arrow,) = re.findall(r'class="cobel-heading" data-deg="([-\d.]+)"', d.svg())
+    assert float(arrow) == pytest.approx(45.0)  # from (0.15, 0.15) towards the centre (0.5, 0.5)
+    d.set_start_heading(-90)
+    assert d.node["start_heading"] == 270
+    (arrow,) = re.findall(r'class="cobel-heading" data-deg="([-\d.]+)"', d.svg())
+    assert float(arrow) == pytest.approx(270.0)
+    with pytest.raises(CobelError, match="start heading must be an angle in degrees, 'random' "
+                       "or 'centre', got 'north'"):  # fmt: skip
+        d.set_start_heading("north")
+    conf = tmp_path / "conf"
+    save_arena(conf, "facing", loaded, d)
+    assert "start_heading: 270\n" in (conf / "env" / "facing.yaml").read_text()
+    with composer(conf) as compose:
+        cfg = compose(["env=facing", "task=morris_water_maze"])
+    assert cfg.env.start_heading == 270
+    instantiate("env", cfg.env)  # the env takes it (a start then faces -y)
+    d.set_start_heading("random")
+    assert "cobel-heading-random" in d.svg() and 'class="cobel-heading"' not in d.svg()
 
 
 @pytest.mark.slow  # renders with pybullet: ~25 s on 2 loaded cores
@@ -761,3 +944,297 @@ def test_arena_run_it_runs_the_water_maze_task(server: str, browser, workdir: Pa
     assert "task=pool_run env=pool_run task.runs=1" in status
     assert "/run?p=edit/pool_run/" in _wait_text(browser, ".cobel-dashboard", "dashboard")
     assert (workdir / "conf" / "task" / "pool_run.yaml").is_file()
+
+
+# -- the pages' new parts in Chromium ----------------------------------------------------------
+def _pick(driver, select_css: str, text: str) -> None:
+    """Open the menu ``select_css`` and pick the option whose text holds ``text``."""
+    _press(driver, select_css)
+    option = next(o for o in _wait_all(driver, ".q-menu .q-item") if text in o.text)
+    option.click()
+
+
+def _click_world(driver, x: float, y: float) -> None:
+    """Click the arena drawing at world point ``(x, y)`` (its data-* give the transform)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    svg = driver.find_element(By.CSS_SELECTOR, "svg.cobel-arena")
+    x0, y1, s = (float(svg.get_attribute(f"data-{k}")) for k in ("x0", "y1", "scale"))
+    w, h = float(svg.get_attribute("width")), float(svg.get_attribute("height"))
+    dx, dy = (x - x0) * s - w / 2, (y1 - y) * s - h / 2  # offsets from the element's centre
+    ActionChains(driver).move_to_element_with_offset(svg, round(dx), round(dy)).click().perform()
+
+
+def test_arena_page_outline_menu_and_start_heading(server: str, browser) -> None:
+    browser.get(server + "/arena?env=arena")  # the open square
+    _wait_text(browser, ".cobel-origin", "template arena")
+    shape = _wait_text(browser, ".cobel-outline-shape", r"\bsquare\b")
+    assert "circle" not in shape  # the loaded arena's outline, not the menu's default
+    assert _attr(browser, ".cobel-outline-size input", "value") == "1"
+    assert float(_attr(browser, "polyline.cobel-heading", "data-deg")) == pytest.approx(45.0)
+    _pick(browser, ".cobel-heading-kind", "angle (degrees)")
+    _fill(browser, ".cobel-heading-deg", "270")
+    _press(browser, ".cobel-heading-set")
+    _wait_text(browser, ".cobel-yaml", r"start_heading: 270")
+    _wait_text(browser, ".cobel-info", r"start heading: 270 degrees")
+    assert _attr(browser, "polyline.cobel-heading", "data-deg") == "270.0"
+
+
+@pytest.mark.slow  # the water maze's 493 place cells: ~10 s
+def test_arena_page_outline_menu_follows_the_loaded_arena(server: str, browser) -> None:
+    browser.get(server + "/arena?env=arena")
+    _wait_text(browser, ".cobel-outline-shape", r"\bsquare\b")
+    _pick(browser, ".cobel-template", "Morris water maze")
+    _press(browser, ".cobel-load-template")
+    _wait_text(browser, ".cobel-origin", "template water_maze")
+    _wait_text(browser, ".cobel-outline-shape", r"\bcircle\b")
+    _wait_text(browser, ".cobel-heading-kind", r"face the centre")
+
+
+@pytest.mark.slow  # ~10 s on the loaded machine (test_view_preview_reads_the_render_cache: 1 s)
+def test_graph_page_view_from_the_render_cache(server: str, browser, workdir: Path) -> None:
+    from cobelrun.web.graph_editor import _GRID_TEMPLATE, load_graph
+
+    conf = workdir / "conf"
+    (conf / "env").mkdir(parents=True, exist_ok=True)
+    cache_dir = workdir / "render_cache"
+    text = _GRID_TEMPLATE.replace("height: 84", "height: 6").replace("width: 84", "width: 8")
+    (conf / "env" / "cached_grid.yaml").write_text(text + f"  cache_dir: {cache_dir}\n")
+    images = _plant_cache(load_graph(conf, "cached_grid").design, cache_dir)
+    browser.get(server + "/graph?env=cached_grid")
+    _wait_text(browser, ".cobel-origin", "cached_grid.yaml")
+    _pick(browser, ".cobel-heading", "180")
+    _press(browser, ".cobel-tool-view")
+    _press(browser, "circle.cobel-node[data-node='12']")
+    _wait_text(browser, ".cobel-view-label", r"agent's view at node 12, heading 180 degrees "
+               r"\(6 x 8 px")  # fmt: skip
+    _wait_text(browser, ".cobel-view-source", r"^read from the render cache .*render_cache")
+    src = _attr(browser, ".cobel-view img", "src")
+    import base64
+    import io
+
+    import matplotlib.pyplot as plt
+
+    png = plt.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format="png")
+    assert png.shape[:2] == (6, 8)
+    assert np.allclose(png[..., :3] * 255, images[12, 2], atol=1)  # the cache's pixels
+
+
+@pytest.mark.slow  # a DQN run on rendered images (2 short phases): ~1 min
+def test_graph_page_phases_and_run_it(server: str, browser, workdir: Path) -> None:
+    import cobelrun
+    from cobelrun.compose import composer
+
+    browser.get(server + "/graph")
+    _wait_text(browser, ".cobel-origin", "template grid")
+    _wait_text(browser, ".cobel-phase", "env")
+    _press(browser, ".cobel-add-phase")  # phase 2 of the grid task's protocol, picked
+    _wait_text(browser, ".cobel-phase", r"phase 2: phase_2")
+    _press(browser, ".cobel-tool-clear")
+    _press(browser, "circle.cobel-node[data-node='24']")
+    _wait_text(browser, ".cobel-phase-hint", r"phase_2 \(10 trials\) sets rewards 24: 0.0")
+    _press(browser, ".cobel-tool-goal")
+    _press(browser, "circle.cobel-node[data-node='20']")
+    deadline = time.monotonic() + 10
+    while _attr(browser, "circle.cobel-node[data-node='20']", "fill") != "#fac83c":
+        assert time.monotonic() < deadline, "the phase's new goal was not drawn"
+        time.sleep(0.1)
+    assert _attr(browser, "circle.cobel-node[data-node='24']", "fill") == "#ffffff"
+    _shot(browser, "edit-graph-phase.png")
+    _fill(browser, ".cobel-name", "grid_moves")
+    _fill(browser, ".cobel-run-trials", "2")
+    _press(browser, ".cobel-with-task")
+    _press(browser, ".cobel-run")  # saves env and task, then one run, each phase cut to 2 trials
+    _wait_text(browser, ".cobel-status", r"saved .*env/grid_moves\.yaml, .*task/grid_moves\.yaml")
+    status = _wait_text(browser, ".cobel-run-status", r"^(finished|failed)", timeout=400)
+    assert status.startswith("finished"), status
+    assert "task=grid_moves env=grid_moves task.runs=1 task.protocol.phases.0.trials=2" in status
+    assert "/run?p=edit/grid_moves/" in _wait_text(browser, ".cobel-dashboard", "dashboard")
+    with composer(workdir / "conf") as compose:
+        phases = compose(["task=grid_moves"]).task.protocol.phases
+    assert [p.name for p in phases] == ["training", "phase_2"] and phases[1].rewards[20] == 1.0
+    run_dir = Path(re.search(r"-> (\S+)$", status).group(1))
+    trials = cobelrun.load(run_dir).trials
+    assert len(trials) == 4  # 2 + 2 trials
+
+
+@pytest.mark.slow  # the water maze's 493 place cells are rebuilt on every redraw: ~20 s
+def test_arena_page_moves_the_platform_in_the_reversal(server: str, browser, workdir: Path) -> None:
+    from cobelrun.compose import composer
+
+    browser.get(server + "/arena?env=water_maze")
+    _wait_text(browser, ".cobel-ok", "no problems", timeout=30)
+    _pick(browser, ".cobel-phase", "reversal")
+    _wait_text(browser, ".cobel-phase-hint", r"^reversal \(16 trials\)")
+    _press(browser, ".cobel-tool-goal")
+    _click_world(browser, -0.42, -0.42)  # the reversal platform: off
+    _wait_text(browser, ".cobel-status", "goal platform_reversal off")
+    _click_world(browser, 0.42, -0.42)  # a new platform in the SE quadrant: on in this phase
+    _wait_text(browser, ".cobel-status", "goal goal_0 on")
+    assert _attr(browser, "polygon.cobel-goal-goal_0", "fill") == "#fac83c"
+    assert _attr(browser, "polygon.cobel-goal-platform_reversal", "fill") == "#ffffff"
+    _shot(browser, "edit-arena-reversal.png")
+    _pick(browser, ".cobel-phase", "acquisition")  # before the reversal the new goal is off
+    deadline = time.monotonic() + 20
+    while _attr(browser, "polygon.cobel-goal-goal_0", "fill") != "#ffffff":
+        assert time.monotonic() < deadline, "the new goal pays before the reversal"
+        time.sleep(0.2)
+    _fill(browser, ".cobel-name", "pool_moved")
+    _press(browser, ".cobel-with-task")
+    _press(browser, ".cobel-save")
+    _wait_text(browser, ".cobel-status", r"saved .*env/pool_moved\.yaml, .*task/pool_moved\.yaml")
+    with composer(workdir / "conf") as compose:
+        cfg = compose(["task=pool_moved"])
+    rev = cfg.task.protocol.phases[2]
+    assert (rev.name, rev.rewards.goal_0, rev.terminals.goal_0) == ("reversal", 1.0, True)
+    assert rev.rewards.platform_reversal == 0.0 and cfg.env.goals.goal_0.reward == 0.0
+
+
+def test_the_address_and_env_in_the_address_open_the_page_that_edits_it(tmp_path: Path) -> None:
+    from cobelrun.web.editor import page_of, prepare, url_of
+
+    conf = tmp_path / "conf"  # not there yet: built-in envs
+    assert [
+        page_of(conf, e) for e in ("water_maze", "hex_3d", "tmaze_paper", "../x", "bandit")
+    ] == ["arena", "graph", None, None, None]  # None: the gridworld page (or its message)
+    assert url_of("127.0.0.1", 8090, prepare(conf, "water_maze", tmp_path)) == \
+        "http://127.0.0.1:8090/arena?env=water_maze"  # fmt: skip
+    assert url_of("::1", 8090, prepare(conf, None, tmp_path)) == "http://[::1]:8090/"
+
+
+@pytest.mark.slow  # the arena page draws the open square's place cells: ~5 s
+def test_env_in_the_address_of_the_gridworld_page_goes_to_its_page(server: str, browser) -> None:
+    browser.get(server + "/?env=arena")  # an arena named on the gridworld page's address
+    _wait_text(browser, ".cobel-origin", "template arena")
+    assert browser.current_url.endswith("/arena?env=arena")
+
+
+def test_export_marks_the_goals_of_the_chosen_phase() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    from cobelrun.web.grid_design import _draw_payoffs
+
+    d = ec.load_template("tmaze_paper").design
+    left, right = d.state(d.places["left_arm"]), d.state(d.places["right_arm"])
+    for phase, goal in ((0, right), (1, left)):  # acquisition pays right, extinction left
+        fig, ax = plt.subplots()
+        world = d.phase_world(phase)
+        _draw_payoffs(GridWorldEnv(world), ax)
+        marks = {c.get_label(): c.get_offsets().tolist() for c in ax.collections}
+        plt.close(fig)
+        assert marks["goal"] == [world.coords[goal].tolist()]
+        assert marks["start"] == [world.coords[38].tolist()]
+    from cobelrun.web.arena_editor import load_arena
+
+    pool = load_arena(None, "water_maze").design
+    pool.node["observation"] = [{"kind": "pose"}]  # the 493 place cells are not drawn here
+    reversal = pool.phase_names().index("reversal")
+    fig, ax = plt.subplots()
+    _draw_payoffs(pool.phase_env(reversal), ax)
+    (rim,) = [p for p in ax.patches if isinstance(p, Circle)]
+    plt.close(fig)
+    assert rim.center == pytest.approx((-0.42, -0.42))  # the moved platform, not the old one
+
+
+@pytest.mark.slow  # a page in Chromium: ~5 s
+def test_resize_beyond_the_limit_says_so(server: str, browser) -> None:
+    browser.get(server + "/")
+    _wait_text(browser, ".cobel-info", r"^10 x 10 cells")
+    _fill(browser, ".cobel-width", "100")
+    _fill(browser, ".cobel-height", "100")
+    _press(browser, ".cobel-resize")  # not clamped to 32 x 32 without a word
+    _wait_text(browser, ".cobel-status", r"a 100 x 100 grid is too large to edit comfortably here "
+               r"\(at most 32 x 32\)")  # fmt: skip
+    assert _wait_text(browser, ".cobel-info", r"^10 x 10 cells")
+    from selenium.webdriver.common.keys import Keys
+
+    _fill(browser, ".cobel-width", Keys.BACKSPACE)  # an empty box
+    _press(browser, ".cobel-resize")
+    _wait_text(browser, ".cobel-status", r"grid width must be a whole number >= 1, got None")
+
+
+def test_run_it_links_the_dashboard_only_once_it_listens(tmp_path: Path) -> None:
+    from cobelrun.web.edit_runs import Child, Editor
+
+    results = tmp_path / "results"
+    out = results / "edit" / "maze" / "stamp-0"
+    out.mkdir(parents=True)
+    (out / "manifest.json").write_text("{}")
+    editor = Editor(folder=tmp_path / "conf", results=results)
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    editor.dashboard = Child(sleeper, "cobel serve")  # started, not listening yet
+    editor.dashboard_port = _free_port()
+    run = Child(sleeper, "cobel run", out=out)
+    try:
+        assert editor.dashboard_url(run) is None  # a link now would be refused
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", editor.dashboard_port))
+            s.listen()
+            url = editor.dashboard_url(run)
+        assert url == f"http://127.0.0.1:{editor.dashboard_port}/run?p=edit/maze/stamp-0"
+    finally:
+        editor.dashboard.stop()
+
+
+def test_graph_problem_is_drawn_next_to_its_node() -> None:
+    from cobelrun.web.graph_editor import load_graph
+
+    g = load_graph(REPO / "conf", "hex_3d").design
+    goal = 38  # the centre: every edge to it removed
+    for a, b in [e for e in g.edges if goal in e]:
+        g.toggle_edge(a, b)
+    (msg,) = g.problems()
+    assert msg.startswith(f"goal node {goal} is unreachable from every start")
+    svg = g.svg(problems=[msg])
+    ring = re.search(rf'<circle class="cobel-node" data-node="{goal}" [^>]*>', svg).group(0)
+    assert 'stroke="#d00000"' in ring and 'stroke-width="4"' in ring
+    assert re.findall(r'class="cobel-problem-at"[^>]*>([^<]*)<', svg) == [
+        f"goal node {goal} is unreachable from every start"
+    ]
+    assert "cobel-problem-at" not in g.svg(problems=[])
+
+
+@pytest.mark.slow  # the arena page in Chromium: ~10 s
+def test_arena_outline_menu_reads_polygon_after_drawing_one(server: str, browser) -> None:
+    browser.get(server + "/arena?env=arena")  # the open unit square
+    _wait_text(browser, ".cobel-outline-shape", r"\bsquare\b")
+    _wait_text(browser, ".cobel-ok", "no problems", timeout=30)
+    _press(browser, ".cobel-tool-outline")
+    for x, y in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.5, 1.2), (0.0, 1.0)]:  # a house
+        _click_world(browser, x, y)
+        time.sleep(0.5)  # each vertex is drawn before the next click
+    _press(browser, ".cobel-finish")
+    _wait_text(browser, ".cobel-yaml", r"arena: \{shape: polygon")
+    _wait_text(browser, ".cobel-outline-shape", r"\bpolygon\b")
+
+
+def test_an_arena_with_too_many_place_cells_is_refused_in_one_line(tmp_path: Path) -> None:
+    from cobelrun.web.arena_editor import load_arena
+
+    conf = tmp_path / "conf"
+    (conf / "env").mkdir(parents=True)
+    (conf / "env" / "dense.yaml").write_text(
+        "_target_: cobelrun.envs.Continuous2DEnv\n"
+        "arena: {shape: circle, x: 0.0, y: 0.0, radius: 1.0}\n"
+        "observation:\n  - {kind: pose}\n  - {kind: place_cells, n: 2000000, sigma: 0.1}\n"
+    )  # building its env took minutes on every click
+    with pytest.raises(CobelError, match=r"dense\.yaml: 2000000 place cells are too many to draw "
+                       r"here \(at most 5000\); edit its YAML instead"):  # fmt: skip
+        load_arena(conf, "dense")
+    assert len(load_arena(conf, "water_maze").design.node["observation"]) == 1  # 493: opened
+
+
+def test_a_saved_graph_lists_its_edges_one_a_line(tmp_path: Path) -> None:
+    from cobelrun.web.graph_editor import graph_text, load_graph
+
+    loaded = load_graph(tmp_path, "hex_3d")
+    d = loaded.design.copy()
+    d.toggle_edge(0, 1)  # changed: written as a manual topology
+    text = graph_text(loaded, d)
+    lines = text[text.index("  edges:") :].splitlines()[1:196]
+    assert all(re.fullmatch(r"\s+- \[\d+, \d+\]", line) for line in lines), lines[:3]

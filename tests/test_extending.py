@@ -107,9 +107,9 @@ def test_bad_phase_of_a_builtin_env_fails_before_output(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
         [*cobel_exe(), "run", "task=gridworld", "task.runs=1",
-         "+task.protocol.phases.0.terminals={99:true}", f"hydra.run.dir={out}"],
+         "+task.protocol.phases.0.terminals={100:true}", f"hydra.run.dir={out}"],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 2, proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1 and "99" in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "100" in proc.stderr, proc.stderr
     assert not out.exists()

@@ -197,3 +197,17 @@ def test_every_tabular_agent_runs_egocentric(cls):
     # constant-alpha Monte-Carlo settles on longer paths (here 8 steps; on the 9 x 9 field
     # it is within 20 % in the mean of three seeds, tests/test_td_control.py)
     assert n <= (2 * 6 if cls.__name__ == "MCControl" else 1.2 * 6)
+
+
+def test_open_field_names_its_corners_whatever_its_size():
+    """env=open_field starts top left and pays at the opposite corner, also when resized."""
+    from cobelrun.envs import open_field
+
+    for w, h in [(10, 10), (4, 3)]:
+        world = open_field(w, h, starts=["top_left"], goal="bottom_right")
+        assert world.starts.tolist() == [0]
+        assert world.places["goal"] == w * h - 1 and world.terminal[w * h - 1]
+        assert world.rewards[w * h - 1] == 1.0
+    assert open_field(4, 3, goal="top_right").places["goal"] == 3
+    with pytest.raises(LayoutError, match="unknown place 'middle'"):
+        open_field(4, 3, goal="middle")

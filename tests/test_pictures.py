@@ -432,3 +432,119 @@ def test_learned_maps_place_the_goal_states(grid_run: Path) -> None:
     assert ends and ends <= set(pos)
     old = state_positions(steps.drop(columns=["next_x", "next_y", "next_heading"]))
     assert not ends & set(old)
+
+
+# -- arrival poses in run.mcap and the live view ---------------------------------------------------
+def test_mcap_pose_stream_ends_each_trial_on_its_arrival(tmp_path: Path) -> None:
+    """Each trial's last pose on /run_NNNN/pose is where it arrived: the steps table's
+    next_x, next_y, next_heading of its last step (and the trial's end event is at its time)."""
+    import json
+
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out = tmp_path / "run"
+    cobelrun.run("gridworld", ["env=blodgett", "+env.world.goal_reward=1.0", "task.runs=1",
+                               "task.protocol.phases.0.trials=4", "task.protocol.max_steps=40",
+                               "task.save_agents=none", "seed=2"], out=out)  # fmt: skip
+    steps = pd.read_parquet(out / "steps.parquet")
+    poses, times, ends = [], [], []
+    with open(out / "run.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _, message, pose in reader.iter_decoded_messages(topics=["/run_0000/pose"]):
+            q, p = pose.pose.orientation, pose.pose.position
+            poses.append((p.x, p.y, 2 * np.arctan2(q.z, q.w)))
+            times.append(message.log_time)
+        for _, _, message in reader.iter_messages(topics=["/trial"]):
+            if json.loads(message.data)["event"] == "end":
+                ends.append(message.log_time)
+    got = np.array(poses)
+    per_trial = steps.groupby("trial").size().to_numpy()
+    assert len(got) == len(steps) + len(per_trial)  # each trial's start pose, then every step's
+    last = np.cumsum(per_trial + 1) - 1
+    arrived = steps.groupby("trial").tail(1)[["next_x", "next_y", "next_heading"]].to_numpy()
+    np.testing.assert_allclose(got[last, :2], arrived[:, :2])
+    dh = np.angle(np.exp(1j * (got[last, 2] - arrived[:, 2])))
+    np.testing.assert_allclose(dh, 0.0, atol=1e-6)
+    assert [times[i] for i in last] == ends  # the end event is logged at the arrival pose
+
+
+def test_live_view_keeps_each_recent_trial_s_arrival() -> None:
+    from cobelrun.io.mcap import LIVE_POSES, LIVE_TRIALS, live_pose_indices
+
+    assert live_pose_indices(LIVE_POSES) is None  # a small batch goes whole
+    k = 10_000
+    arrivals = np.cumsum(np.full(200, 50)) - 1  # 200 trials of 49 steps
+    keep = live_pose_indices(k, arrivals)
+    assert keep is not None and np.all(np.diff(keep) > 0)
+    assert set(arrivals[-LIVE_TRIALS:].tolist()) <= set(keep.tolist())
+    assert keep[0] == 0 and keep[-1] == k - 1
+    assert len(keep) <= LIVE_POSES + LIVE_TRIALS
+    assert len(set(keep.tolist()) & set(arrivals[:-LIVE_TRIALS].tolist())) < 200 - LIVE_TRIALS
+    with pytest.raises(ValueError, match="arrivals must index"):
+        live_pose_indices(k, np.array([k]))
+
+
+# -- one-way edges of topology graphs are doors ------------------------------------------------------
+def test_one_way_edges_of_a_graph_are_doors(tmp_path: Path) -> None:
+    """The Blodgett maze as a topology graph: its six one-way edges are doors at the same
+    places and facing the same way as the gridworld's doors, in world.json, the MCAP scene
+    and the pictures (``cobel show``'s drawing); two-way edges are none."""
+    import json
+
+    import matplotlib.pyplot as plt
+
+    from cobelrun.envs.base import Geometry
+    from cobelrun.envs.topology import manual, one_way_doors
+    from cobelrun.envs.topology_env import TopologyEnv
+    from cobelrun.envs.world import blodgett
+    from cobelrun.figures.runs import draw_geometry
+    from cobelrun.render.foxglove_scene import scene_entities
+
+    g = TopologyEnv(world=blodgett()).geometry()
+    grid = _blodgett_geometry()
+    assert g.kind == "graph" and g.doors.shape == (6, 6)
+
+    def key(doors: np.ndarray) -> list[tuple[float, ...]]:
+        mid = (doors[:, :2] + doors[:, 2:4]) / 2
+        return sorted(map(tuple, np.round(np.hstack([mid, doors[:, 4:]]), 6).tolist()))
+
+    assert key(g.doors) == key(grid.doors)
+    for x0, y0, x1, y1, dx, dy in g.doors.tolist():  # across the edge, half its length
+        assert np.isclose((x1 - x0) * dx + (y1 - y0) * dy, 0.0)
+        assert np.isclose(np.hypot(x1 - x0, y1 - y0), 0.5)
+    # a one-way edge stays an edge (its line is drawn), with its door across it
+    pairs = {tuple(e) for e in g.edges.tolist()}
+    index = {tuple(np.round(p, 6).tolist()): i for i, p in enumerate(g.nodes)}
+    for x0, y0, x1, y1, dx, dy in g.doors.tolist():
+        mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+        ia = index[(round(mx - dx / 2, 6), round(my - dy / 2, 6))]
+        ib = index[(round(mx + dx / 2, 6), round(my + dy / 2, 6))]
+        assert (min(ia, ib), max(ia, ib)) in pairs
+
+    path = tmp_path / "world.json"  # world.json keeps them
+    path.write_text(g.to_json())
+    np.testing.assert_array_equal(Geometry.from_dict(json.loads(path.read_text())).doors, g.doors)
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from cobelrun.io.mcap import McapRecorder
+
+    McapRecorder(tmp_path / "run.mcap", geometry=g, start_ns=10**18).close()  # the MCAP scene
+    with open(tmp_path / "run.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        ((_, _, _, scene),) = list(reader.iter_decoded_messages(topics=["/maze"]))
+    by_id = {e.id: e for e in scene.entities}
+    assert len(by_id) == len(scene_entities(g))
+    assert len(by_id["doors"].arrows) == 6 and len(by_id["doors"].cubes) == 6
+    fig, ax = plt.subplots()  # as cobel show draws a world
+    draw_geometry(g, ax)
+    doors = [c for c in ax.collections if c.get_label() == "one-way door"]
+    assert len(doors) == 1 and len(doors[0].get_segments()) == 6
+    plt.close(fig)
+
+    two_way = manual([[0, 0], [1, 0], [1, 1]], [[0, 1], [1, 2]])
+    assert one_way_doors(two_way.positions, two_way.edges).shape == (0, 6)
+    one_way = manual([[0, 0], [2, 0]], [[1, 0]], directed=True)
+    np.testing.assert_allclose(one_way_doors(one_way.positions, one_way.edges),
+                               [[1.0, 0.5, 1.0, -0.5, -1.0, 0.0]])  # fmt: skip

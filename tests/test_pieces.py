@@ -60,7 +60,7 @@ def test_fast_phases_stay_one_call(tmp_path, monkeypatch):
 
 DQN = [
     "task=gridworld", "agent=dqn", "env.world.width=4", "env.world.height=4",
-    "+env.world.goal=15", "agent.learning_starts=20", "agent.net_arch=[16]",
+    "env.world.goal=15", "agent.learning_starts=20", "agent.net_arch=[16]",
     "task.protocol.max_steps=30", "task.save_agents=none", "task.batch_runs=false",
     "task.runs=2", "task.record.mcap=false",
     "task.protocol.phases=[{name: train, trials: 20}, {name: probe, trials: 4, learning: false}]",

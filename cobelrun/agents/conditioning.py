@@ -16,7 +16,16 @@ presence features)::
     e      = gamma lambda e + x_t
     w     += learning_rate * delta * e
 
-Both respond with the logistic response model ``P(respond) = 1 / (1 + exp(-response_beta
+:class:`PearceHall` is the hybrid Rescorla-Wagner / Pearce-Hall attention model (Pearce & Hall
+1980; Pearce, Kaye & Hall 1982; Le Pelley 2004): a cue's associability ``alpha_i`` follows the
+recent size of the prediction error, so a cue that predicted its outcome well (or predicted
+nothing, and nothing came: latent inhibition) becomes slow to learn about::
+
+    delta    = asymptote * US - V
+    w_i     += learning_rate * alpha_i * delta * x_i
+    alpha_i  = associability_rate * |delta| + (1 - associability_rate) * alpha_i   (x_i = 1)
+
+All three respond with the logistic response model ``P(respond) = 1 / (1 + exp(-response_beta
 (V - response_threshold)))`` on the current prediction, and keep the prediction a trial's cues
 evoke (:attr:`prediction`: ``V`` of the trial's cues for Rescorla-Wagner, ``V`` at the first
 cue's onset for TD) for :class:`cobelrun.monitors.conditioning.ConditioningMonitor`.
@@ -35,7 +44,7 @@ from cobelrun.agents.base import Agent, ArraySpec, SeedLike, Transition
 from cobelrun.agents.schema import AgentArgs, interval, number_at_least, validate_args
 from cobelrun.errors import ConfigError
 
-__all__ = ["RescorlaWagner", "TDConditioning"]
+__all__ = ["PearceHall", "RescorlaWagner", "TDConditioning"]
 
 
 class ResponseArgs(AgentArgs):
@@ -50,6 +59,15 @@ class RescorlaWagnerArgs(AgentArgs):
     are the env's cue names, are checked by the agent with :func:`_number`)."""
 
     learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    asymptote: Annotated[Any, number_at_least(0.0)]
+
+
+class PearceHallArgs(AgentArgs):
+    """The ranges of :class:`PearceHall`'s own arguments."""
+
+    learning_rate: Annotated[Any, interval(0.0, 1.0)]
+    associability_rate: Annotated[Any, interval(0.0, 1.0)]
+    initial_associability: Annotated[Any, interval(0.0, 1.0)]
     asymptote: Annotated[Any, number_at_least(0.0)]
 
 
@@ -189,6 +207,109 @@ class RescorlaWagner(_Conditioning):
 
     def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
         self.w[...] = arrays["w"]
+
+
+class PearceHall(_Conditioning):
+    """The hybrid Rescorla-Wagner / Pearce-Hall model of attention in conditioning.
+
+    The prediction is the summed strength of the trial's conditioned stimuli, as in
+    Rescorla-Wagner, but each cue learns at its own associability ``alpha_i``, which tracks the
+    recent absolute prediction error on its trials (Pearce & Hall 1980, Psychol. Rev.
+    87:532; the running average of Pearce, Kaye & Hall 1982; the hybrid form of Le Pelley
+    2004, Q. J. Exp. Psychol. 57B:193, and Li et al. 2011, Nat. Neurosci. 14:1250). A cue
+    shown without consequence loses associability and is later slow to condition (latent
+    inhibition, Lubow & Moore 1959), which Rescorla-Wagner cannot show. Contexts are not cues.
+
+    Parameters
+    ----------
+    env
+        A :class:`~cobelrun.envs.sequence.SequenceEnv`.
+    learning_rate
+        ``kappa`` (Pearce & Hall's salience ``S``) in [0, 1]: the step size, scaled by the
+        cue's associability.
+    associability_rate
+        ``eta`` (``gamma`` of Pearce, Kaye & Hall 1982) in [0, 1]: the weight of the last
+        trial's ``|delta|`` in the associability (1: Pearce & Hall 1980's original rule,
+        ``alpha = |delta|`` of the last trial).
+    initial_associability
+        ``alpha_0`` of every cue, in [0, 1]: a novel cue is fully associable (Pearce & Hall
+        1980), default 1.
+    asymptote
+        ``lambda`` per unit of outcome.
+    response_beta, response_threshold
+        Logistic response model on ``V``.
+    seed
+        Seed of the response draws.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        *,
+        learning_rate: float = 0.3,
+        associability_rate: float = 0.3,
+        initial_associability: float = 1.0,
+        asymptote: float = 1.0,
+        response_beta: float = 10.0,
+        response_threshold: float = 0.5,
+        seed: SeedLike = None,
+    ) -> None:
+        super().__init__(env, response_beta=response_beta,
+                         response_threshold=response_threshold, seed=seed)  # fmt: skip
+        validate_args(PearceHallArgs, locals())
+        self.learning_rate, self.asymptote = float(learning_rate), float(asymptote)
+        self.associability_rate = float(associability_rate)
+        self.initial_associability = float(initial_associability)
+        n = self.seq.n_cs
+        self.w = np.zeros(n)
+        self.alpha = np.full(n, self.initial_associability)
+        self._x = np.zeros(n)
+        self._us = 0.0
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return {"learning_rate": self.learning_rate, "asymptote": self.asymptote,
+                "associability_rate": self.associability_rate,
+                "initial_associability": self.initial_associability}  # fmt: skip
+
+    def value(self, cues: np.ndarray) -> np.ndarray:
+        """``V`` of cue vectors (n, n_cues): the summed strengths of the conditioned stimuli."""
+        x = np.atleast_2d(np.asarray(cues, np.float64))[:, : len(self.w)]
+        return x @ self.w
+
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """``[0, V]`` per observation (no-response and response preference)."""
+        v = self.value(observations)
+        return np.stack([np.zeros_like(v), v], axis=1)
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._x = self.seq.trial_cues()[: self.seq.n_cs].astype(np.float64)
+        self.prediction = float(self._x @ self.w)
+        self._us = 0.0
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        return self.respond(self.prediction if np.any(obs[: self.seq.n_cs]) else 0.0)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        self._us += transition.reward
+
+    def end_trial(self, learn: bool) -> None:
+        if not learn:
+            return
+        delta = self.asymptote * self._us - self.prediction
+        shown = self._x != 0.0
+        self.w += self.learning_rate * self.alpha * delta * self._x
+        eta = self.associability_rate
+        self.alpha[shown] = eta * abs(delta) + (1.0 - eta) * self.alpha[shown]
+
+    def state_schema(self) -> dict[str, ArraySpec]:
+        return {"w": ArraySpec((len(self.w),)), "alpha": ArraySpec((len(self.w),))}
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"w": self.w.copy(), "alpha": self.alpha.copy()}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray]) -> None:
+        self.w[...] = arrays["w"]
+        self.alpha[...] = arrays["alpha"]
 
 
 class TDConditioning(_Conditioning):

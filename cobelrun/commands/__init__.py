@@ -1,1 +1,1 @@
-"""CLI commands that live in their own modules (registered in :mod:`cobelrun.cli`)."""
+"""CLI commands that live in their own modules (registered in :mod:`cobelrun.commands.app`)."""

@@ -1,16 +1,24 @@
 """What every ``cobel`` command shares: exit codes and the one-line error exit.
 
-Kept apart from :mod:`cobelrun.cli` so that command modules (``commands/*.py``) can use it
-without importing the app that registers them (no import cycle).
+Kept apart from the app (:mod:`cobelrun.commands.app`) so that command modules
+(``commands/*.py``) can use it without importing the app that registers them (no import cycle).
+Importing it does not import typer (``cobel run``'s fast path reads its exit codes):
+:data:`AllowTarget` is built on first use.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from typing import Annotated, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
-import typer
+if TYPE_CHECKING:
+    from typing import Annotated
+
+    import typer
+
+    #: ``--allow-target``: the user's own classes a config may build (docs/reliability.md)
+    AllowTarget = Annotated[list[str] | None, typer.Option("--allow-target")]
 
 #: rich styles of job statuses in status tables
 STATUS_STYLE = {
@@ -28,16 +36,28 @@ ALLOW_TARGET_HELP = (
     "e.g. mypkg.envs.*); repeatable. Also: COBEL_ALLOW_TARGETS."
 )
 
-#: ``--allow-target``: the user's own classes a config may build (see docs/reliability.md)
-AllowTarget = Annotated[
-    list[str] | None,
-    typer.Option("--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False),
-]
 
 #: exit code of a user error (bad config, name or folder)
 EXIT_USER_ERROR = 2
 #: exit code of a run stopped by Ctrl-C or SIGTERM
 EXIT_INTERRUPTED = 130
+
+
+def __getattr__(name: str) -> Any:
+    """``AllowTarget``, the ``--allow-target`` option type, made when a command module imports
+    it (so that importing this module does not import typer)."""
+    if name == "AllowTarget":
+        from typing import Annotated
+
+        import typer
+
+        option = typer.Option(
+            "--allow-target", help=ALLOW_TARGET_HELP, metavar="PATTERN", show_default=False
+        )
+        allow_target = Annotated[list[str] | None, option]
+        globals()["AllowTarget"] = allow_target
+        return allow_target
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def debug_enabled() -> bool:
@@ -47,6 +67,8 @@ def debug_enabled() -> bool:
 
 def fail(message: str, code: int = EXIT_USER_ERROR) -> NoReturn:
     """Print one error line and exit (raise the original error instead when debugging)."""
+    import typer
+
     if debug_enabled() and sys.exc_info()[0] is not None:
         raise
     typer.echo(f"cobel: error: {message}", err=True)

@@ -21,7 +21,8 @@ the protocol's phases (the T-maze's acquisition and extinction goals); every cha
 as `cobel run` checks it. "Run it" starts `cobel run -cd DIR task=... env=NAME` with a few runs
 and links to the dashboard. Topology graphs (/graph: nodes, edges, the agent's camera view)
 and 2D arenas (/arena: outline, obstacles, goals, starts, place cells, boundary-vector rays)
-have their own pages. Binds to 127.0.0.1 unless --host says otherwise.
+have their own pages, with phases and "run it" too; the graph's view preview reads the env's
+render cache where it has one. Binds to 127.0.0.1 unless --host says otherwise.
 Needs NiceGUI and ruamel.yaml (the web extra).
 """
 

@@ -16,11 +16,19 @@ HELP = """Fit a choice model to behavioural choice data by maximum likelihood, w
   cobel fit ... params=\\[agent.learning_rate]  # others: config values
   cobel fit ... starts=10 method=optuna n_trials=300
   cobel fit task=blocking agent=rescorla_wagner data=RESPONSES.csv
+  cobel fit task=second_order agent=td_conditioning data=RESPONSES.csv
 
-data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally trial, state and session; no other columns. Choices must use the task's actions, states its states. model: q_learning, rescorla_wagner, dyna_q, wsls or rw_response (default: the agent's own: agent=q_learning, agent=dyna_q, agent=rescorla_wagner on a conditioning task). Writes fit.json (--out) and prints the estimates. docs/modelling.md has a worked example.
+data: one row per trial (Parquet or CSV) with choice (action index), reward, and optionally trial, state, session and learn; no other columns. Choices must use the task's actions, states its states. model: q_learning, rescorla_wagner, dyna_q, wsls, rw_response, td_response or ph_response (default: the agent's own: agent=q_learning, agent=dyna_q; on a conditioning task agent=rescorla_wagner, agent=td_conditioning, agent=pearce_hall). Conditioning data: choice is the response at the cue's onset (the trials table's response column), state the trial type, reward the outcome; learn 0 marks trials without learning (a test phase). Writes fit.json (--out) and prints the estimates. docs/modelling.md has a worked example.
 """
 
 SPECIAL = ("data", "params", "method", "n_trials", "model", "starts")
+
+#: the conditioning agents' likelihood models (by class name)
+CONDITIONING_AGENTS = {"RescorlaWagner": "rw_response", "TDConditioning": "td_response",
+                       "PearceHall": "ph_response"}  # fmt: skip
+#: the agents `cobel fit` fits with their own model
+FITTABLE_AGENTS = ("agent=q_learning", "agent=dyna_q", "agent=rescorla_wagner",
+                   "agent=td_conditioning", "agent=pearce_hall")  # fmt: skip
 
 
 def _split(args: list[str]) -> tuple[dict[str, str], list[str]]:
@@ -53,11 +61,11 @@ def agent_model(cfg: Any) -> str:
     target = str(cfg.agent.get("_target_", "")) if cfg.get("agent") is not None else ""
     if target == "cobelrun.agents.DynaQ":
         return "q_learning" if str(cfg.agent.get("replay", "off")) == "off" else "dyna_q"
-    if target == "cobelrun.agents.RescorlaWagner":
-        return "rw_response"
-    raise ConfigError(f"agent {target.rsplit('.', 1)[-1] or 'none'} has no choice likelihood; "
-                      f"fittable agents: agent=q_learning, agent=dyna_q, agent=rescorla_wagner, or name a model= "
-                      f"({', '.join(MODELS)})")  # fmt: skip
+    name = target.rsplit(".", 1)[-1]
+    if target.startswith("cobelrun.agents.") and name in CONDITIONING_AGENTS:
+        return CONDITIONING_AGENTS[name]
+    raise ConfigError(f"agent {name or 'none'} has no choice likelihood; fittable agents: "
+                      f"{', '.join(FITTABLE_AGENTS)}, or name a model= ({', '.join(MODELS)})")  # fmt: skip
 
 
 def run_fit(args: list[str]) -> tuple[Any, Path]:
@@ -70,6 +78,7 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
     from cobelrun.fit import (
         check_action_set,
         check_choices,
+        check_trial_length,
         fit_choices,
         load_choices,
         task_features,
@@ -100,6 +109,11 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
     initial = {k: OmegaConf.select(cfg, k) for k in keys}
     env = instantiate("env", cfg.env)
     n_actions, n_states = task_sizes(env)
+    features = task_features(env)
+    if features is not None and cfg.task.get("protocol") is not None:
+        protocol = cfg.task.protocol
+        check_trial_length(features, [p.get("max_steps") or protocol.get("max_steps")
+                                      for p in protocol.phases], str(cfg.task.get("name")))  # fmt: skip
     data_path = Path(special["data"])
     data = load_choices(data_path)
     check_choices(data, None, n_states, str(data_path))
@@ -108,7 +122,7 @@ def run_fit(args: list[str]) -> tuple[Any, Path]:
         data,
         params,
         model=model,
-        features=task_features(env),
+        features=features,
         initial={k: float(v) for k, v in initial.items() if isinstance(v, int | float)},
         n_actions=n_actions,
         n_states=n_states,

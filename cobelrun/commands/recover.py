@@ -16,9 +16,11 @@ HELP = """Simulate synthetic agents, fit every candidate model to each: paramete
 \b
   cobel recover task=reversal_bandit models=\\[q_learning,rescorla_wagner,dyna_q,wsls] n=100
   cobel recover task=two_afc models=\\[q_learning] n=100 task.protocol.phases.0.trials=200
+  cobel recover task=acquisition_extinction models=\\[rw_response,ph_response,td_response] n=50
   cobel recover ... prior.agent.beta=loguniform(1,20) starts=3 jobs=2 seed=3 --out DIR
+  cobel recover ... jobs=50 --launcher slurm --launcher-arg partition=cpu
 
-models: q_learning, rescorla_wagner, dyna_q, wsls. Priors (defaults): agent.learning_rate uniform(0.1,0.9), agent.beta loguniform(1,10), agent.epsilon uniform(0.05,0.5). The task must be one choice per trial (two_afc, reversal_bandit); other overrides change it as in cobel run. Writes DIR (default recover-TASK): recovery.parquet (one row per agent and fitted model), parameters.csv, confusion.csv, recover.json, parameter_recovery.png, model_recovery.png. See docs/modelling.md.
+Choice tasks (one choice per trial: two_afc, reversal_bandit): models q_learning, rescorla_wagner, dyna_q, wsls. Conditioning tasks (env=sequence; the response at the cue's onset): rw_response, td_response, ph_response. Priors (defaults): agent.learning_rate uniform(0.1,0.9), agent.beta loguniform(1,10), agent.epsilon uniform(0.05,0.5), agent.response_beta loguniform(2,20), agent.associability_rate uniform(0.1,0.9). The agents are split into jobs=N jobs (default 2) of one sweep, run through Hydra's launcher as cobel run -m does: joblib (N workers) by default, or --launcher NAME (submitit_local, slurm, ...); the table does not depend on N. Other overrides change the task as in cobel run. Writes DIR (default recover-TASK): recovery.parquet (one row per agent and fitted model), parameters.csv, confusion.csv, recover.json, parameter_recovery.png, model_recovery.png and jobs/ (the sweep's job folders). See docs/modelling.md.
 """
 
 SPECIAL = ("models", "n", "starts", "jobs")
@@ -51,18 +53,17 @@ def _int(special: dict[str, str], key: str, default: int, low: int) -> int:
     return value
 
 
-def plan(args: list[str]) -> dict[str, Any]:
+def plan(args: list[str], launcher: list[str] | None = None) -> dict[str, Any]:
     """Check every argument and build the task; nothing is written."""
-    from cobelrun.choice_models import MODELS
     from cobelrun.config import register_resolvers
     from cobelrun.errors import ConfigError
     from cobelrun.hydra_app import composer
     from cobelrun.recover import (
+        CONDITIONING_MODELS,
         RECOVERABLE,
         ChoiceTask,
-        check_models,
-        default_priors,
-        parse_prior,
+        check_setup,
+        parse_priors,
     )
 
     special, prior_args, overrides = _split(args)
@@ -70,59 +71,115 @@ def plan(args: list[str]) -> dict[str, Any]:
     models = [m.strip() for m in raw.strip("[]").split(",") if m.strip()]
     if not models:
         raise ConfigError(f"cobel recover needs models=[...]; models that can be fitted: "
-                          f"{', '.join(RECOVERABLE)}")  # fmt: skip
-    check_models(models)
-    bounds = {p.key: p.bounds for m in MODELS.values() for p in m.params}
-    priors = default_priors()
-    for key, text in prior_args.items():
-        if key not in bounds:
-            raise ConfigError(f"prior.{key}: not a parameter of any model; parameters: "
-                              f"{', '.join(bounds)}")  # fmt: skip
-        priors[key] = parse_prior(key, text, bounds[key])
+                          f"{', '.join(RECOVERABLE)} (choice tasks), "
+                          f"{', '.join(CONDITIONING_MODELS)} (conditioning tasks)")  # fmt: skip
+    items = [f"{k}={v}" for k, v in prior_args.items()]
+    parse_priors(items)
     n = _int(special, "n", 100, 1)
     starts = _int(special, "starts", 3, 1)
-    jobs = _int(special, "jobs", 1, 1)
+    jobs = _int(special, "jobs", 2, 1)
     register_resolvers()
     with composer() as compose:
         cfg = compose(overrides)
     task = ChoiceTask.from_config(cfg)
-    return {"models": models, "priors": priors, "n": n, "starts": starts, "jobs": jobs,
-            "seed": int(cfg.get("seed", 0) or 0), "task": task}  # fmt: skip
+    priors = check_setup(task, models, models, n, parse_priors(items))
+    return {"models": models, "priors": priors, "prior_items": items, "n": n, "starts": starts,
+            "jobs": min(jobs, n * len(models)), "seed": int(cfg.get("seed", 0) or 0),
+            "task": task, "overrides": overrides, "launcher": launcher or []}  # fmt: skip
+
+
+def _quote(text: str) -> str:
+    """A Hydra override string value (single-quoted)."""
+    return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def sweep_args(p: dict[str, Any], sweep_dir: Path) -> list[str]:
+    """``cobel run -m`` arguments of the recovery's sweep: the task with ``task.job`` a
+    :class:`cobelrun.recover.RecoveryJob` swept over its chunks, the launcher, the folder."""
+    from cobelrun.figures.registry import launcher_overrides
+
+    priors = ",".join(_quote(item) for item in p["prior_items"])
+    node = (f"{{_target_:cobelrun.recover.RecoveryJob,models:[{','.join(p['models'])}],"
+            f"n:{p['n']},starts:{p['starts']},chunks:{p['jobs']},priors:[{priors}]}}")  # fmt: skip
+    launcher = p["launcher"] or launcher_overrides(p["jobs"])
+    return ["-m", *p["overrides"], f"+task.job={node}",
+            f"+task.job.chunk={','.join(str(k) for k in range(p['jobs']))}", *launcher,
+            f"hydra.sweep.dir={_quote(str(sweep_dir))}"]  # fmt: skip
+
+
+def run_sweep(p: dict[str, Any], sweep_dir: Path) -> Any:
+    """Run the recovery's jobs through Hydra's launcher (:func:`cobelrun.hydra_app.launch`, as
+    ``cobel figure`` runs a figure's runs) and join their tables; a job that failed is one
+    CobelError line naming it."""
+    import contextlib
+    import logging
+    import sys
+
+    import pandas as pd
+
+    from cobelrun.errors import CobelError
+    from cobelrun.hydra_app import launch
+    from cobelrun.io.sweep_folder import job_rows
+    from cobelrun.recover import sort_table
+
+    root_log = logging.getLogger()
+    level, handlers = root_log.level, list(root_log.handlers)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # stdout: cobel recover's own lines
+            code = launch(sweep_args(p, sweep_dir), quiet=True)
+    finally:  # Hydra configured logging for the sweep
+        root_log.handlers[:] = handlers
+        root_log.setLevel(level)
+    if code == 130:
+        raise KeyboardInterrupt
+    rows = job_rows(sweep_dir, write=False)
+    failed = [r for r in rows if r["status"] != "done"]
+    if code != 0 or failed or len(rows) != p["jobs"]:
+        first = failed[0] if failed else {"job": "?", "status": "failed", "error": ""}
+        raise CobelError(f"recovery job {first['job']} {first['status']}"
+                         + (f": {first['error']}" if first.get("error") else "")
+                         + "; nothing written")  # fmt: skip
+    parts = [pd.read_parquet(Path(r["run_dir"]) / "recovery.parquet") for r in rows]
+    return sort_table(pd.concat(parts, ignore_index=True), p["models"], p["models"])
 
 
 def write(out: Path, p: dict[str, Any]) -> dict[str, Any]:
     """Run the recovery and write its folder (in a temporary folder renamed at the end)."""
     from cobelrun.figures import save_figure
     from cobelrun.figures.recovery import plot_confusion, plot_parameter_recovery
-    from cobelrun.recover import CRITERIA, confusion, parameter_recovery, recover
+    from cobelrun.recover import CRITERIA, confusion, parameter_recovery
 
-    start = time.perf_counter()
-    table = recover(p["task"], p["models"], p["n"], priors=p["priors"], n_starts=p["starts"],
-                    seed=p["seed"], jobs=p["jobs"])  # fmt: skip
-    elapsed = time.perf_counter() - start
-    params = parameter_recovery(table)
-    matrices = {c: confusion(table, c) for c in CRITERIA}
-    long = [{"criterion": c, "generating": g, "fitted": f, "share": float(m.loc[g, f])}
-            for c, m in matrices.items() for g in m.index for f in m.columns]  # fmt: skip
-    summary = {
-        "task": p["task"].name,
-        "n_trials": p["task"].n_trials,
-        "models": p["models"],
-        "n": p["n"],
-        "seed": p["seed"],
-        "starts": p["starts"],
-        "jobs": p["jobs"],
-        "priors": {k: str(v) for k, v in p["priors"].items()},
-        "seconds": round(elapsed, 2),
-        "parameters": params.to_dict(orient="records"),
-        "confusion_diagonal": {
-            c: {g: float(m.loc[g, g]) for g in m.index if g in m.columns}
-            for c, m in matrices.items()
-        },
-    }
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    tmp = out.absolute().with_name(f".{out.name}.{os.getpid()}.tmp")
     try:
         tmp.mkdir(parents=True)
+        start = time.perf_counter()
+        table = run_sweep(p, tmp / "jobs")
+        elapsed = time.perf_counter() - start
+        params = parameter_recovery(table)
+        matrices = {c: confusion(table, c) for c in CRITERIA}
+        long = [{"criterion": c, "generating": g, "fitted": f, "share": float(m.loc[g, f])}
+                for c, m in matrices.items() for g in m.index for f in m.columns]  # fmt: skip
+        summary = {
+            "task": p["task"].name,
+            "n_trials": p["task"].n_trials,
+            "models": p["models"],
+            "n": p["n"],
+            "seed": p["seed"],
+            "starts": p["starts"],
+            "jobs": p["jobs"],
+            "launcher": [
+                a
+                for a in sweep_args(p, tmp)
+                if a.startswith("hydra/launcher=") or a.startswith("hydra.launcher.")
+            ],
+            "priors": {k: str(v) for k, v in p["priors"].items()},
+            "seconds": round(elapsed, 2),
+            "parameters": params.to_dict(orient="records"),
+            "confusion_diagonal": {
+                c: {g: float(m.loc[g, g]) for g in m.index if g in m.columns}
+                for c, m in matrices.items()
+            },
+        }
         table.to_parquet(tmp / "recovery.parquet", index=False)
         params.to_csv(tmp / "parameters.csv", index=False)
         import pandas as pd
@@ -158,12 +215,31 @@ def register(app: typer.Typer) -> None:
                 help="Folder to write (default recover-TASK); must not exist or be empty.",
             ),
         ] = None,
+        launcher: Annotated[
+            str | None,
+            typer.Option(
+                "--launcher",
+                help="Run the jobs through this Hydra launcher (a name as in `cobel run -m "
+                "hydra/launcher=NAME`: submitit_local, slurm, ...); default joblib with jobs= "
+                "workers.",
+            ),
+        ] = None,
+        launcher_arg: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--launcher-arg",
+                help="KEY=VALUE for the launcher (hydra.launcher.KEY=VALUE), e.g. "
+                "partition=cpu; repeatable.",
+            ),
+        ] = None,
     ) -> None:
+        from cobelrun.cli import _launcher_overrides
         from cobelrun.commands.common import fail
         from cobelrun.errors import CobelError
 
         try:
-            p = plan(list(ctx.args))
+            hydra_launcher = _launcher_overrides(launcher, launcher_arg or [])
+            p = plan(list(ctx.args), hydra_launcher)
             folder = out or Path(f"recover-{p['task'].name}")
             if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
                 raise CobelError(f"{folder} exists and is not an empty folder; pick another --out")

@@ -402,6 +402,45 @@ def delaunay(
     )
 
 
+#: a one-way edge's door spans this fraction of the edge's length, across its middle
+DOOR_SPAN = 0.5
+
+
+def one_way_doors(positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The one-way edges of a graph as doors, in :attr:`Geometry.doors`' format
+    (``x0, y0, x1, y1, dx, dy``), so that every picture draws them as a grid's one-way doors.
+
+    Parameters
+    ----------
+    positions : (N, 2) float
+        Node positions.
+    edges : (E, 2) int
+        Directed edges ``(from, to)`` (:attr:`Topology.edges`).
+
+    Returns
+    -------
+    (d, 6) float64
+        One door per edge ``a -> b`` whose reverse ``b -> a`` is not an edge: a segment across
+        the edge's middle, :data:`DOOR_SPAN` of its length, and the unit direction ``a -> b``
+        in which it can be passed.
+    """
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    if not len(e):
+        return np.zeros((0, 6))
+    pairs = set(map(tuple, e.tolist()))
+    one_way = np.array([(b, a) not in pairs for a, b in e.tolist()])
+    e = e[one_way & (e[:, 0] != e[:, 1])]
+    if not len(e):
+        return np.zeros((0, 6))
+    pos = np.asarray(positions, np.float64)
+    a, b = pos[e[:, 0]], pos[e[:, 1]]
+    length = np.linalg.norm(b - a, axis=1, keepdims=True)
+    u = (b - a) / np.where(length > 0, length, 1.0)
+    across = np.stack([-u[:, 1], u[:, 0]], axis=1) * (DOOR_SPAN * length / 2)
+    mid = (a + b) / 2
+    return np.hstack([mid - across, mid + across, u])
+
+
 def manual(
     nodes: Sequence[Sequence[float]],
     edges: Sequence[Sequence[int]],

@@ -283,14 +283,15 @@ class TopologyEnv(ChangeableWorld, gym.Env):
         return out
 
     def geometry(self) -> Geometry:
-        """The graph as data: node positions, undirected edges, places and starts."""
+        """The graph as data: node positions, undirected edges, places and starts, and each
+        one-way edge as a door (:func:`~cobelrun.envs.topology.one_way_doors`), drawn as a grid's one-way doors are."""
         top = self.topology
-        src, d = np.nonzero(top.neighbours >= 0)
-        dst = top.neighbours[src, d]
-        edges = np.unique(np.sort(np.stack([src, dst], axis=1), axis=1), axis=0)
+        directed = top.edges
+        edges = np.unique(np.sort(directed, axis=1), axis=0) if len(directed) else directed
         lo, hi = top.positions.min(axis=0) - 0.5, top.positions.max(axis=0) + 0.5
         return Geometry(kind="graph", bounds=(lo[0], lo[1], hi[0], hi[1]),
-                        nodes=top.positions, edges=edges, regions=self._place_regions())  # fmt: skip
+                        nodes=top.positions, edges=edges, regions=self._place_regions(),
+                        doors=topo.one_way_doors(top.positions, directed))  # fmt: skip
 
     def observe_pose(self, node: int, heading: int) -> Any:
         """The observation at any graph pose, noise drawn from ``np_random``."""

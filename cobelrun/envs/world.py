@@ -768,9 +768,13 @@ def open_field(
     width, height : int
         Grid size in cells.
     starts : list of states, optional
-        Start states (default: every free, non-goal cell).
+        Start states (default: every free, non-goal cell). Besides indices, place names and
+        ``[row, col]``, the corners ``top_left``, ``top_right``, ``bottom_left`` and
+        ``bottom_right`` name states here (so a config keeps its corners when the size is
+        overridden).
     goal : state, optional
-        Goal state (terminal, reward ``goal_reward``); none by default.
+        Goal state (terminal, reward ``goal_reward``; a corner name as for ``starts``); none
+        by default.
     goal_reward : float
         Reward on arriving at the goal.
     """
@@ -778,6 +782,15 @@ def open_field(
     if width < 1 or height < 1 or width * height < 2:
         raise LayoutError(f"open_field needs at least 2 cells, got {width} x {height}")
     check_world_memory("env.world", width, height, 0.0)
+    corners = {"top_left": 0, "top_right": width - 1, "bottom_left": (height - 1) * width,
+               "bottom_right": width * height - 1}  # fmt: skip
+
+    def corner(ref: Any) -> Any:
+        return corners.get(ref, ref) if isinstance(ref, str) else ref
+
+    goal = corner(goal)
+    if starts is not None and not isinstance(starts, str | int):
+        starts = [corner(s) for s in starts]
     layout = "\n".join("." * width for _ in range(height))
     world = from_layout(layout, starts=[0], goal_reward=goal_reward)
     if goal is not None:

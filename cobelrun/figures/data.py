@@ -178,9 +178,41 @@ def summary_revaluation(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     return {"revaluation_runs": runs_t, "revaluation": scores_t}
 
 
-def summary_fig9(name: str) -> Summary:
+def summary_fig4(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 4 per image size: each agent's median frame time per mode (online, offline, no
+    render) over the repetitions, offline / online and offline / no-render, MFEC's online /
+    offline, DQN's saving offline in percent, and the budget (steps per repetition per agent,
+    repetitions)."""
+    from cobelrun.render.benchmark import load_table, ratios
+
+    table = pd.concat([load_table(ref.run_dir) for refs in data.runs.values() for ref in refs],
+                      ignore_index=True)  # fmt: skip
+    rat = ratios(table)
+    out = pd.DataFrame()
+    for agent, g in rat.groupby("agent", sort=False):
+        g = g.assign(size=g["height"].astype(str) + "x" + g["width"].astype(str)).set_index("size")
+        cols = {"online_ms": "online_ms", "offline_ms": "offline_ms", "none_ms": "norender_ms",
+                "offline_over_online": "offline_over_online",
+                "offline_over_none": "offline_over_norender"}  # fmt: skip
+        part = g[list(cols)].rename(columns={c: f"{agent}_{n}" for c, n in cols.items()})
+        out = part if out.empty else out.join(part, how="outer")
+    out = out.reset_index()
+    pixels = out["size"].str.split("x").map(lambda hw: int(hw[0]) * int(hw[1]))
+    out = out.iloc[np.argsort(pixels.to_numpy(), kind="stable")].reset_index(drop=True)
+    if "mfec_offline_over_online" in out:
+        out["mfec_online_over_offline"] = 1 / out["mfec_offline_over_online"]
+    for agent, g in table.groupby("agent", sort=False):
+        out[f"{agent}_steps_per_repetition"] = int(g["steps"].max())
+    out["repetitions"] = int(table["rep"].nunique())
+    if "dqn_offline_over_online" in out:
+        out["dqn_offline_saves_pct"] = (1 - out["dqn_offline_over_online"]) * 100
+    return {"fig4": out}
+
+
+def summary_fig9(name: str, per_seed: bool = False) -> Summary:
     """Fig. 9 per agent: mean training reward and greedy choice correct per block of trials
-    (1-5, 6-10, 11-20, 21-30, 31-40, 41-50); and the block means over agents."""
+    (1-5, 6-10, 11-20, 21-30, 31-40, 41-50); and the block means over agents (``per_seed``:
+    per seed, a row per seed with its number of agents)."""
 
     def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
         trials = data.trials("dqn")
@@ -195,7 +227,12 @@ def summary_fig9(name: str) -> Summary:
             if "greedy_correct" in trials:
                 per_run[f"greedy_{lo}_{hi}"] = _block_mean(trials, "greedy_correct", lo, hi)
         per_run = per_run.reset_index()
-        means = _means(per_run.drop(columns="seed"))
+        if per_seed:
+            g = per_run.drop(columns="run").groupby("seed")
+            means = g.mean().round(6).reset_index()
+            means.insert(1, "agents", g.size().to_numpy())
+        else:
+            means = _means(per_run.drop(columns="seed"))
         return {f"{name}_runs": per_run, name: means}
 
     return summary
@@ -247,6 +284,7 @@ def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> p
 
 
 SUMMARIES: dict[str, Summary] = {
+    "fig4": summary_fig4,
     "fig6b": summary_fig6b,
     "morris": summary_morris,
     "fig7": summary_fig7,
@@ -256,6 +294,7 @@ SUMMARIES: dict[str, Summary] = {
     "fig9": summary_fig9("fig9"),
     "fig9_fast": summary_fig9("fig9_fast"),
     "fig9_seeds": summary_fig9("fig9_seeds"),
+    "fig9_fast_seeds": summary_fig9("fig9_fast_seeds", per_seed=True),
 }
 
 
@@ -275,31 +314,60 @@ def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
 
 
 def fig9_compare(per_run: pd.DataFrame, original: pd.DataFrame) -> pd.DataFrame:
-    """cobel's per-agent block rewards (``fig9_seeds_runs``) against the original's block
-    means (mean, s.e., n of ``fig9_original``): Welch's difference with its 95 % interval and
-    Cohen's d, per block of trials. The original's per-agent values were not kept, so no
-    rank test is possible."""
-    from cobelrun.figures.twosample import welch_from_stats
+    """cobel's per-agent block means (``fig9_seeds_runs``) against the original's
+    (``fig9_original_runs``, CoBeL-RL v2.0.0 + keras-rl2 through
+    ``benchmarks/original_fig9_runs.py``), measure by measure (training reward and greedy
+    choice correct per block of trials): :func:`~cobelrun.figures.twosample.two_sample`
+    (a = cobel, b = the original)."""
+    from cobelrun.figures.twosample import two_sample
 
     rows = []
-    for _, o in original.iterrows():
-        lo, hi = str(o["trials"]).split("-")
-        col = f"reward_{lo}_{hi}"
-        if col not in per_run:
-            continue
-        x = per_run[col].dropna()
-        sd_o = float(o["reward_se"]) * np.sqrt(float(o["agents"]))
-        rows.append({"trials": o["trials"], "cobel_agents": len(x), "cobel_mean": x.mean(),
-                     "cobel_sd": x.std(ddof=1), "original_agents": int(o["agents"]),
-                     "original_mean": o["reward_mean"], "original_sd": sd_o,
-                     **welch_from_stats(x.mean(), x.std(ddof=1), len(x),
-                                        float(o["reward_mean"]), sd_o, int(o["agents"]))})  # fmt: skip
+    for col in (c for c in per_run.columns if c not in ("run", "seed") and c in original):
+        rows.append({"measure": col, **two_sample(per_run[col].dropna(), original[col].dropna())})
     return pd.DataFrame(rows)
 
 
 def fig9_compare_table(per_run: pd.DataFrame) -> pd.DataFrame:
-    """:func:`fig9_compare` against the committed ``fig9_original.csv`` (transcribed)."""
-    return fig9_compare(per_run, pd.read_csv(DATA_DIR / "fig9_original.csv"))
+    """:func:`fig9_compare` against the committed ``fig9_original_runs.csv``."""
+    return fig9_compare(per_run, pd.read_csv(DATA_DIR / "fig9_original_runs.csv"))
+
+
+def fig9_original_summary(per_run: pd.DataFrame) -> pd.DataFrame:
+    """The original's block means over its agents (``fig9_original_runs``): per block of
+    trials the agents, the mean training reward and its standard error, the mean greedy
+    choice correct."""
+    rows = []
+    for col in (c for c in per_run.columns if c.startswith("reward_")):
+        lo, hi = col.split("_")[1:]
+        r, g = per_run[col], per_run[f"greedy_{lo}_{hi}"]
+        rows.append({"trials": f"{lo}-{hi}", "agents": int(r.count()), "reward_mean": r.mean(),
+                     "reward_se": r.std(ddof=1) / np.sqrt(r.count()), "greedy_correct": g.mean()})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def fig9_original_tables() -> tuple[pd.DataFrame, pd.DataFrame] | None:
+    """The original's agents (``fig9_original_runs.csv``: block means per agent) and its means
+    per trial (``fig9_original_runs_trials.csv``), from the committed figure data; None where
+    they are not there (an installed wheel ships no docs)."""
+    runs, per_trial = (
+        DATA_DIR / "fig9_original_runs.csv",
+        DATA_DIR / "fig9_original_runs_trials.csv",
+    )
+    if not (runs.is_file() and per_trial.is_file()):
+        return None
+    return pd.read_csv(runs), pd.read_csv(per_trial)
+
+
+def fig9_compare_note(
+    trials: pd.DataFrame, original: pd.DataFrame, lo: int = 6, hi: int = 10
+) -> str:
+    """One line: the figure's agents against the original's over trials ``lo``-``hi``."""
+    from cobelrun.figures.twosample import two_sample
+
+    ours = trials[trials["trial"].between(lo, hi)].groupby("run")["reward"].mean()
+    c = two_sample(ours, original[f"reward_{lo}_{hi}"])
+    return (f"vs original ({c['n_b']} agents), trials {lo}-{hi}: {c['diff']:+.3f} "
+            f"[{c['diff_lo']:+.3f}, {c['diff_hi']:+.3f}], P(cobel > orig.) {c['p_superiority']:.2f}")  # fmt: skip
 
 
 def fig6b_compare(per_run: pd.DataFrame) -> pd.DataFrame:
@@ -319,6 +387,7 @@ def fig6b_compare(per_run: pd.DataFrame) -> pd.DataFrame:
 DERIVED: dict[str, tuple[str, Callable[[pd.DataFrame], pd.DataFrame]]] = {
     "fig8": ("fig8_runs", fig8_summary),
     "fig9_compare": ("fig9_seeds_runs", fig9_compare_table),
+    "fig9_original": ("fig9_original_runs", fig9_original_summary),
     "fig6b_compare": ("fig6b_runs", fig6b_compare),
 }
 
@@ -330,12 +399,16 @@ def derive(out_dir: Path = DATA_DIR) -> list[Path]:
     for name, (source, fn) in DERIVED.items():
         if not (out_dir / f"{source}.csv").is_file():
             continue
-        if name == "fig6b_compare" and not (out_dir / "fig6b_original_runs.csv").is_file():
+        needs = {
+            "fig6b_compare": "fig6b_original_runs.csv",
+            "fig9_compare": "fig9_original_runs.csv",
+        }
+        if name in needs and not (out_dir / needs[name]).is_file():
             continue
         prov = json.loads((out_dir / f"{source}.provenance.json").read_text())
         prov = {**prov, "table": name,
                 "derived": f"cobelrun.figures.data.{fn.__name__}({source}.csv)"
-                + {"fig9_compare": " and fig9_original.csv (transcribed)",
+                + {"fig9_compare": " and fig9_original_runs.csv (the original, run)",
                    "fig6b_compare": " and fig6b_original_runs.csv (the original, run)"}.get(name, ""),
                 "command": "python -m cobelrun.figures.data --derive"}  # fmt: skip
         written.append(write_table(fn(pd.read_csv(out_dir / f"{source}.csv")), prov, out_dir, name))

@@ -15,15 +15,25 @@ read as numbers, and the numbers inside text cells and column names count too (s
 91-100`` is held by a measure named ``right_91_100``). Not read as numbers: inline code,
 link targets, HTML comments, ``Fig. 6B``-style references, dates and years, version numbers.
 
-``<!-- data: none -->`` marks a table that holds no results (e.g. settings). :func:`check`
-returns one message per number no table holds, per marker naming a missing table, and per
-results table left without a marker (see :func:`needs_marker`).
+``<!-- data: none -->`` marks a table that holds no results: only a table of settings (its header
+starts ``| setting |``, e.g. a departures table) may carry it. :func:`check` returns one message
+per number no table holds, per marker naming a missing table, per ``none`` marker on anything
+else, and per results table left without a marker (see :func:`needs_marker`).
+
+**Every number of a page** (``pages``): on a figure page the text that no marker covers is
+checked too, against the summary tables the page names (its markers' tables and every
+``data/NAME.csv`` it links, per-run ``*_runs.csv`` tables only where a marker names them), the
+paper's numbers (``paper.csv``) and the
+page's allowlist (``allow``: a number that is a setting, a count of the method or a quoted
+constant, with the reason it needs no table). So a result typed into a paragraph without a
+marker fails as soon as no table holds it.
 """
 
 from __future__ import annotations
 
+import json
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +44,13 @@ from cobelrun.errors import CobelError
 
 CODE = re.compile(r"`[^`]*`")
 MARKER = re.compile(r"<!--\s*data:\s*(?P<body>.*?)\s*-->")
+#: a table a page links (``[...](data/fig9.csv)``)
+LINKED = re.compile(r"\(data/(?P<name>[\w.-]+\.csv)\)")
+#: the numbers of a table's provenance sidecar that count as the table's
+SIDECAR_TIMES = ("wall_time_s", "cpu_time_s", "export_wall_time_s")
+#: the paper's numbers (transcribed), part of every page's tables
+PAPER = "paper.csv"
+FENCE = re.compile(r"^\s*(```|~~~)")
 NUMBER = re.compile(
     r"(?<![\w.])(\d{1,3}(?:,\d{3})+|\d+)(\.\d+)?(?:[eE](?P<exp>[-+]?\d+))?(?P<pct>\s?%)?"
 )
@@ -47,6 +64,7 @@ NOT_NUMBERS = [
     re.compile(r"\b\d{4}-\d{2}-\d{2}\b"),  # dates
     re.compile(r"\b(?:19|20)\d{2}\b"),  # years
     re.compile(r"\bv\d+(?:\.\d+)*\b"),  # versions
+    re.compile(r"\b\d+\.\d+\.\d+\b"),  # versions x.y.z (TensorFlow 2.15.1)
     re.compile(r"\b[A-Za-z]+\d+\b"),  # names with digits (keras-rl2, H100, issue refs)
     re.compile(r"\b[23]D\b"),  # 2D, 3D
 ]
@@ -117,7 +135,8 @@ def numbers(text: str) -> list[tuple[str, float, float, bool]]:
 
 
 def table_values(path: Path) -> np.ndarray:
-    """Every number of a CSV: numeric cells, and numbers inside text cells and column names."""
+    """Every number of a CSV: numeric cells, numbers inside text cells and column names, and
+    the times of its provenance sidecar (:data:`SIDECAR_TIMES`)."""
     frame = pd.read_csv(path)
     values: list[float] = []
     for col in frame.columns:
@@ -128,6 +147,10 @@ def table_values(path: Path) -> np.ndarray:
         else:
             for cell in series.dropna().astype(str).unique():
                 values += [v for _, v, _, _ in numbers(cell.replace("_", " "))]
+    side = path.with_name(f"{path.stem}.provenance.json")
+    if side.is_file():  # the run's times (a page says how long its figure took)
+        prov = json.loads(side.read_text())
+        values += [float(prov[k]) for k in SIDECAR_TIMES if isinstance(prov.get(k), int | float)]
     return np.abs(np.asarray(values, dtype=float))
 
 
@@ -157,31 +180,109 @@ def needs_marker(doc: Path) -> list[int]:
     return out
 
 
-def check(docs: Iterable[Path], data_dir: Path, *, all_tables: Iterable[Path] = ()) -> list[str]:
+def uncovered(doc: Path) -> Iterator[Covered]:
+    """The blocks of ``doc`` (lines up to a blank line) that no marker covers, outside fenced
+    code, with the line each starts on (``tables`` and ``settings`` empty)."""
+    lines = doc.read_text().splitlines()
+    cov: set[int] = set()
+    for c in covered(doc):
+        cov.update(range(c.line, c.line + c.text.count("\n") + 1))
+    block: list[str] = []
+    start, fenced = 0, False
+    for k, line in enumerate([*lines, ""], 1):
+        if FENCE.match(line):
+            fenced = not fenced
+        skip = fenced or FENCE.match(line) or k in cov  # a marker's own line: a comment
+        if skip or not line.strip():
+            if block:
+                yield Covered(doc, start, "\n".join(block), (), ())
+            block = []
+            continue
+        if not block:
+            start = k
+        block.append(line)
+
+
+def page_tables(doc: Path) -> list[str]:
+    """The summary tables ``doc`` names: its markers' tables and the ``data/NAME.csv`` it
+    links, without per-run tables (``*_runs.csv``) that no marker names."""
+    text = doc.read_text()
+    named = {t for c in covered(doc) for t in c.tables}
+    linked = {m.group("name") for m in LINKED.finditer(text)}
+    return sorted(named | {t for t in linked if not t.endswith("_runs.csv")})
+
+
+def is_settings_table(text: str) -> bool:
+    """Is ``text`` a markdown table whose header starts ``| setting |``?"""
+    first = text.lstrip().splitlines()[0] if text.strip() else ""
+    return bool(re.match(r"^\|\s*setting\s*\|", first))
+
+
+def check(
+    docs: Iterable[Path],
+    data_dir: Path,
+    *,
+    all_tables: Iterable[Path] = (),
+    pages: Iterable[Path] = (),
+    allow: Mapping[str, Mapping[str, str]] | None = None,
+) -> list[str]:
     """One message per problem: a number no named table holds, a named table that does not
-    exist, a results table without a marker (``all_tables``: docs whose every table needs
-    one)."""
+    exist, a ``none`` marker on a block that is not a settings table, a results table without
+    a marker (``all_tables``: docs whose every table needs one), and, on ``pages``, a number in
+    text no marker covers that neither the page's tables (:func:`page_tables`) nor the page's
+    ``allow`` list (page file name -> {number as written: why it needs no table}) holds."""
     problems = []
     cache: dict[str, np.ndarray] = {}
+
+    def pool_of(doc: Path, line: int, tables: Iterable[str]) -> list[np.ndarray]:
+        pools = []
+        for name in tables:
+            path = data_dir / name
+            if not path.is_file():
+                problems.append(f"{doc}:{line}: marker names {name}, not in {data_dir}")
+                continue
+            if name not in cache:
+                cache[name] = table_values(path)
+            pools.append(cache[name])
+        return pools
+
     for doc in docs:
         for c in covered(doc):
             if not c.tables and not c.settings:  # <!-- data: none -->: no results here
+                if not is_settings_table(c.text):
+                    problems.append(f"{doc}:{c.line}: 'data: none' on a block that is not a "
+                                    "settings table (header '| setting | ...')")  # fmt: skip
                 continue
-            pools = []
-            for name in c.tables:
-                path = data_dir / name
-                if not path.is_file():
-                    problems.append(f"{doc}:{c.line}: marker names {name}, not in {data_dir}")
-                    continue
-                if name not in cache:
-                    cache[name] = table_values(path)
-                pools.append(cache[name])
-            pool = np.concatenate([*pools, np.abs(np.asarray(c.settings, float))])
+            pool = np.concatenate(
+                [*pool_of(doc, c.line, c.tables), np.abs(np.asarray(c.settings, float))]
+            )
             for shown, value, half, pct in numbers(c.text):
                 if not held(value, half, pct, pool):
                     problems.append(
                         f"{doc}:{c.line}: {shown!r} is in no table of {', '.join(c.tables)}"
                     )
+    for doc in pages:
+        allowed = (allow or {}).get(doc.name, {})
+        try:
+            listed = np.abs(np.asarray([float(k.replace(",", "")) for k in allowed], float))
+        except ValueError:
+            raise CobelError(
+                f"allow list of {doc.name}: keys must be numbers, got {list(allowed)}"
+            ) from None
+        tables = page_tables(doc)
+        if PAPER not in tables and (data_dir / PAPER).is_file():
+            tables.append(PAPER)  # the paper's own settings and numbers, for every page
+        for c in uncovered(doc):
+            pool = np.concatenate([*pool_of(doc, c.line, tables), np.zeros(0)])
+            for shown, value, half, pct in numbers(c.text):
+                if np.any(np.isclose(listed, value, rtol=1e-9, atol=0)) or held(
+                    value, half, pct, pool
+                ):
+                    continue
+                problems.append(
+                    f"{doc}:{c.line}: {shown!r} (untagged) is in no table the page names "
+                    f"({', '.join(tables) or 'none'}) nor in its allow list"
+                )
     for doc in all_tables:
         for line in needs_marker(doc):
             problems.append(f"{doc}:{line}: a table without a <!-- data: ... --> marker")

@@ -14,12 +14,12 @@ from cobelrun.choice_models import MODELS
 
 
 def plot_parameter_recovery(table: pd.DataFrame, summary: pd.DataFrame) -> Any:
-    """True vs fitted value of every parameter of every generating model (its own fits), one
-    panel each, with the identity line and Pearson r / bias in the title. Returns the figure."""
+    """True vs fitted value of every fitted parameter of every generating model (its own fits;
+    a model's fixed parameters are not drawn), one panel each, with the identity line and Pearson r / bias in the title. Returns the figure."""
     import matplotlib.pyplot as plt
 
     own = table[table["generating"] == table["fitted"]]
-    panels = [(m, k) for m in dict.fromkeys(own["generating"]) for k in MODELS[m].keys]
+    panels = [(m, k) for m in dict.fromkeys(own["generating"]) for k in MODELS[m].default_keys]
     cols = min(4, len(panels))
     rows = int(np.ceil(len(panels) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
@@ -31,7 +31,7 @@ def plot_parameter_recovery(table: pd.DataFrame, summary: pd.DataFrame) -> Any:
         ax.scatter(true, est, s=10, alpha=0.6)
         lo, hi = float(min(true.min(), est.min())), float(max(true.max(), est.max()))
         ax.plot([lo, hi], [lo, hi], color="0.5", lw=1, ls="--")
-        if key == "agent.beta":
+        if key in ("agent.beta", "agent.response_beta"):  # log-uniform priors
             ax.set_xscale("log")
             ax.set_yscale("log")
         row = summary[(summary["model"] == model) & (summary["param"] == key)].iloc[0]

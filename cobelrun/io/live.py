@@ -12,7 +12,8 @@ A live view never stops a run: a port in use is one line on stderr and the run g
 without it; a client that disconnects is one line. Nothing is sent on a channel no client
 subscribes to, and a slow client loses its oldest messages (foxglove-sdk keeps at most
 ``message_backlog_size`` per client) instead of slowing the run. A piece of a phase reaches a
-client at once, so it gets at most :data:`~cobelrun.io.mcap.LIVE_POSES` poses and the events
+client at once, so it gets :data:`~cobelrun.io.mcap.LIVE_POSES` poses of it (and the arrival of
+each of its last :data:`~cobelrun.io.mcap.LIVE_TRIALS` trials) and the events
 of the last :data:`~cobelrun.io.mcap.LIVE_TRIALS` trials of each piece (the file gets all).
 """
 
@@ -49,6 +50,9 @@ DEFAULT_PORT = 8765
 LAYOUTS = Path(__file__).parent / "layouts"
 #: poses of this many runs are shown in the layouts' 3D panel (``record.mcap_runs``' default)
 LAYOUT_RUNS = 10
+#: the pose arrows' length and thickness in the layouts (world units; cells are 1): thicker
+#: than Foxglove's default (1, 0.15, 0.15), which hides in the goal's disk a trial ends on
+POSE_ARROW = (0.7, 0.4, 0.4)
 
 
 def foxglove_layout(runs: int = LAYOUT_RUNS) -> Any:
@@ -61,7 +65,7 @@ def foxglove_layout(runs: int = LAYOUT_RUNS) -> Any:
     topics: dict[str, Any] = {"/maze": fl.BaseRendererSceneUpdateTopicSettings(visible=True)}
     for run in range(runs):
         topics[f"/run_{run:04d}/pose"] = fl.BaseRendererPoseTopicSettings(
-            visible=True, type="arrow"
+            visible=True, type="arrow", arrow_scale=POSE_ARROW
         )
         topics[f"/run_{run:04d}/replay"] = fl.BaseRendererSceneUpdateTopicSettings(visible=True)
     maze = fl.ThreeDeePanel(
@@ -105,7 +109,8 @@ def lichtblick_layout(runs: int = LAYOUT_RUNS) -> dict[str, Any]:
     Foxglove Studio 1.x) imports: ``configById`` and a mosaic ``layout`` tree."""
     topics: dict[str, Any] = {"/maze": {"visible": True}}
     for run in range(runs):
-        topics[f"/run_{run:04d}/pose"] = {"visible": True, "type": "arrow"}
+        topics[f"/run_{run:04d}/pose"] = {"visible": True, "type": "arrow",
+                                          "arrowScale": list(POSE_ARROW)}  # fmt: skip
         topics[f"/run_{run:04d}/replay"] = {"visible": True}
 
     def plot(field: str, label: str) -> dict[str, Any]:

@@ -135,6 +135,8 @@ __all__ = [
     "McapRecorder",
     "McapSink",
     "heading_to_quaternion",
+    "live_pose_indices",
+    "per_run_cut",
 ]
 
 #: ``task.record.mcap_timeline``: runs one after another on the log clock (``sequential``), or
@@ -270,6 +272,24 @@ def _timestamp(t_ns: int) -> Timestamp:
     return Timestamp(sec, nsec)
 
 
+def _json_string(text: str) -> str:
+    """``text`` as a JSON string, safe inside a %-format (see :func:`_json_lines`)."""
+    return json.dumps(str(text)).replace("%", "%%")
+
+
+def _json_lines(fmt: str, columns: Sequence[Sequence[Any]]) -> list[bytes]:
+    """One JSON object per row, the message payloads of ``/trial`` and ``/trial_series``.
+
+    ``fmt`` is a %-format of one object whose fields take, in order, one value from each of
+    ``columns`` (equal-length sequences; strings inside ``fmt`` through :func:`_json_string`).
+    One format of the whole batch: ``json.dumps`` per message is ~5x slower."""
+    n = len(columns[0]) if columns else 0
+    if n == 0:
+        return []
+    rows = zip(*columns, strict=True)
+    return ("\n".join([fmt] * n) % tuple(v for row in rows for v in row)).encode().split(b"\n")
+
+
 def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
     t = np.asarray(t_ns)
     if t.shape != (n,):
@@ -282,8 +302,9 @@ def _check_times(t_ns: np.ndarray, n: int, what: str) -> np.ndarray:
     return t
 
 
-#: at most this many poses of one batch (a piece of a phase) go to a live view, evenly spread,
-#: the last one always: they arrive at once, and the file keeps every pose
+#: this many poses of one batch (a piece of a phase) go to a live view, evenly spread, with the
+#: last one and the arrivals of the last LIVE_TRIALS trials: they arrive at once, and the file
+#: keeps every pose
 LIVE_POSES = 256
 #: and the events of at most this many trials of a batch, the last ones (``/trial_series``
 #: still gets every trial)
@@ -294,6 +315,61 @@ GRID_HEIGHT = 0.01
 
 #: simulated time per step on the log clock (100 ms; the pose clock of ``cobel.TrialTable``)
 STEP_NS = 100_000_000
+
+
+def live_pose_indices(k: int, arrivals: np.ndarray | None = None) -> np.ndarray | None:
+    """Which of a batch's ``k`` poses a live view gets: all of them (None) up to
+    :data:`LIVE_POSES`; else that many evenly spread, the last one, and the arrival poses
+    (``arrivals``: indices of each trial's last pose) of the last :data:`LIVE_TRIALS` trials,
+    so that a viewer sees every recent trial reach its end (the goal)."""
+    if k <= LIVE_POSES:
+        return None
+    keep = np.linspace(0, k - 1, LIVE_POSES).round().astype(np.int64)
+    if arrivals is not None and len(arrivals):
+        last = np.asarray(arrivals, np.int64)[-LIVE_TRIALS:]
+        if last.min() < 0 or last.max() >= k:
+            raise ValueError(f"write_poses: arrivals must index the {k} poses")
+        keep = np.concatenate([keep, last])
+    return np.unique(keep)
+
+
+def per_run_cut(start_ns: int, run_clocks_ns: Mapping[int, int]) -> Any:
+    """Where to cut each message of a ``per_run`` timeline's MCAP when a resumed run joins
+    the stopped process's file with its own (:func:`cobelrun.io.mcap_repair.join_mcap`).
+
+    With ``task.record.mcap_timeline=per_run`` every run's clock starts at ``start_ns``, so
+    no single time separates what was written before a checkpoint from what came after; each
+    run's clock at the checkpoint (``run_clocks_ns``, the recorder's watermark) does. A
+    message of run ``r`` (its ``/run_NNNN/...`` topic, or the ``run`` field of a
+    ``/trial`` event or a ``/trials`` table) is cut at ``start_ns + run_clocks_ns[r]`` (0
+    for a run not started by then); the scene on ``/maze``, logged once at ``start_ns``, is
+    taken from the first file; other topics are kept from both.
+
+    Returns
+    -------
+    callable
+        ``cut(topic, data) -> int | None``: the log time from which a message is the
+        resumed process's.
+    """
+    start = int(start_ns)
+    clocks = {int(r): int(ns) for r, ns in run_clocks_ns.items()}
+
+    def at(run: int) -> int:
+        return start + clocks.get(int(run), 0)
+
+    def cut(topic: str, data: bytes) -> int | None:
+        if topic.startswith("/run_"):
+            head = topic[5:].split("/", 1)[0]
+            return at(int(head)) if head.isdigit() else None
+        if topic == FoxgloveStream.TRIAL_TOPIC:
+            return at(json.loads(data)["run"])
+        if topic == FoxgloveStream.TRIALS_TOPIC:
+            return at(_trial_table_type()[0].FromString(data).run)
+        if topic == FoxgloveStream.SCENE_TOPIC:
+            return start + 1
+        return None
+
+    return cut
 
 
 class FoxgloveSink:
@@ -521,7 +597,9 @@ class FoxgloveStream:
         return self._live
 
     # ------------------------------------------------------------------ poses
-    def write_poses(self, run: int, t_ns: np.ndarray, poses: np.ndarray) -> None:
+    def write_poses(
+        self, run: int, t_ns: np.ndarray, poses: np.ndarray, arrivals: np.ndarray | None = None
+    ) -> None:
         """Write ``foxglove.PoseInFrame`` messages on ``/run_{run:04d}/pose``.
 
         Parameters
@@ -532,7 +610,13 @@ class FoxgloveStream:
             Absolute log times (nanoseconds since the Unix epoch), also the poses' timestamps.
         poses : (k, 3) float
             ``x, y, heading``: position in world units and heading in radians
-            (counter-clockwise from +x), written as a quaternion about +z.
+            (counter-clockwise from +x), written as a quaternion about +z. A trial's poses
+            are its start pose and the pose after each step, so its last one is where it
+            arrived (the steps table's ``next_x, next_y, next_heading`` of its last step).
+        arrivals : (n,) int, optional
+            Indices into ``poses`` of each trial's arrival: the file gets every pose anyway;
+            a live view, which gets :data:`LIVE_POSES` of a batch's poses, always gets those
+            of the batch's last :data:`LIVE_TRIALS` trials (:func:`live_pose_indices`).
         """
         self._check_open()
         p = np.asarray(poses, dtype=np.float64)
@@ -548,9 +632,8 @@ class FoxgloveStream:
         if files:
             self._log_poses(files, t, p)
         if live:  # a viewer sees a batch arrive at once: a few hundred poses draw its track
-            k = p.shape[0]
-            if k > LIVE_POSES:
-                keep = np.unique(np.linspace(0, k - 1, LIVE_POSES).round().astype(np.int64))
+            keep = live_pose_indices(p.shape[0], arrivals)
+            if keep is not None:
                 t, p = t[keep], p[keep]
             self._log_poses(live, t, p)
 
@@ -642,21 +725,16 @@ class FoxgloveStream:
             resp = r.astype(np.int64).tolist()
         if n == 0:
             return
-        # one %-format per kind for the whole batch (json.dumps per event is ~5x slower)
-        tail = ',"run":%d,"trial":%d,"phase":' + json.dumps(str(phase)).replace("%", "%%") + "}"
-        start_fmt = '{"event":"start","start_state":%d' + tail
-        end_fmt = '{"event":"end","steps":%d,"reward":%r,"end_state":%d'
-        end_fmt += ("" if resp is None else ',"response":%d') + tail
+        tail = ',"run":%d,"trial":%d,"phase":' + _json_string(phase) + "}"
         runs = [int(run)] * n
-        starts = ("\n".join([start_fmt] * n) % tuple(
-            v for row in zip(ints["start_state"], runs, ints["trial"], strict=True) for v in row
-        )).encode().split(b"\n")  # fmt: skip
+        starts = _json_lines('{"event":"start","start_state":%d' + tail,
+                             [ints["start_state"], runs, ints["trial"]])  # fmt: skip
+        end_fmt = '{"event":"end","steps":%d,"reward":%r,"end_state":%d'
         end_cols: list[list[Any]] = [ints["steps"], rew.tolist(), ints["end_state"]]
         if resp is not None:
+            end_fmt += ',"response":%d'
             end_cols.append(resp)
-        ends = ("\n".join([end_fmt] * n) % tuple(
-            v for row in zip(*end_cols, runs, ints["trial"], strict=True) for v in row
-        )).encode().split(b"\n")  # fmt: skip
+        ends = _json_lines(end_fmt + tail, [*end_cols, runs, ints["trial"]])
         files, live = self._split_logs(self.TRIAL_TOPIC, self._trial_channel)
         rows = list(zip(starts, ends, ts.tolist(), te.tolist(), strict=True))
         for logs, keep in ((files, rows), (live, rows[-LIVE_TRIALS:])):
@@ -756,16 +834,15 @@ class FoxgloveStream:
         n = len(steps)
         ends = t + (np.cumsum(steps, dtype=np.int64) + np.arange(n, dtype=np.int64)) * STEP_NS
         resp = cols.get("response")
-        fmt = ('{"run":%d,"trial":%d,"phase":' + json.dumps(phase).replace("%", "%%")
-               + ',"steps":%d,"reward":%r,"terminated":%s' + ("}" if resp is None
-               else ',"response":%d}'))  # fmt: skip
+        fmt = '{"run":%d,"trial":%d,"phase":' + _json_string(phase)
+        fmt += ',"steps":%d,"reward":%r,"terminated":%s'
         values: list[list[Any]] = [[run] * n, list(range(first_trial, first_trial + n)), steps,
                                    reward.tolist(),
                                    ["true" if x else "false" for x in cols["terminated"]]]  # fmt: skip
         if resp is not None:
+            fmt += ',"response":%d'
             values.append(resp)
-        lines = ("\n".join([fmt] * n) % tuple(v for row in zip(*values, strict=True)
-                                                for v in row)).encode().split(b"\n")  # fmt: skip
+        lines = _json_lines(fmt + "}", values)
         for log in logs:
             for line, te in zip(lines, ends.tolist(), strict=True):
                 log(line, log_time=te)

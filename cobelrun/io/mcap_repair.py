@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from io import BytesIO
 from pathlib import Path
 from typing import Any
@@ -230,13 +230,15 @@ def join_mcap(
     first: str | os.PathLike[str],
     second: str | os.PathLike[str],
     out: str | os.PathLike[str],
-    until_ns: int,
+    until_ns: int | Callable[[str, bytes], int | None],
 ) -> None:
-    """Write one MCAP of ``first``'s messages logged before ``until_ns`` and all of
-    ``second``'s (a run resumed from a checkpoint: the stream up to the checkpoint, then the
-    resumed process's). Metadata and attachments are taken from ``first`` (``second`` repeats
-    them); schemas and channels of both are kept. ``out`` may be ``second``: the result is
-    written to a temporary file and renamed."""
+    """Write one MCAP of ``first``'s messages logged before ``until_ns`` and ``second``'s
+    from then on (a run resumed from a checkpoint: the stream up to the checkpoint, then the
+    resumed process's). ``until_ns`` may be a function of a message's topic and data giving
+    its own cut (None: the message is kept from both files), for timelines where each run
+    has its own clock (:func:`cobelrun.io.mcap.per_run_cut`). Metadata and attachments are
+    taken from ``first`` (``second`` repeats them); schemas and channels of both are kept.
+    ``out`` may be ``second``: the result is written to a temporary file and renamed."""
     from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
     from mcap.writer import CompressionType, Writer
 
@@ -248,6 +250,7 @@ def join_mcap(
             for source, index in ((Path(first), 0), (Path(second), 1)):
                 schema_ids: dict[int, int] = {0: 0}
                 channel_ids: dict[int, int] = {}
+                topics: dict[int, str] = {}
                 for rec in _complete_records(source.read_bytes()):
                     if isinstance(rec, Header):
                         if writer is None:
@@ -262,6 +265,7 @@ def join_mcap(
                             rec.name, rec.encoding, rec.data
                         )
                     elif isinstance(rec, Channel):
+                        topics.setdefault(rec.id, rec.topic)
                         if rec.id not in channel_ids and rec.schema_id in schema_ids:
                             channel_ids[rec.id] = writer.register_channel(
                                 rec.topic, rec.message_encoding, schema_ids[rec.schema_id],
@@ -269,10 +273,14 @@ def join_mcap(
                             )  # fmt: skip
                     elif isinstance(rec, Message):
                         cid = channel_ids.get(rec.channel_id)
-                        if cid is None or (index == 0 and rec.log_time >= until_ns):
+                        if cid is None:
                             continue
-                        if index == 1 and rec.log_time < until_ns:
-                            continue  # the scene the resumed process logs again at the start
+                        cut = (until_ns(topics[rec.channel_id], rec.data) if callable(until_ns)
+                               else until_ns)  # fmt: skip
+                        if cut is not None and (rec.log_time >= cut) == (index == 0):
+                            # the stopped process's past its checkpoint, or the resumed
+                            # process's before it (the scene it logs again at the start)
+                            continue
                         writer.add_message(cid, rec.log_time, rec.data, rec.publish_time,
                                            rec.sequence)  # fmt: skip
                     elif index == 0 and isinstance(rec, Metadata):

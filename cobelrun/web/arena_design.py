@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from cobelrun.errors import CobelError, ConfigError
+from cobelrun.errors import CobelError, ConfigError, LayoutError
 
 __all__ = ["ARENA_TOOLS", "ArenaDesign"]
 
@@ -37,6 +37,26 @@ ARENA_TOOLS: dict[str, str] = {
 _NAMED = re.compile(r"(?:goal|start) '([^']+)'|starts\.(\w+)|obstacles\[(\d+)\]")
 
 
+#: place cells the arena page draws (and rebuilds on every click); the water maze has 493
+MAX_PLACE_CELLS = 5000
+
+
+def check_place_cells(observation: Any, where: str) -> None:
+    """Refuse an arena whose place cells are too many to draw and rebuild on every click (one
+    line, saying what to do); what the run itself accepts is the run's check."""
+    parts = observation if isinstance(observation, list) else [observation]
+    for part in parts:
+        if not isinstance(part, dict) or part.get("kind") != "place_cells":
+            continue
+        centres, n = part.get("centres"), part.get("n", 100)
+        count = len(centres) if isinstance(centres, list) else n
+        if isinstance(count, int) and not isinstance(count, bool) and count > MAX_PLACE_CELLS:
+            raise LayoutError(
+                f"{where}: {count} place cells are too many to draw here (at most "
+                f"{MAX_PLACE_CELLS}); edit its YAML instead"
+            )
+
+
 @dataclass
 class ArenaDesign:
     """A Continuous2DEnv config as plain data, edited in place.
@@ -49,7 +69,8 @@ class ArenaDesign:
         Vertices of a polygon being drawn (obstacle or outline).
     phases, max_steps : list of dict, int
         The protocol of the task that uses the env (the water maze's acquisition, probe and
-        reversal): checked and shown, not edited here.
+        reversal): checked, shown, and edited with :meth:`paint_phase` (the goals a phase
+        switches on and off, its start points).
     """
 
     node: dict[str, Any]
@@ -62,6 +83,7 @@ class ArenaDesign:
         if node.get("_target_") not in ENV_TARGETS:
             raise ConfigError(f"{where} is not an arena env config (its _target_ is "
                               f"{node.get('_target_')!r})")  # fmt: skip
+        check_place_cells(node.get("observation"), where)
         d = cls(copy.deepcopy(node))
         starts = d.node.get("starts")
         if isinstance(starts, list):  # named, so each can be picked and removed
@@ -207,6 +229,115 @@ class ArenaDesign:
                 return f"obstacles[{i}]"
         return None
 
+    # ------------------------------------------------------------------ start heading
+    def start_heading(self) -> float | str:
+        """The env's ``start_heading``: degrees, ``"random"`` or ``"centre"`` (its default)."""
+        h = self.node.get("start_heading", "centre")
+        return h if isinstance(h, str) else float(h)
+
+    def set_start_heading(self, value: Any) -> None:
+        """``start_heading`` as the env takes it: an angle in degrees (counter-clockwise from
+        +x), ``"random"`` or ``"centre"`` (facing the arena's centre)."""
+        if isinstance(value, str) and value.strip() in ("random", "centre"):
+            self.node["start_heading"] = value.strip()
+            return
+        try:
+            deg = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"start heading must be an angle in degrees, 'random' or 'centre', "
+                              f"got {value!r}") from None  # fmt: skip
+        if not np.isfinite(deg):
+            raise ConfigError(f"start heading must be a finite angle in degrees, got {value!r}")
+        deg = round(deg % 360.0, 4)
+        self.node["start_heading"] = int(deg) if deg == int(deg) else deg
+
+    # ------------------------------------------------------------------ phases
+    def phase_starts(self, k: int) -> list[Any] | None:
+        """The start list in force during phase ``k`` (names or [x, y] points; the last phase
+        up to ``k`` that sets ``starts``), or None: the env's own starts."""
+        for p in reversed(self.phases[: k + 1]):
+            if p.get("starts") is not None:
+                return list(p["starts"])
+        return None
+
+    def goal_at(self, x: float, y: float) -> str | None:
+        """The goal region that holds ``(x, y)`` (the last drawn on top), or None."""
+        from cobelrun.envs.arena import Shape
+
+        hit = None
+        for name, spec in (self.node.get("goals") or {}).items():
+            try:
+                if Shape.parse("goal", spec, extra=("reward", "terminal")).contains(
+                    np.array([[x, y]])
+                )[0]:
+                    hit = name
+            except CobelError:
+                continue
+        return hit
+
+    def paint_phase(self, tool: str, x: float, y: float, k: int, *, radius: float = 0.1,
+                    reward: float = 1.0, tol: float = 0.03) -> str:  # fmt: skip
+        """What phase ``k`` of the protocol sets, edited by a click at ``(x, y)``:
+
+        - ``goal`` on a goal region: switch it on (``reward``, terminal) or, when it pays
+          during the phase, off (reward 0, not terminal); on open water: a new circular goal
+          region (``radius``), off in the env as built and switched on by this phase. Moving
+          the water maze's platform in a reversal is: switch the old one off, click the new
+          place.
+        - ``start`` near a start point of the env: add it to (or remove it from) the phase's
+          starts; elsewhere: add the point ``[x, y]``.
+        - ``erase``: a goal region switched off, a start of the phase removed.
+
+        Returns what it changed (for the status line)."""
+        if not 0 <= k < len(self.phases):
+            raise ConfigError(f"phase {k} does not exist; phases: {', '.join(self.phase_names())}")
+        phase = self.phases[k]
+        if tool in ("goal", "erase"):
+            name = self.goal_at(x, y)
+            on = False
+            if name is None and tool == "goal":
+                name = self.add_goal(x, y, radius, 0.0)  # off as built: the phase switches it on
+                self.node["goals"][name]["terminal"] = False
+                on = True
+            elif name is not None:
+                goal = self.phase_env(k).unwrapped.arena.goals[name]
+                on = tool == "goal" and not (goal.reward or goal.terminal)
+            if name is not None:
+                rewards = dict(phase.get("rewards") or {})
+                terminals = dict(phase.get("terminals") or {})
+                rewards[name], terminals[name] = (float(reward) if on else 0.0), on
+                phase["rewards"], phase["terminals"] = rewards, terminals
+                return f"phase {phase.get('name')}: goal {name} {'on' if on else 'off'}"
+        if tool in ("start", "erase"):
+            starts = self.phase_starts(k)
+            env_starts = self.node.get("starts")
+            if starts is None:
+                starts = list(env_starts) if isinstance(env_starts, dict) else []
+            near = self._start_near(starts, x, y, tol)
+            if near is not None:
+                del starts[near]
+                phase["starts"] = starts
+                return f"phase {phase.get('name')}: start removed"
+            if tool == "start":
+                named = self._start_near(list(env_starts or {}) if isinstance(env_starts, dict)
+                                         else [], x, y, tol)  # fmt: skip
+                starts.append(list(env_starts)[named] if named is not None
+                              else [round(x, 4), round(y, 4)])  # fmt: skip
+                phase["starts"] = starts
+                return f"phase {phase.get('name')}: start added"
+            return "nothing to erase there"
+        raise ConfigError(f"the {tool} tool edits the env, not a phase; pick 'env (as built)' "
+                          "to use it")  # fmt: skip
+
+    def _start_near(self, refs: list[Any], x: float, y: float, tol: float) -> int | None:
+        """Index of the start in ``refs`` (names or points) within ``tol`` of ``(x, y)``."""
+        named = self.node.get("starts") if isinstance(self.node.get("starts"), dict) else {}
+        for i, ref in enumerate(refs):
+            xy = named.get(ref) if isinstance(ref, str) else ref
+            if xy is not None and np.hypot(float(xy[0]) - x, float(xy[1]) - y) <= tol:
+                return i
+        return None
+
     # ------------------------------------------------------------------ drawing
     def bounds(self) -> tuple[float, float, float, float]:
         from cobelrun.envs.arena import Shape
@@ -233,8 +364,10 @@ class ArenaDesign:
         P = lambda x, y: f"{(x - x0) * scale:.1f},{(y1 - y) * scale:.1f}"  # noqa: E731
         out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w:.0f}" height="{h:.0f}" '
                f'class="cobel-arena" data-x0="{x0}" data-y1="{y1}" data-scale="{scale}" '
-               f'font-family="sans-serif"><rect x="0" y="0" width="{w:.0f}" height="{h:.0f}" '
-               'fill="#e8e8e8"/>']  # fmt: skip
+               f'font-family="sans-serif"><defs><marker id="cobel-arrow" markerWidth="6" '
+               'markerHeight="6" refX="3" refY="3" orient="auto"><path d="M0,0 L6,3 L0,6 z" '
+               f'fill="#0b3d91"/></marker></defs><rect x="0" y="0" width="{w:.0f}" '
+               f'height="{h:.0f}" fill="#e8e8e8"/>']  # fmt: skip
 
         def poly(spec: Any, cls: str, fill: str, stroke: str, extra: tuple[str, ...] = ()) -> None:
             try:
@@ -283,13 +416,39 @@ class ArenaDesign:
                         out.append(f'<polyline class="cobel-ray" points="{P(*pose)} {P(ex, ey)}" '
                                    'stroke="#2ca02c" stroke-width="1"/>')  # fmt: skip
         starts = self.node.get("starts")
-        if isinstance(starts, dict):
-            for name, xy in starts.items():
-                px, py = P(*map(float, xy)).split(",")
-                stroke = "#d00000" if bad == name else "#0b3d91"
-                out.append(f'<circle class="cobel-start" data-name="{html.escape(str(name))}" '
-                           f'cx="{px}" cy="{py}" r="6" fill="#cfe0ff" stroke="{stroke}" '
-                           'stroke-width="2"/>')  # fmt: skip
+        named = starts if isinstance(starts, dict) else {}
+        in_phase = None if phase is None or not self.phases else self.phase_starts(phase)
+        points: list[tuple[str, list[float], bool]] = [
+            (str(n), list(map(float, xy)), in_phase is None or n in in_phase)
+            for n, xy in named.items()
+        ]
+        for ref in in_phase or []:
+            if not isinstance(ref, str):  # a point the phase starts from
+                points.append((f"({ref[0]:g}, {ref[1]:g})", [float(ref[0]), float(ref[1])], True))
+        heading = self.start_heading()
+        arrow = 0.06 * (x1 - x0)
+        for name, (sx, sy), active in points:
+            px, py = P(sx, sy).split(",")
+            stroke = "#d00000" if bad == name else "#0b3d91"
+            op = "1" if active else "0.3"
+            cls = "cobel-start" + ("" if active else " cobel-start-off")
+            if heading == "random":
+                out.append(f'<circle class="cobel-heading-random" cx="{px}" cy="{py}" r="11" '
+                           f'fill="none" stroke="#0b3d91" stroke-dasharray="3 3" '
+                           f'opacity="{op}"/>')  # fmt: skip
+            else:
+                if heading == "centre":
+                    c = env.arena.outline.centre if env is not None else np.zeros(2)
+                    a = float(np.arctan2(c[1] - sy, c[0] - sx))
+                else:
+                    a = float(np.deg2rad(heading))
+                ex, ey = sx + arrow * np.cos(a), sy + arrow * np.sin(a)
+                out.append(f'<polyline class="cobel-heading" data-deg="{np.rad2deg(a) % 360:.1f}" '
+                           f'points="{P(sx, sy)} {P(ex, ey)}" stroke="#0b3d91" stroke-width="3" '
+                           f'marker-end="url(#cobel-arrow)" opacity="{op}"/>')  # fmt: skip
+            out.append(f'<circle class="{cls}" data-name="{html.escape(name)}" '
+                       f'cx="{px}" cy="{py}" r="6" fill="#cfe0ff" stroke="{stroke}" '
+                       f'stroke-width="2" opacity="{op}"/>')  # fmt: skip
         if self.pending:
             pts = " ".join(P(*p) for p in self.pending)
             out.append(f'<polyline class="cobel-pending" points="{pts}" fill="none" '

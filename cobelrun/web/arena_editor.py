@@ -2,9 +2,14 @@
 points of a :class:`~cobelrun.envs.continuous.Continuous2DEnv`, with the env's place-cell
 centres and the boundary-vector rays at a clicked pose drawn from the built env.
 
-Saving writes ``env/NAME.yaml`` with the edited ``arena``, ``obstacles``, ``goals`` and
-``starts``; every other key and comment of the loaded file is kept, and an unchanged env is
-written back byte for byte.
+The start heading (``start_heading``: degrees, ``random`` or ``centre``, the env's one form)
+is set and drawn as an arrow at each start. The phases of the protocol that comes with the
+arena are edited on the page (a goal switched on or off, a new goal, the starts), with the run's
+protocol code checking them, and written into ``task/NAME.yaml`` as ``task.protocol``.
+
+Saving writes ``env/NAME.yaml`` with the edited ``arena``, ``obstacles``, ``goals``,
+``starts`` and ``start_heading``; every other key and comment of the loaded file is kept, and
+an unchanged env is written back byte for byte.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from typing import Any
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.web import edit_config as ec
 from cobelrun.web.arena_design import ARENA_TOOLS, ENV_TARGETS, ArenaDesign
+from cobelrun.web.edit_page import EditPage
 
 #: built-in arenas to start from: name -> label
 ARENA_TEMPLATES: dict[str, str] = {
@@ -32,7 +38,11 @@ CLICK_JS = """(e) => {
   emit({x: +svg.dataset.x0 + (e.clientX - b.left) / s,
         y: +svg.dataset.y1 - (e.clientY - b.top) / s});
 }"""
-_KEYS = ("arena", "obstacles", "goals", "starts")
+_KEYS = ("arena", "obstacles", "goals", "starts", "start_heading")
+#: outlines the "set" button makes (a polygon is drawn with the outline tool)
+OUTLINES = ("circle", "square")
+#: the start heading menu: the env's start_heading forms
+HEADINGS = {"centre": "face the centre", "random": "random", "angle": "angle (degrees)"}
 
 
 @dataclass
@@ -99,7 +109,7 @@ def arena_text(loaded: LoadedArena, design: ArenaDesign) -> str:
     """``env/NAME.yaml``: unchanged, or the loaded data with the arena's keys replaced."""
     from ruamel.yaml.comments import CommentedMap
 
-    if design.node == loaded.loaded.node:  # (phases are shown, not edited here)
+    if design.node == loaded.loaded.node:  # (phases go to the task)
         return loaded.text
     doc = loaded.doc
     for key in _KEYS:
@@ -113,6 +123,8 @@ def arena_text(loaded: LoadedArena, design: ArenaDesign) -> str:
             doc[key] = m
         elif key == "obstacles":
             doc[key] = ec._block([_flow_map(o) for o in value])
+        elif not isinstance(value, dict):  # start_heading: degrees, random or centre
+            doc[key] = value
         else:
             doc[key] = _flow_map(value)
     if loaded.source is None and ec.MARK not in loaded.text:
@@ -145,8 +157,9 @@ def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign
         if loaded.task_doc is None:
             raise ConfigError("no task came with this arena (a template with a protocol, such "
                               "as water_maze, or the folder's task/NAME.yaml); write one yourself")  # fmt: skip
-        outputs.append((ec._inside(folder, folder / "task" / f"{name}.yaml"),
-                        ec.task_file_text(loaded.task_doc, name), loaded.task_source))  # fmt: skip
+        text = ec.protocol_task_text(loaded.task_doc, name, design, loaded.loaded)
+        outputs.append((ec._inside(folder, folder / "task" / f"{name}.yaml"), text,
+                        loaded.task_source))  # fmt: skip
     for out, text, source in outputs:
         ours = source is not None and out.resolve() == source.resolve()
         if out.exists() and not ours and out.read_text(encoding="utf-8") != text:
@@ -157,109 +170,91 @@ def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign
     return path
 
 
-class ArenaPage:
-    """One browser tab's arena editor."""
+class ArenaPage(EditPage):
+    """One browser tab's arena editor (the parts shared with the other pages come from
+    :class:`EditPage`)."""
+
+    here = "/arena"
+    title = "cobel edit: 2D arena"
+    phase_tools = ("The goal tool (on a goal: switch it on or off; elsewhere: a new goal this "
+                   "phase switches on) and the start and erase tools now change what this "
+                   "phase sets")  # fmt: skip
+    task_label = "also write task/NAME.yaml (the protocol's task)"
+    existing_label = "arena in the folder"
 
     def __init__(self, editor: Any, env: str = "") -> None:
         self.editor = editor
-        folder = self.folder = editor.folder
         self.error = ""
         self.loaded = load_arena(None, "arena")
-        self.name0 = "my_arena"
+        self.start_name = "my_arena"
         if env:
             try:
-                self.loaded, self.name0 = load_arena(folder, env), env
+                self.loaded, self.start_name = load_arena(editor.folder, env), env
             except CobelError as exc:
                 self.error = str(exc)
         self.design = self.loaded.design.copy()
-        self.history: list[ArenaDesign] = []
+        self.init_state()
         self.tool = "start"
         self.pose: tuple[float, float] | None = None
-        self.phase: int | None = None
 
     def build(self) -> None:
         from nicegui import ui
 
-        with ui.row().classes("items-center w-full"):
-            ui.label("cobel edit: 2D arena").classes("text-xl font-bold")
-            ui.link("gridworlds", "/").classes("text-sm")
-            ui.link("topology graphs", "/graph").classes("text-sm")
-            self.origin = ui.label().classes("text-sm text-gray-600 cobel-origin")
+        self.header()
         with ui.row().classes("w-full no-wrap items-start gap-6"):
             with ui.column().classes("w-72 gap-1"):
-                with ui.row().classes("items-center no-wrap"):
-                    self.template = ui.select(ARENA_TEMPLATES, value=None, label="template")
-                    self.template.classes("w-48 cobel-template")
-                    ui.button("load", on_click=self._load_template).props("dense").classes(
-                        "cobel-load-template"
-                    )
-                with ui.row().classes("items-center no-wrap"):
-                    self.existing = ui.select(arena_env_names(self.folder), value=None,
-                                              label="arena in the folder").classes("w-48")  # fmt: skip
-                    ui.button("open", on_click=self._open).props("dense")
+                self.load_rows(ARENA_TEMPLATES)
                 ui.label("outline").classes("font-bold mt-2")
                 with ui.row().classes("items-center no-wrap"):
-                    self.shape = ui.select(["circle", "square"], value="circle").classes("w-24")
-                    self.size = ui.number("radius / side", value=1.0, min=0.01).classes("w-28")
+                    self.shape = ui.select(list(OUTLINES), value="circle").classes(
+                        "w-28 cobel-outline-shape"
+                    )
+                    self.size = ui.number("radius / side", value=1.0, min=0.01).classes(
+                        "w-28 cobel-outline-size"
+                    )
                     ui.button("set", on_click=self._outline).props("dense").classes(
                         "cobel-outline-set"
                     )
                 ui.label("tools").classes("font-bold mt-2")
-                self.tool_buttons = {}
-                with ui.grid(columns=2).classes("gap-1"):
-                    for name, what in ARENA_TOOLS.items():
-                        b = ui.button(name, on_click=lambda _, n=name: self._set_tool(n))
-                        b.props("dense no-caps").classes(f"cobel-tool cobel-tool-{name}")
-                        b.tooltip(what)
-                        self.tool_buttons[name] = b
+                self.tool_grid(ARENA_TOOLS)
                 ui.button("finish shape", on_click=self._finish).props("dense").classes(
                     "cobel-finish"
                 )
                 with ui.row().classes("items-center no-wrap"):
-                    self.radius = ui.number("goal radius", value=0.1, min=0.001).classes("w-28")
-                    self.reward = ui.number("reward", value=1.0).classes("w-24")
-                ui.label("phase").classes("font-bold mt-2")
-                self.phase_select = ui.select({-1: "env (as built)"}, value=-1,
-                                              on_change=self._set_phase).classes(
-                    "w-64 cobel-phase")  # fmt: skip
-                ui.button("undo", on_click=self._undo).props("dense").classes("cobel-undo")
+                    self.radius = ui.number("goal radius", value=0.1, min=0.001).classes(
+                        "w-28 cobel-radius"
+                    )
+                    self.reward = ui.number("reward", value=1.0).classes("w-24 cobel-value")
+                ui.label("start heading").classes("font-bold mt-2")
+                with ui.row().classes("items-center no-wrap"):
+                    self.heading_kind = ui.select(HEADINGS, value="centre").classes(
+                        "w-36 cobel-heading-kind"
+                    )
+                    self.heading_deg = ui.number("degrees", value=90.0).classes(
+                        "w-20 cobel-heading-deg"
+                    )
+                    ui.button("set", on_click=self._heading).props("dense").classes(
+                        "cobel-heading-set"
+                    )
+                self.phase_rows()
+                ui.button("undo", on_click=self.undo).props("dense").classes("cobel-undo")
             with ui.column().classes("gap-2"):
                 self.canvas = ui.html("", sanitize=False).classes("cobel-arena-box")
                 self.canvas.on("click", self._click, js_handler=CLICK_JS)
                 self.problem_list = ui.column().classes("gap-0 cobel-problems")
                 self.info = ui.label().classes("text-sm text-gray-700 cobel-info")
             with ui.column().classes("w-96 gap-1"):
-                self.name = ui.input("env name", value=self.name0).classes("w-64 cobel-name")
-                self.with_task = ui.checkbox("also write task/NAME.yaml (the protocol's task)")
-                self.with_task.classes("cobel-with-task")
-                with ui.row():
-                    ui.button("save", on_click=self._save).classes("cobel-save")
-                    ui.button("run it", on_click=self._run_it).classes("cobel-run")
-                with ui.row():
-                    ui.button("export PNG", on_click=lambda: self._export("png")).props(
-                        "dense outline"
-                    ).classes("cobel-export-png")
-                    ui.button("export SVG", on_click=lambda: self._export("svg")).props(
-                        "dense outline"
-                    ).classes("cobel-export-svg")
-                self.status = ui.label(self.error).classes("text-sm cobel-status")
-                from cobelrun.web.edit_runs import RunPanel
-
-                self.runner = RunPanel(self.editor)
-                ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")
-                self.yaml = ui.code("", language="yaml").classes("w-96 text-xs cobel-yaml")
+                self.save_panel()
+        self.after_use()
         self.refresh()
 
     def refresh(self) -> None:
         from nicegui import ui
 
+        self.refresh_common()
         problems = self.design.problems()
         bad = problems[0][1] if problems else None
         self.canvas.content = self.design.svg(pose=self.pose, bad=bad, phase=self.phase)
-        opts = {-1: "env (as built)"}
-        opts.update({i: f"phase {i + 1}: {n}" for i, n in enumerate(self.design.phase_names())})
-        if self.phase_select.options != opts:
-            self.phase_select.set_options(opts, value=-1 if self.phase is None else self.phase)
         self.problem_list.clear()
         with self.problem_list:
             for msg, _ in problems:
@@ -269,35 +264,20 @@ class ArenaPage:
                     "text-sm text-positive cobel-ok"
                 )
         pending = len(self.design.pending)
+        h = self.design.start_heading()
+        heading = (f"{h:g} degrees" if not isinstance(h, str) else
+                   "facing the centre" if h == "centre" else "random")  # fmt: skip
         self.info.text = ((f"{pending} vertices drawn; 'finish shape' closes the polygon. " if
-                           pending else "") + "blue dots: place-cell centres; green lines: "
-                          "boundary-vector rays at the pose clicked with 'rays'")  # fmt: skip
-        self.origin.text = f"from {self.loaded.origin}"
-        for n, b in self.tool_buttons.items():
-            b.props(f"color={'primary' if n == self.tool else 'grey-6'}")
+                           pending else "") + f"start heading: {heading} (arrows; dashed ring: "
+                          "random); blue dots: place-cell centres; green lines: boundary-vector "
+                          "rays at the pose clicked with 'rays'")  # fmt: skip
         try:
             self.yaml.content = arena_text(self.loaded, self.design)
         except CobelError as exc:
             self.yaml.content = f"# {exc}"
 
-    def _change(self, fn: Any) -> None:
-        before = self.design.copy()
-        try:
-            fn()
-        except CobelError as exc:
-            self.design = before
-            self.status.text = str(exc)
-            return
-        self.history.append(before)
-        del self.history[:-100]
-        self.refresh()
-
-    def _set_tool(self, name: str) -> None:
+    def set_tool(self, name: str) -> None:
         self.tool = name
-        self.refresh()
-
-    def _set_phase(self, e: Any) -> None:
-        self.phase = None if e.value in (None, -1) else int(e.value)
         self.refresh()
 
     def _click(self, e: Any) -> None:
@@ -308,90 +288,85 @@ class ArenaPage:
             return
         d = self.design
         x0, _, x1, _ = d.bounds()
-        if self.tool == "start":
-            self._change(lambda: d.add_start(x, y))
-        elif self.tool == "goal":
-            r, v = float(self.radius.value or 0.0), float(self.reward.value or 0.0)
-            self._change(lambda: d.add_goal(x, y, r, v))
-        elif self.tool in ("obstacle", "outline"):
-            self._change(lambda: d.add_vertex(x, y))
-        elif self.tool == "erase":
-            self._change(lambda: d.erase(x, y, 0.03 * (x1 - x0)))
-        elif self.tool == "rays":
+        r, v = float(self.radius.value or 0.0), float(self.reward.value or 0.0)
+        if self.tool == "rays":
             self.pose = (x, y)
             self.refresh()
+        elif self.phase is not None:
+            k, said = self.phase, []
+            if self.change(lambda: said.append(d.paint_phase(self.tool, x, y, k, radius=r,
+                                                             reward=v, tol=0.03 * (x1 - x0)))):  # fmt: skip
+                self.status.text = said[0]
+        elif self.tool == "start":
+            self.change(lambda: d.add_start(x, y))
+        elif self.tool == "goal":
+            self.change(lambda: d.add_goal(x, y, r, v))
+        elif self.tool in ("obstacle", "outline"):
+            self.change(lambda: d.add_vertex(x, y))
+        elif self.tool == "erase":
+            self.change(lambda: d.erase(x, y, 0.03 * (x1 - x0)))
 
     def _finish(self) -> None:
         what = "outline" if self.tool == "outline" else "obstacle"
-        self._change(lambda: self.design.finish(what))
+        if self.change(lambda: self.design.finish(what)) and what == "outline":
+            self.after_use()  # the outline menu reads polygon now, not the shape it had
 
     def _outline(self) -> None:
-        self._change(lambda: self.design.set_outline(str(self.shape.value),
-                                                     float(self.size.value or 0.0)))  # fmt: skip
+        self.change(lambda: self.design.set_outline(str(self.shape.value),
+                                                    float(self.size.value or 0.0)))  # fmt: skip
 
-    def _undo(self) -> None:
-        if self.history:
-            self.design = self.history.pop()
-            self.refresh()
+    def _heading(self) -> None:
+        kind = str(self.heading_kind.value)
+        value = self.heading_deg.value if kind == "angle" else kind
+        self.change(lambda: self.design.set_start_heading(value))
 
-    def _use(self, loaded: LoadedArena, name: str) -> None:
-        self.loaded, self.design = loaded, loaded.design.copy()
-        self.history.clear()
-        self.pose, self.phase = None, None
-        self.name.value = name
-        self.status.text = f"loaded {loaded.origin}"
-        self.refresh()
+    def after_undo(self) -> None:
+        self.after_use()
 
-    def _load_template(self) -> None:
-        if self.template.value:
-            try:
-                self._use(load_arena(None, self.template.value), self.template.value)
-            except CobelError as exc:
-                self.status.text = str(exc)
+    def after_use(self) -> None:
+        """The outline and heading widgets show the loaded arena (not their defaults)."""
+        self.pose = None
+        arena = self.design.node.get("arena") or {"shape": "square", "size": 1.0}
+        kind = str(arena.get("shape", "square"))
+        options = list(OUTLINES) if kind in OUTLINES else [*OUTLINES, kind]
+        self.shape.set_options(options, value=kind)
+        size = arena.get("radius") if kind == "circle" else arena.get("size")
+        if isinstance(size, int | float):
+            self.size.value = float(size)
+        h = self.design.start_heading()
+        self.heading_kind.value = h if isinstance(h, str) else "angle"
+        if not isinstance(h, str):
+            self.heading_deg.value = float(h)
 
-    def _open(self) -> None:
-        if self.existing.value:
-            try:
-                self._use(load_arena(self.folder, self.existing.value), self.existing.value)
-            except CobelError as exc:
-                self.status.text = str(exc)
+    # ------------------------------------------------------------------ EditPage's hooks
+    def load_template(self, name: str) -> LoadedArena:
+        return load_arena(None, name)
 
-    def _save(self) -> Path | None:
-        name = str(self.name.value or "").strip()
-        try:
-            path = save_arena(self.folder, name, self.loaded, self.design,
-                              with_task=bool(self.with_task.value))  # fmt: skip
-            self.loaded = load_arena(self.folder, name)
-        except CobelError as exc:
-            self.status.text = str(exc)
-            return None
+    def load_existing(self, name: str) -> LoadedArena:
+        return load_arena(self.folder, name)
+
+    def existing_names(self) -> list[str]:
+        return arena_env_names(self.folder)
+
+    def write(self, name: str, with_task: bool) -> list[Path]:
+        path = save_arena(self.folder, name, self.loaded, self.design, with_task=with_task)
+        phases, max_steps = self.design.phases, self.design.max_steps
+        self.loaded = load_arena(self.folder, name)
+        if not with_task:  # phases stay as edited (they are written with the task)
+            self.loaded.design.phases, self.loaded.design.max_steps = phases, max_steps
         self.design = self.loaded.design.copy()
-        self.existing.set_options(arena_env_names(self.folder))
-        self.status.text = f"saved {path}" + (" and its task" if self.with_task.value else "")
-        self.refresh()
-        return path
+        return [path, *([self.folder / "task" / f"{name}.yaml"] if with_task else [])]
 
-    def _run_it(self) -> None:
-        """Save, then ``cobel run -cd DIR task=NAME env=NAME`` (one run: an arena's trials
-        are long), for arenas whose task is written or in the folder."""
-        name = str(self.name.value or "").strip()
+    def run_target(self, name: str) -> tuple[str, int, list[str]]:
+        """``task=NAME`` (one run: an arena's trials are long), for arenas whose task is
+        written or in the folder."""
         has_task = (self.folder / "task" / f"{name}.yaml").is_file()
         if not (self.with_task.value or has_task):
-            self.status.text = ("run it needs a task: tick 'also write task/NAME.yaml' (an arena "
-                                "that came with a protocol), or write task/NAME.yaml")  # fmt: skip
-            return
-        if self._save() is not None:
-            self.runner.start(name, name, runs=1)
+            raise CobelError("run it needs a task: tick 'also write task/NAME.yaml' (an arena "
+                             "that came with a protocol), or write task/NAME.yaml")  # fmt: skip
+        return name, 1, []
 
-    def _export(self, fmt: str) -> None:
-        from nicegui import ui
-
+    def figure(self, fmt: str) -> bytes:
         from cobelrun.web.grid_design import geometry_figure
 
-        try:
-            data = geometry_figure(self.design.export_env(), fmt)
-        except CobelError as exc:
-            self.status.text = str(exc)
-            return
-        name = str(self.name.value or "").strip() or "maze"
-        ui.download.content(data, f"{name}.{fmt}")
+        return geometry_figure(self.design.phase_env(self.phase), fmt)  # as the phase leaves it

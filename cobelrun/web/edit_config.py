@@ -388,21 +388,48 @@ def task_file_text(task_doc: Any, name: str) -> str:
 def task_text(loaded: Loaded, design: GridDesign, name: str) -> str:
     """``task/NAME.yaml``: the task that came with the env (a built-in one, or the folder's)
     with ``env`` set to NAME and the edited protocol inline; everything else kept."""
-    from ruamel.yaml.comments import CommentedMap
 
     doc = loaded.task_doc
     if doc is None:
         doc = read_yaml(_builtin() / "task" / "gridworld.yaml")
-    before = loaded.loaded
+    return protocol_task_text(doc, name, design, loaded.loaded)
+
+
+def protocol_task_text(task_doc: Any, name: str, design: Any, before: Any | None) -> str:
+    """``task/NAME.yaml`` from ``task_doc`` (:func:`task_file_text`) and, where the design's
+    phases differ from ``before``'s (the design as loaded), the edited protocol inline as
+    ``task.protocol`` (``max_steps`` and ``phases``), as the built-in tasks give theirs; the
+    ``override /protocol`` default stays, its phases replaced. Any design with ``phases`` and
+    ``max_steps`` (gridworld, graph, arena)."""
+    from ruamel.yaml.comments import CommentedMap
+
     if design.phases and (before is None or (design.phases, design.max_steps)
                           != (before.phases, before.max_steps)):  # fmt: skip
-        task = doc.get("task")
+        task = task_doc.get("task")
         if task is None:
-            task = doc["task"] = CommentedMap({"name": name})
+            task = task_doc["task"] = CommentedMap({"name": name})
         task["protocol"] = CommentedMap(
-            {"max_steps": int(design.max_steps), "phases": [CommentedMap(p) for p in design.phases]}
+            {"max_steps": int(design.max_steps), "phases": [_phase_map(p) for p in design.phases]}
         )
-    return task_file_text(doc, name)
+    return task_file_text(task_doc, name)
+
+
+def _phase_map(phase: dict[str, Any]) -> Any:
+    """A phase as YAML: its rewards, terminals (flow mappings) and starts (a flow list) on
+    one line each, as in conf/protocol/*.yaml."""
+    from ruamel.yaml.comments import CommentedMap
+
+    out = CommentedMap()
+    for k, v in phase.items():
+        if k in ("rewards", "terminals") and isinstance(v, dict):
+            m = CommentedMap(v)
+            m.fa.set_flow_style()
+            out[k] = m
+        elif k == "starts" and isinstance(v, list):
+            out[k] = _flow([_flow(list(x)) if isinstance(x, list | tuple) else x for x in v])
+        else:
+            out[k] = v
+    return out
 
 
 def _inside(folder: Path, path: Path) -> Path:

@@ -18,6 +18,8 @@ from cobelrun.web import edit_config as ec
 
 #: runs of a "run it"
 RUN_IT_RUNS = 3
+#: seconds "run it" waits, after the run, for the dashboard to listen before giving up its link
+DASHBOARD_WAIT_S = 60.0
 
 
 def _cobel() -> list[str]:
@@ -66,21 +68,24 @@ class Editor:
         return copy.deepcopy(self.initial)
 
     # ------------------------------------------------------------------ run it
-    def run_command(self, env: str, task: str, out: Path, runs: int) -> list[str]:
-        """``cobel run -cd DIR task=TASK env=ENV task.runs=N hydra.run.dir=OUT``."""
+    def run_command(self, env: str, task: str, out: Path, runs: int,
+                    extra: list[str] | None = None) -> list[str]:  # fmt: skip
+        """``cobel run -cd DIR task=TASK env=ENV task.runs=N [EXTRA...] hydra.run.dir=OUT``."""
         quoted = "'" + str(out).replace("\\", "\\\\").replace("'", "\\'") + "'"  # Hydra's quoting
         return [*_cobel(), "run", "-cd", str(self.folder), f"task={task}", f"env={env}",
-                f"task.runs={int(runs)}", f"hydra.run.dir={quoted}"]  # fmt: skip
+                f"task.runs={int(runs)}", *(extra or []), f"hydra.run.dir={quoted}"]  # fmt: skip
 
-    def start_run(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> Child:
+    def start_run(self, env: str, task: str, runs: int = RUN_IT_RUNS,
+                  extra: list[str] | None = None) -> Child:  # fmt: skip
         stamp = time.strftime("%Y%m%d-%H%M%S")
         out = (self.results / "edit" / env / f"{stamp}-{len(self.runs)}").resolve()
         out.parent.mkdir(parents=True, exist_ok=True)
         log = out.parent / f"{out.name}.log"
         with open(log, "wb") as f:
-            proc = subprocess.Popen(self.run_command(env, task, out, runs), stdout=f,
+            proc = subprocess.Popen(self.run_command(env, task, out, runs, extra), stdout=f,
                                     stderr=subprocess.STDOUT, env=_child_env())  # fmt: skip
-        child = Child(proc, f"cobel run task={task} env={env} task.runs={runs}", log, out)
+        what = " ".join([f"cobel run task={task} env={env} task.runs={runs}", *(extra or [])])
+        child = Child(proc, what, log, out)
         self.runs.append(child)
         return child
 
@@ -98,6 +103,8 @@ class Editor:
             proc = subprocess.Popen(cmd, env=_child_env(), stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)  # fmt: skip
             self.dashboard, self.dashboard_port = Child(proc, "cobel serve"), port
+        if port_free("127.0.0.1", self.dashboard_port):  # not listening yet: no dead link
+            return None
         rel = run.out.relative_to(self.results.resolve()).as_posix()
         return f"http://127.0.0.1:{self.dashboard_port}/run?p={quote(rel)}"
 
@@ -121,7 +128,7 @@ def _free_port() -> int:
 
 class RunPanel:
     """ "Run it": the run's status line, the dashboard link, and the timer that follows the
-    child process (shared by the gridworld and arena pages)."""
+    child process (shared by the three pages)."""
 
     def __init__(self, editor: Editor) -> None:
         from nicegui import ui
@@ -131,15 +138,18 @@ class RunPanel:
         self.status = ui.label().classes("text-sm cobel-run-status")
         self.link = ui.link("", "#", new_tab=True).classes("cobel-dashboard")
         self.link.set_visibility(False)
+        self.finished_at: float | None = None  # when the run's process ended
         self.timer = ui.timer(1.0, self.poll, active=False)
 
-    def start(self, env: str, task: str, runs: int = RUN_IT_RUNS) -> None:
+    def start(self, env: str, task: str, runs: int = RUN_IT_RUNS,
+              extra: list[str] | None = None) -> None:  # fmt: skip
         try:
-            self.run = self.editor.start_run(env, task, runs)
+            self.run = self.editor.start_run(env, task, runs, extra)
         except (OSError, CobelError) as exc:
             self.status.text = f"cannot start the run: {exc}"
             return
         self.status.text = f"running: {self.run.what} -> {self.run.out}"
+        self.finished_at = None
         self.link.set_visibility(False)
         self.timer.activate()
 
@@ -156,12 +166,19 @@ class RunPanel:
             self.link.set_visibility(True)
         if rc is None:
             return
+        if self.finished_at is None:
+            self.finished_at = time.monotonic()
+            if rc == 0:
+                self.status.text = f"finished: {run.what} -> {run.out}"
+            else:
+                tail = ""
+                if run.log is not None and run.log.is_file():
+                    lines = run.log.read_text(errors="replace").strip().splitlines()
+                    tail = lines[-1] if lines else ""
+                self.status.text = f"failed (exit {rc}): {tail}"
+        dashboard = self.editor.dashboard
+        starting = (rc == 0 and not self.link.visible and dashboard is not None
+                    and dashboard.proc.poll() is None)  # fmt: skip
+        if starting and time.monotonic() - self.finished_at < DASHBOARD_WAIT_S:
+            return  # the dashboard is still starting: its link comes when it listens
         self.timer.deactivate()
-        if rc == 0:
-            self.status.text = f"finished: {run.what} -> {run.out}"
-        else:
-            tail = ""
-            if run.log is not None and run.log.is_file():
-                lines = run.log.read_text(errors="replace").strip().splitlines()
-                tail = lines[-1] if lines else ""
-            self.status.text = f"failed (exit {rc}): {tail}"

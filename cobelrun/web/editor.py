@@ -21,8 +21,9 @@ from urllib.parse import quote
 
 from cobelrun.errors import CobelError, ConfigError
 from cobelrun.web import edit_config as ec
+from cobelrun.web.edit_page import ENV_NONE, EditPage  # noqa: F401 (re-exported)
 from cobelrun.web.edit_runs import RUN_IT_RUNS, Child, Editor, RunPanel  # noqa: F401 (re-exported)
-from cobelrun.web.grid_design import MAX_SIDE, TOOLS, GridDesign, Problem
+from cobelrun.web.grid_design import TOOLS, GridDesign, Problem
 
 #: the cells' click handler: which cell, and where in it (for the side of a door or wall)
 CLICK_JS = """(e) => {
@@ -32,8 +33,6 @@ CLICK_JS = """(e) => {
   emit({r: +t.dataset.r, c: +t.dataset.c,
         fx: (e.clientX - b.left) / b.width, fy: (e.clientY - b.top) / b.height});
 }"""
-#: runs that "Run it" starts (a quick look, not an experiment)
-ENV_NONE = -1  # the phase selector's "env as built"
 
 
 def side_of(fx: float, fy: float) -> str:
@@ -47,8 +46,12 @@ def cell_px(design: GridDesign) -> int:
     return max(14, min(44, 640 // max(design.width, design.height)))
 
 
-class Page:
-    """One browser tab's editor: its design, undo history, tool and the widgets."""
+class Page(EditPage):
+    """One browser tab's gridworld editor: its design, undo history, tool and the widgets
+    (the parts shared with the other pages come from :class:`EditPage`)."""
+
+    here = "/"
+    phase_tools = "Painting starts, goals, rewards and terminals now changes what this phase sets"
 
     def __init__(self, editor: Editor, env: str = "") -> None:
         self.editor = editor
@@ -62,22 +65,15 @@ class Page:
                 self.error = str(exc)
         self.start_name = name
         self.design = self.loaded.design.copy()
-        self.history: list[GridDesign] = []
+        self.init_state()
         self.tool = "wall"
-        self.phase: int | None = None
         self.problems: list[Problem] = []
 
     # ------------------------------------------------------------------ building
     def build(self) -> None:
         from nicegui import ui
 
-        ed = self.editor
-        with ui.row().classes("items-center w-full"):
-            ui.label("cobel edit").classes("text-xl font-bold")
-            ui.label(f"config folder {ed.folder}").classes("text-sm cobel-folder")
-            ui.link("topology graphs", "/graph").classes("text-sm cobel-graph-link")
-            ui.link("2D arenas", "/arena").classes("text-sm cobel-arena-link")
-            self.origin = ui.label().classes("text-sm text-gray-600 cobel-origin")
+        self.header()
         with ui.row().classes("w-full no-wrap items-start gap-6"):
             with ui.column().classes("w-72 gap-1"):
                 self._side_panel()
@@ -91,80 +87,37 @@ class Page:
                 self.problem_list = ui.column().classes("gap-0 cobel-problems")
                 self.info = ui.label().classes("text-sm text-gray-700 cobel-info")
             with ui.column().classes("w-96 gap-1"):
-                self._save_panel()
+                self.save_panel()
         self.refresh()
 
     def _side_panel(self) -> None:
         from nicegui import ui
 
-        ui.label("start from").classes("font-bold")
-        labels = {k: v[0] for k, v in ec.TEMPLATES.items()}
-        with ui.row().classes("items-center no-wrap"):
-            self.template = ui.select(labels, value=None, label="template").classes(
-                "w-48 cobel-template"
-            )
-            ui.button("load", on_click=self._load_template).props("dense").classes(
-                "cobel-load-template"
-            )
-        names = ec.env_names(self.editor.folder)
-        with ui.row().classes("items-center no-wrap"):
-            self.existing = ui.select(names, value=None, label="env in the folder").classes(
-                "w-48 cobel-existing"
-            )
-            ui.button("open", on_click=self._open_existing).props("dense").classes("cobel-open")
+        self.load_rows({k: v[0] for k, v in ec.TEMPLATES.items()})
         ui.label("size").classes("font-bold mt-2")
         with ui.row().classes("items-center no-wrap"):
-            self.width = ui.number("width", value=self.design.width, min=1, max=MAX_SIDE,
-                                   precision=0).classes("w-20 cobel-width")  # fmt: skip
-            self.height = ui.number("height", value=self.design.height, min=1, max=MAX_SIDE,
-                                    precision=0).classes("w-20 cobel-height")  # fmt: skip
+            # no min/max on the boxes: they would clamp 100 to 32 silently; resize says why
+            self.width = ui.number("width", value=self.design.width, precision=0)
+            self.width.classes("w-20 cobel-width")
+            self.height = ui.number("height", value=self.design.height, precision=0)
+            self.height.classes("w-20 cobel-height")
             ui.button("resize", on_click=self._resize).props("dense").classes("cobel-resize")
         ui.label("paint").classes("font-bold mt-2")
-        self.tool_buttons = {}
-        with ui.grid(columns=2).classes("gap-1"):
-            for name, what in TOOLS.items():
-                b = ui.button(name, on_click=lambda _, n=name: self._set_tool(n))
-                b.props("dense no-caps").classes(f"cobel-tool cobel-tool-{name}").tooltip(what)
-                self.tool_buttons[name] = b
+        self.tool_grid(TOOLS)
         with ui.row().classes("items-center no-wrap"):
             self.value = ui.number("reward", value=1.0, step=0.5).classes("w-24 cobel-value")
             self.weight = ui.number("start weight", value=1, min=1, max=20, precision=0)
             self.weight.classes("w-28 cobel-weight")
         self.place = ui.input("place name", placeholder="left_arm").classes("w-48 cobel-place")
-        ui.label("phase").classes("font-bold mt-2")
-        self.phase_select = ui.select({ENV_NONE: "env (as built)"}, value=ENV_NONE,
-                                      on_change=self._set_phase).classes("w-64 cobel-phase")  # fmt: skip
-        self.phase_hint = ui.label().classes("text-xs text-gray-600 cobel-phase-hint")
-        self.trials = ui.number("trials in this phase", min=1, precision=0).classes(
-            "w-40 cobel-trials"
-        )
-        self.trials.on("change", self._set_trials)
-        self.trials.set_visibility(False)
-        ui.button("undo", on_click=self._undo).props("dense").classes("mt-2 cobel-undo")
-
-    def _save_panel(self) -> None:
-        from nicegui import ui
-
-        ui.label("save").classes("font-bold")
-        self.name = ui.input("env name", value=self.start_name).classes("w-64 cobel-name")
-        self.with_task = ui.checkbox("also write task/NAME.yaml (protocol, agent, monitors)")
-        self.with_task.classes("cobel-with-task")
-        with ui.row():
-            ui.button("save", on_click=self._save).classes("cobel-save")
-            ui.button("run it", on_click=self._run_it).classes("cobel-run")
-        self.status = ui.label(self.error).classes("text-sm cobel-status")
-        self.runner = RunPanel(self.editor)
-        with ui.row():
-            ui.button("export PNG", on_click=lambda: self._export("png")).props("dense outline")
-            ui.button("export SVG", on_click=lambda: self._export("svg")).props("dense outline")
-        ui.label("env/NAME.yaml as it will be saved").classes("font-bold mt-2")
-        self.yaml = ui.code("", language="yaml").classes("w-96 text-xs cobel-yaml")
+        self.phase_rows()
+        ui.button("undo", on_click=self.undo).props("dense").classes("mt-2 cobel-undo")
 
     # ------------------------------------------------------------------ drawing
     def refresh(self) -> None:
         from nicegui import ui
 
         d = self.design
+        self.refresh_common()
         self.problems = d.problems()
         px = cell_px(d)
         self.grid.content = d.svg(phase=self.phase, px=px, problems=self.problems)
@@ -192,52 +145,12 @@ class Page:
         self.info.text = (f"{d.width} x {d.height} cells; start probabilities: {starts}{more}; "
                           "orange bars: one-way doors (blocked going out of the cell they sit "
                           "in); black bars: walls")  # fmt: skip
-        self.origin.text = f"from {self.loaded.origin}"
-        for name, b in self.tool_buttons.items():
-            b.props(f"color={'primary' if name == self.tool else 'grey-6'}")
-        opts = {ENV_NONE: "env (as built)"}
-        opts.update({i: f"phase {i + 1}: {n}" for i, n in enumerate(d.phase_names())})
-        if self.phase_select.options != opts:
-            self.phase_select.set_options(
-                opts, value=ENV_NONE if self.phase is None else self.phase
-            )
-        self.phase_hint.text = self._phase_text()
         try:
             self.yaml.content = ec.env_text(self.loaded, d)
         except CobelError as exc:
             self.yaml.content = f"# {exc}"
 
-    def _phase_text(self) -> str:
-        d = self.design
-        if self.phase is None or not 0 <= self.phase < len(d.phases):
-            return (f"{len(d.phases)} protocol phase(s); pick one to see and edit the goals and "
-                    "starts it sets")  # fmt: skip
-        p = d.phases[self.phase]
-        sets = []
-        for key in ("rewards", "terminals"):
-            if p.get(key):
-                sets.append(f"{key} " + ", ".join(f"{k}: {v}" for k, v in p[key].items()))
-        if p.get("starts") is not None:
-            sets.append("starts " + ", ".join(str(s) for s in p["starts"]))
-        if p.get("cycle"):
-            sets.append(f"a per-trial cycle of {len(p['cycle'])} changes")
-        what = "; ".join(sets) or "nothing (the world as the phase before left it)"
-        return (f"{p.get('name')} ({p.get('trials')} trials) sets {what}. Painting starts, goals, "
-                "rewards and terminals now changes what this phase sets.")  # fmt: skip
-
     # ------------------------------------------------------------------ events
-    def _change(self, fn: Any) -> None:
-        before = self.design.copy()
-        try:
-            fn()
-        except CobelError as exc:
-            self.design = before
-            self.status.text = str(exc)
-            return
-        self.history.append(before)
-        del self.history[:-100]
-        self.refresh()
-
     def _click(self, e: Any) -> None:
         a = e.args if isinstance(e.args, dict) else {}
         try:
@@ -248,110 +161,52 @@ class Page:
         value = float(self.value.value or 0.0)
         weight = int(self.weight.value or 1)
         name = str(self.place.value or "")
-        self._change(lambda: self.design.paint(self.tool, cell, value=value, weight=weight,
-                                               side=side_of(fx, fy), phase=self.phase,
-                                               name=name))  # fmt: skip
-
-    def _set_tool(self, name: str) -> None:
-        self.tool = name
-        for n, b in self.tool_buttons.items():
-            b.props(f"color={'primary' if n == name else 'grey-6'}")
-
-    def _set_phase(self, e: Any) -> None:
-        v = e.value
-        self.phase = None if v in (None, ENV_NONE) else int(v)
-        if self.phase is not None:
-            self.trials.value = self.design.phases[self.phase].get("trials")
-        self.trials.set_visibility(self.phase is not None)
-        self.refresh()
-
-    def _set_trials(self) -> None:
-        if self.phase is None or self.trials.value is None:
-            return
-        i, n = self.phase, int(self.trials.value)
-        if self.design.phases[i].get("trials") != n:
-            self._change(lambda: self.design.phases[i].__setitem__("trials", n))
+        self.change(lambda: self.design.paint(self.tool, cell, value=value, weight=weight,
+                                              side=side_of(fx, fy), phase=self.phase,
+                                              name=name))  # fmt: skip
 
     def _resize(self) -> None:
-        w, h = int(self.width.value or 0), int(self.height.value or 0)
-        self._change(lambda: self.design.resize(w, h))
+        # an empty box is None; check_size names it (at most MAX_SIDE cells a side)
+        w, h = (v if v is None else int(v) for v in (self.width.value, self.height.value))
+        self.change(lambda: self.design.resize(w, h))
 
-    def _undo(self) -> None:
-        if self.history:
-            self.design = self.history.pop()
-            self.refresh()
-
-    def _use(self, loaded: ec.Loaded, name: str) -> None:
-        self.loaded = loaded
-        self.design = loaded.design.copy()
-        self.history.clear()
-        self.phase = None
-        self.trials.set_visibility(False)
+    def after_use(self) -> None:
         self.width.value, self.height.value = self.design.width, self.design.height
-        self.name.value = name
-        self.status.text = f"loaded {loaded.origin}"
-        self.refresh()
 
-    def _load_template(self) -> None:
-        if not self.template.value:
-            self.status.text = "pick a template first"
-            return
-        try:
-            self._use(ec.load_template(self.template.value), self.template.value)
-        except CobelError as exc:
-            self.status.text = str(exc)
+    # ------------------------------------------------------------------ EditPage's hooks
+    def load_template(self, name: str) -> ec.Loaded:
+        return ec.load_template(name)
 
-    def _open_existing(self) -> None:
-        if not self.existing.value:
-            self.status.text = "pick an env of the folder first"
-            return
-        try:
-            self._use(ec.load(self.editor.folder, self.existing.value), self.existing.value)
-        except CobelError as exc:
-            self.status.text = str(exc)
-            if "too large to edit" in str(exc):  # offer its YAML instead (read, size-checked)
-                path = self.editor.folder / "env" / f"{self.existing.value}.yaml"
-                try:
-                    ec.read_yaml(path)
-                    self.yaml.content = path.read_text(encoding="utf-8")
-                except (CobelError, OSError):
-                    pass
+    def load_existing(self, name: str) -> ec.Loaded:
+        return ec.load(self.editor.folder, name)
 
-    def _save(self) -> list[Path] | None:
-        name = str(self.name.value or "").strip()
-        try:
-            written = ec.save(self.editor.folder, name, self.loaded, self.design,
-                              with_task=bool(self.with_task.value))  # fmt: skip
-        except CobelError as exc:
-            self.status.text = str(exc)
-            return None
+    def existing_names(self) -> list[str]:
+        return ec.env_names(self.editor.folder)
+
+    def open_failed(self, exc: CobelError) -> None:
+        if "too large to edit" in str(exc):  # offer its YAML instead (read, size-checked)
+            path = self.editor.folder / "env" / f"{self.existing.value}.yaml"
+            try:
+                ec.read_yaml(path)
+                self.yaml.content = path.read_text(encoding="utf-8")
+            except (CobelError, OSError):
+                pass
+
+    def write(self, name: str, with_task: bool) -> list[Path]:
+        written = ec.save(self.editor.folder, name, self.loaded, self.design, with_task=with_task)
         # what is on disk now is what was loaded: later saves compare against it
         self.loaded = ec.load(self.editor.folder, name)
-        if not self.with_task.value:  # phases stay as edited (they are written with the task)
+        if not with_task:  # phases stay as edited (they are written with the task)
             self.loaded.design.phases = self.design.phases
             self.loaded.design.max_steps = self.design.max_steps
         self.design = self.loaded.design.copy()
-        self.existing.set_options(ec.env_names(self.editor.folder))
-        self.status.text = "saved " + ", ".join(str(p) for p in written)
-        self.refresh()
         return written
 
-    def _run_it(self) -> None:
-        if self._save() is None:
-            return
-        name = str(self.name.value).strip()
-        self.runner.start(name, name if self.with_task.value else "gridworld")
+    def run_target(self, name: str) -> tuple[str, int, list[str]]:
+        return (name if self.with_task.value else "gridworld"), RUN_IT_RUNS, []
 
-    def _export(self, fmt: str) -> None:
-        from nicegui import ui
-
-        try:
-            data = self.design.figure(fmt, phase=self.phase)
-        except CobelError as exc:
-            self.status.text = str(exc)
-            return
-        name = str(self.name.value or "maze").strip() or "maze"
-        ui.download.content(data, f"{name}.{fmt}")
+    def figure(self, fmt: str) -> bytes:
+        return self.design.figure(fmt, phase=self.phase)
 
 
 def build(editor: Editor) -> None:
@@ -362,14 +217,17 @@ def build(editor: Editor) -> None:
 
     @ui.page("/", title="cobel edit")
     def index(env: str = "") -> None:
-        if not env and editor.graph_env:
-            ui.navigate.to(f"/{editor.graph_page}?env={quote(editor.graph_env)}")
+        page = page_of(editor.folder, env) if env else None  # /?env=NAME as env=NAME does
+        if page is None and not env and editor.graph_env:
+            env, page = editor.graph_env, editor.graph_page
+        if page is not None:
+            ui.navigate.to(f"/{page}?env={quote(env)}")
             return
         Page(editor, env).build()
 
     @ui.page("/graph", title="cobel edit: graph")
     def graph(env: str = "") -> None:
-        GraphPage(editor.folder, env).build()
+        GraphPage(editor, env).build()
 
     from cobelrun.web.arena_editor import ArenaPage
 
@@ -399,6 +257,30 @@ def prepare(folder: Path | None, env: str | None, results: Path) -> Editor:
             name = "my_maze"
     return Editor(folder=folder, results=results, name=name, initial=initial,
                   graph_env=graph_env, graph_page=page)  # fmt: skip
+
+
+def page_of(folder: Path, env: str) -> str | None:
+    """The page (``graph`` or ``arena``) that edits ``env`` where it is a topology graph or an
+    arena; ``None`` where the gridworld page takes it or says why it cannot."""
+    try:
+        ec.check_name(env)
+        ec.load(folder, env) if folder.is_dir() else ec.load_template(env)
+    except ConfigError as exc:
+        if "is not a gridworld env config" in str(exc):
+            try:
+                return _other_page(folder, env, exc)[1]
+            except CobelError:
+                return None
+    except CobelError:
+        return None
+    return None
+
+
+def url_of(host: str, port: int, editor: Editor) -> str:
+    """The address ``cobel edit`` prints: the page that opens what the command line named."""
+    shown = f"[{host}]" if ":" in host else host
+    page = f"{editor.graph_page}?env={quote(editor.graph_env)}" if editor.graph_env else ""
+    return f"http://{shown}:{port}/{page}"
 
 
 def _other_page(folder: Path, env: str, gridworld_error: ConfigError) -> tuple[str, str]:
@@ -444,6 +326,8 @@ def edit(folder: Path | None = None, env: str | None = None, *, host: str = "127
     except ImportError:
         raise CobelError("cobel edit needs NiceGUI: pip install 'cobelrun[web]'") from None
     build(editor)
+    print(f"cobel edit: open {url_of(host, port, editor)} (config folder {editor.folder}); "
+          "Ctrl-C ends it", flush=True)  # fmt: skip
     try:
         ui.run(host=host, port=port, title="cobel edit", reload=False, show=False,
                show_welcome_message=False, uvicorn_logging_level="warning")  # fmt: skip

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import html
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,6 +66,9 @@ class GraphDesign:
         The env's other keys, kept as loaded (plain data).
     spacing : float
         Grid step new nodes snap to.
+    phases, max_steps : list of dict, int
+        The protocol of the task that uses the graph (plain data, unknown keys kept); the
+        ``rewards``, ``terminals`` and ``starts`` a phase sets are painted with ``phase=``.
     """
 
     nodes: list[tuple[float, float]]
@@ -76,6 +80,11 @@ class GraphDesign:
     starts: list[int] | str = "all"
     extra: dict[str, Any] = field(default_factory=dict)
     spacing: float = 1.0
+    phases: list[dict[str, Any]] = field(default_factory=list)
+    max_steps: int = 100
+    #: the loaded topology node and the graph it built (the run builds that node while the
+    #: graph is unchanged: its exact positions, so its render-cache key)
+    source: tuple[dict[str, Any], Any] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def from_env_config(cls, node: dict[str, Any], where: str) -> GraphDesign:
@@ -111,6 +120,7 @@ class GraphDesign:
             extra={k: v for k, v in node.items()
                    if k not in ("_target_", "topology", "rewards", "terminals", "starts")},
         )  # fmt: skip
+        d.source = (copy.deepcopy(topo_node), d._graph())
         d.rewards = {d.node(k): float(v) for k, v in (node.get("rewards") or {}).items()}
         terms = node.get("terminals") or []
         d.terminals = {d.node(t) for t in ([terms] if isinstance(terms, int | str) else terms)}
@@ -151,6 +161,16 @@ class GraphDesign:
             out["places"] = dict(self.places)
         return out
 
+    def _graph(self) -> tuple[Any, ...]:
+        return (list(self.nodes), set(self.edges), self.n_directions, dict(self.places))
+
+    def run_topology_node(self) -> dict[str, Any]:
+        """The topology node a run of the saved env builds: the loaded one while nodes, edges,
+        headings and places are as loaded (the file keeps it), else :meth:`topology_node`."""
+        if self.source is not None and self.source[1] == self._graph():
+            return copy.deepcopy(self.source[0])
+        return self.topology_node()
+
     def env_node(self) -> dict[str, Any]:
         """The env config (plain data): TopologyEnv, the manual topology, rewards, terminals,
         starts, and the kept keys."""
@@ -186,7 +206,101 @@ class GraphDesign:
         for g in sorted(set(self.rewards) | self.terminals):
             if not reach[g]:
                 out.append(f"goal node {g} is unreachable from every start; add an edge to it")
-        return out
+        if out or not self.phases:
+            return out
+        from cobelrun.protocol import Protocol
+
+        try:  # each phase's changes, in order, as a run applies them
+            protocol = Protocol.from_config(self.protocol_config())
+        except CobelError as exc:
+            return [f"task.protocol: {exc}"]
+        for p in protocol.phases:
+            try:
+                protocol.apply(p, env)
+                for k in range(len(p.cycle or ())):
+                    protocol.apply_trial(p, k, env)
+            except CobelError as exc:
+                return [f"task.protocol phase {p.name!r}: {exc}"]
+            world = env.unwrapped.world
+            reach = _reachable(self, [int(s) for s in world.starts])
+            paying = np.flatnonzero((world.rewards > 0) & ~reach)
+            if paying.size:
+                return [f"task.protocol phase {p.name!r}: goal node {int(paying[0])} is "
+                        "unreachable from every start; add an edge to it"]  # fmt: skip
+        return []
+
+    # ------------------------------------------------------------------ phases
+    def phase_names(self) -> list[str]:
+        return [str(p.get("name", f"phase {i}")) for i, p in enumerate(self.phases)]
+
+    def protocol_config(self) -> dict[str, Any]:
+        return {"max_steps": int(self.max_steps), "phases": [dict(p) for p in self.phases]}
+
+    def phase_env(self, phase: int | None) -> Any:
+        """The env (without its camera) as it is during ``phase`` (None: as built): the phases
+        up to it applied in order with the run's protocol code (changes carry forward)."""
+        from cobelrun.protocol import Protocol
+
+        env = self.export_env()
+        if phase is None or not self.phases:
+            return env
+        protocol = Protocol.from_config(self.protocol_config())
+        for p in protocol.phases[: phase + 1]:
+            protocol.apply(p, env)
+            for k in range(len(p.cycle or ())):
+                protocol.apply_trial(p, k, env)
+        return env
+
+    def phase_state(self, phase: int | None) -> tuple[dict[int, float], set[int], set[int]]:
+        """``(rewards, terminals, starts)`` by node during ``phase`` (None: as designed)."""
+        if phase is None or not self.phases:
+            starts = set(range(len(self.nodes))) if self.starts == "all" else set(self.starts)
+            return dict(self.rewards), set(self.terminals), starts
+        w = self.phase_env(phase).unwrapped.world
+        rewards = {int(i): float(w.rewards[i]) for i in np.flatnonzero(w.rewards)}
+        return rewards, {int(i) for i in np.flatnonzero(w.terminal)}, {int(s) for s in w.starts}
+
+    def _paint_phase(self, tool: str, i: int, value: float, k: int) -> None:
+        """What phase ``k`` sets at node ``i`` (by place name where it has one)."""
+        if not 0 <= k < len(self.phases):
+            raise ConfigError(f"phase {k} does not exist; phases: {', '.join(self.phase_names())}")
+        phase = self.phases[k]
+        ref = self.ref(i)
+        rewards = {kk: v for kk, v in (phase.get("rewards") or {}).items()
+                   if self._node_or_none(kk) != i}  # fmt: skip
+        terminals = {kk: v for kk, v in (phase.get("terminals") or {}).items()
+                     if self._node_or_none(kk) != i}  # fmt: skip
+        rewards_now, terminals_now, starts_now = self.phase_state(k)
+        starts = sorted(starts_now)
+        if tool == "start":
+            if i in starts:
+                starts = [s for s in starts if s != i]
+            else:  # a start is neither terminal nor paying
+                starts = sorted([*starts, i])
+                if rewards_now.get(i):
+                    rewards[ref] = 0.0
+                if i in terminals_now:
+                    terminals[ref] = False
+            phase["starts"] = [self.ref(s) for s in starts]
+        elif tool in ("goal", "terminal"):
+            rewards[ref] = float(value) if tool == "goal" else 0.0
+            terminals[ref] = True
+            if i in starts:
+                phase["starts"] = [self.ref(s) for s in starts if s != i]
+        elif tool == "clear":
+            rewards[ref], terminals[ref] = 0.0, False
+        else:
+            raise ConfigError(f"unknown node tool {tool!r}")
+        phase["rewards"], phase["terminals"] = rewards, terminals
+        for key in ("rewards", "terminals"):
+            if not phase[key]:
+                del phase[key]
+
+    def _node_or_none(self, ref: Any) -> int | None:
+        try:
+            return self.node(ref)
+        except CobelError:
+            return None
 
     # ------------------------------------------------------------------ editing
     def add_node(self, x: float, y: float) -> int:
@@ -222,8 +336,12 @@ class GraphDesign:
         else:
             self.edges.add(e)
 
-    def paint(self, tool: str, i: int, value: float = 1.0) -> None:
-        """``start``, ``goal``, ``terminal`` or ``clear`` at node ``i``."""
+    def paint(self, tool: str, i: int, value: float = 1.0, phase: int | None = None) -> None:
+        """``start``, ``goal``, ``terminal`` or ``clear`` at node ``i``; with ``phase``, what
+        that phase of the protocol sets (not the env)."""
+        if phase is not None:
+            self._paint_phase(tool, i, value, phase)
+            return
         if tool == "start":
             starts = list(range(len(self.nodes))) if self.starts == "all" else list(self.starts)
             starts = [s for s in starts if s != i] if i in starts else [*starts, i]
@@ -253,9 +371,19 @@ class GraphDesign:
         lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5  # room to add nodes around
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
-    def svg(self, px: float = 48.0, selected: int | None = None) -> str:
+    def svg(self, px: float = 48.0, selected: int | None = None,
+            phase: int | None = None, problems: list[str] | None = None) -> str:  # fmt: skip
         """Nodes (``circle.cobel-node``, ``data-node``), edges, and a background
-        (``rect.cobel-bg``) whose clicks give world coordinates through ``data-*``."""
+        (``rect.cobel-bg``) whose clicks give world coordinates through ``data-*``; goals,
+        terminals and starts as they are during ``phase`` (None: as designed). A node that
+        one of ``problems`` names (``goal node N``) gets a red ring and the message beside it
+        (``text.cobel-problem-at``)."""
+        bad = {int(m.group(1)): msg for msg in problems or ()
+               for m in [re.search(r"\bgoal node (\d+) ", msg)] if m}  # fmt: skip
+        try:
+            rewards, terminals, starts = self.phase_state(phase)
+        except CobelError:  # a phase the run would refuse: drawn as designed (the message says why)
+            rewards, terminals, starts = self.phase_state(None)
         x0, y0, x1, y1 = self.view()
         w, h = (x1 - x0) * px, (y1 - y0) * px
         to = lambda x, y: ((x - x0) * px, (y1 - y) * px)  # noqa: E731  (y up)
@@ -268,23 +396,29 @@ class GraphDesign:
             (xa, ya), (xb, yb) = to(*self.nodes[a]), to(*self.nodes[b])
             out.append(f'<line class="cobel-graph-edge" x1="{xa:.1f}" y1="{ya:.1f}" x2="{xb:.1f}" '
                        f'y2="{yb:.1f}" stroke="#888" stroke-width="3"/>')  # fmt: skip
-        starts = set(range(len(self.nodes))) if self.starts == "all" else set(self.starts)
         names = {v: k for k, v in self.places.items()}
         r = px * 0.22
         for i, (x, y) in enumerate(self.nodes):
             cx, cy = to(x, y)
-            if i in self.terminals:
-                fill = "#fac83c" if self.rewards.get(i) else "#f0bebe"
-            elif self.rewards.get(i):
+            if i in terminals:
+                fill = "#fac83c" if rewards.get(i) else "#f0bebe"
+            elif rewards.get(i):
                 fill = "#c8ebc8"
             elif i in starts:
                 fill = "#cfe0ff"
             else:
                 fill = "#ffffff"
-            stroke = "#d00000" if i == selected else "#333"
+            stroke = "#d00000" if i == selected or i in bad else "#333"
             out.append(f'<circle class="cobel-node" data-node="{i}" cx="{cx:.1f}" cy="{cy:.1f}" '
-                       f'r="{r:.1f}" fill="{fill}" stroke="{stroke}" stroke-width="2"/>')  # fmt: skip
-            label = str(i) if i not in self.rewards else f"{i}:{self.rewards[i]:g}"
+                       f'r="{r:.1f}" fill="{fill}" stroke="{stroke}" '
+                       f'stroke-width="{4 if i in bad else 2}"/>')  # fmt: skip
+            if i in bad:  # the message up to its advice, on the side with more room
+                left = cx > w / 2
+                tx, anchor = (cx - r - 3, "end") if left else (cx + r + 3, "start")
+                out.append(f'<text class="cobel-problem-at" x="{tx:.1f}" y="{cy - r:.1f}" '
+                           f'text-anchor="{anchor}" font-size="11" fill="#b00000" '
+                           f'pointer-events="none">{html.escape(bad[i].split(";")[0])}</text>')  # fmt: skip
+            label = str(i) if not rewards.get(i) else f"{i}:{rewards[i]:g}"
             out.append(f'<text x="{cx:.1f}" y="{cy + 4:.1f}" font-size="{max(8, px / 5):.0f}" '
                        f'text-anchor="middle" pointer-events="none">{label}</text>')  # fmt: skip
             if i in names:
@@ -302,18 +436,45 @@ class GraphDesign:
 
         node = self.extra.get("observation")
         if isinstance(node, dict) and node.get("_target_", "").endswith("ImageObservation"):
-            node = {**node, "render": "online", "cache_dir": None}
+            node = {**node, "render": "online"}  # (its cache_dir kept: preview reads it)
             obs = instantiate("env.observation", node)
         else:
             obs = ImageObservation(height=84, width=84, fov=90.0, render="online")
         return obs
+
+    def preview(self, i: int, heading_deg: float) -> tuple[np.ndarray, str]:
+        """The agent's camera image at node ``i`` facing ``heading_deg`` and where it came
+        from: the env's render cache (``cobel render-cache``: the same scene, camera and poses,
+        so the same key) when it has one for this graph, else rendered with pybullet."""
+        from cobelrun.render import cache
+
+        request = self.cache_request()
+        try:
+            path = cache.locate(request)
+            images = cache.load(request)
+        except CobelError as exc:
+            why = str(exc).split(";")[0]
+        else:
+            h = int(np.argmin(np.abs(np.angle(np.exp(1j * (np.asarray(request.directions)
+                                                           - np.deg2rad(heading_deg)))))))  # fmt: skip
+            return np.array(images[i, h]), f"read from the render cache {path}"
+        return self.agent_view(i, heading_deg), f"rendered with pybullet ({why})"
+
+    def cache_request(self) -> Any:
+        """The render-cache request of the saved env's camera (scene, camera, every node and
+        heading, renderer, cache folder): what ``cobel render-cache`` builds for it."""
+        from cobelrun.web.grid_design import build_with
+
+        obs = self.camera()
+        obs.bind(build_with("env.topology", self.run_topology_node()))
+        return obs.cache_request()
 
     def agent_view(self, i: int, heading_deg: float) -> np.ndarray:
         """The agent's camera image at node ``i`` facing ``heading_deg`` (HxWx3 uint8),
         rendered by the run's pybullet scene for this graph."""
         from cobelrun.web.grid_design import build_with
 
-        topology = build_with("env.topology", self.topology_node())
+        topology = build_with("env.topology", self.run_topology_node())
         obs = self.camera()
         obs.bind(topology)
         try:

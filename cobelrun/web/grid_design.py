@@ -591,6 +591,7 @@ def geometry_figure(env: Any, fmt: str) -> bytes:
     fig, ax = plt.subplots(figsize=(side, side * aspect + 0.4))
     try:
         draw_geometry(geometry, ax, labels=len(geometry.regions) <= 20)
+        _draw_payoffs(env, ax)
         unit = "cells" if geometry.kind == "grid" else "m" if geometry.kind != "graph" else "units"
         ax.set_xlabel(f"x [{unit}]")
         ax.set_ylabel(f"y [{unit}]")
@@ -599,6 +600,56 @@ def geometry_figure(env: Any, fmt: str) -> bytes:
     finally:
         plt.close(fig)
     return buf.getvalue()
+
+
+def _draw_payoffs(env: Any, ax: Any) -> None:
+    """Mark what the world pays, ends and starts at (a gridworld's cells, a graph's nodes) as
+    the env is now, so an export of a phase shows that phase's goals: goals gold (their reward
+    beside them), other rewards green, terminals without a reward pink, starts blue; a legend
+    names them. An arena's goal regions that pay now get a gold rim and their reward."""
+    arena = getattr(env.unwrapped, "arena", None)
+    if arena is not None and hasattr(arena, "goals"):
+        from matplotlib.patches import Circle, Polygon
+
+        paying = [g for g in arena.goals.values() if g.reward > 0]
+        for k, g in enumerate(paying):
+            sh = g.shape
+            patch = (Circle((sh.x, sh.y), sh.radius) if sh.kind == "circle"
+                     else Polygon(sh.points, closed=True))  # fmt: skip
+            patch.set(fill=False, ec="#d4a000", lw=2.5, zorder=3.5,
+                      label="goal (pays now)" if k == 0 else None)  # fmt: skip
+            ax.add_patch(patch)
+            centre = (sh.x, sh.y) if sh.kind == "circle" else np.mean(sh.points, axis=0)
+            ax.annotate(f"{g.reward:g}", centre, xytext=(0, -14), textcoords="offset points",
+                        ha="center", va="top", fontsize=7)  # fmt: skip
+        if paying:
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+        return
+    world = getattr(env.unwrapped, "world", None)
+    if world is None or getattr(world, "coords", None) is None:
+        return
+    xy = np.asarray(world.coords, float)
+    rewards = np.asarray(world.rewards, float)
+    terminal = np.asarray(world.terminal, bool)
+    starts = np.unique(np.asarray(world.starts, int))
+    kinds = [("goal", (rewards > 0), "#fac83c"), ("reward", (rewards < 0), "#9ad29a"),
+             ("terminal", terminal & (rewards == 0), "#f0bebe")]  # fmt: skip
+    for label, mask, colour in kinds:
+        at = np.unique(xy[mask], axis=0, return_index=True)[1] if mask.any() else []
+        states = np.flatnonzero(mask)[np.sort(np.asarray(at, int))] if len(at) else []
+        if not len(states):
+            continue
+        ax.scatter(xy[states, 0], xy[states, 1], s=140, color=colour, edgecolors="0.3",
+                   zorder=3.5, label=label)  # fmt: skip
+        if label != "terminal":
+            for s in states:
+                ax.annotate(f"{rewards[s]:g}", xy[s], ha="center", va="center", fontsize=7,
+                            zorder=3.6)  # fmt: skip
+    if len(starts):
+        at = np.unique(xy[starts], axis=0)
+        ax.scatter(at[:, 0], at[:, 1], s=30, marker="^", color="tab:blue", zorder=3.7,
+                   label="start")  # fmt: skip
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
 
 
 def build_with(where: str, node: dict[str, Any], **objects: Any) -> Any:

@@ -20,6 +20,10 @@ network forward on the 32 next observations, Adam) done three ways:
   gradient vectorised over runs (``torch.func.vmap(torch.func.grad(...))``), one Adam over
   the stacked parameters.
 
+This times one gradient step only; ``benchmarks/bench_cnn_runs.py`` times the whole
+training of 8 runs with the batched CNN path that was built on these findings
+(:class:`~cobelrun.agents.batched_cnn.BatchedCNNDQN`: a plain convolution per run on the CPU).
+
 Thread CPU time per step of all R runs (torch on 1 thread, as cobel sets it), the best of
 ``--repeats`` rounds; ``--device cuda`` times wall clock with synchronisation instead. Prints a
 table and writes ``benchmarks/results/bench_cnn_batch.json``.

@@ -16,8 +16,9 @@ the run folder has the same tables, rows and order as a sequential run.
 ``task.batch_runs``:
 
 ``auto`` (default)
-    batched when the agent and the task allow it (see :func:`why_sequential`), else
-    sequential; the manifest says which and why.
+    batched when the agent and the task allow it (see :func:`why_sequential`) and the agent
+    does not decline (``Agent.batch_auto_declines``: CNN DQNs on a CPU, where batching was
+    measured not to pay), else sequential; the manifest says which and why.
 ``true`` / an integer N
     batched (N runs at a time; ``true``: :data:`DEFAULT_CHUNK`); a task that cannot be
     batched is a one-line error naming the reason.
@@ -75,6 +76,11 @@ def batch_plan(
         if setting == "auto":
             return 0, why
         raise ConfigError(f"task.batch_runs={str(setting).lower()}: cannot batch this task: {why}")
+    declines = getattr(template, "batch_auto_declines", None)
+    if setting == "auto" and declines is not None:
+        why = declines()  # batchable, but measured not to pay here (e.g. CNN agents on a CPU)
+        if why is not None:
+            return 0, why
     return min(chunk, task.runs), None
 
 

@@ -37,7 +37,9 @@ from its own ``numpy.random.Generator`` (seeded as the sequential buffer's), wit
 maximum priority and beta schedule (see :meth:`BatchedDQN._sample_prioritized`).
 
 Supported: vector (``Box``) or ``Discrete`` observations with the MLP policy, uniform or
-prioritized replay, ``train_freq`` 1. Other settings (CNN, Dict observations, dropout) run
+prioritized replay, ``train_freq`` 1; image observations with ``CnnPolicy`` (dropout included)
+through the subclass :class:`~cobelrun.agents.batched_cnn.BatchedCNNDQN`
+(:func:`make_batched` picks). Other settings (Dict observations, other ``train_freq``s) run
 sequentially; :func:`unsupported` says why.
 """
 
@@ -60,8 +62,16 @@ from cobelrun.agents.torch_init import INITS
 from cobelrun.envs.base import Posed
 from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
+from cobelrun.safety import check_allocation
 
-__all__ = ["BatchedDQN", "DQNRunView", "resolve_device", "unsupported"]
+__all__ = [
+    "BatchedDQN",
+    "DQNRunView",
+    "auto_declines",
+    "make_batched",
+    "resolve_device",
+    "unsupported",
+]
 
 
 def resolve_device(device: str) -> torch.device:
@@ -72,7 +82,39 @@ def resolve_device(device: str) -> torch.device:
 
 
 def unsupported(agent: Any) -> str | None:
-    """Why ``agent`` (a built :class:`~cobelrun.agents.dqn.DQNAgent`) cannot be batched, or None."""
+    """Why ``agent`` (a built :class:`~cobelrun.agents.dqn.DQNAgent`) cannot be batched, or
+    None (image DQNs: :func:`cobelrun.agents.batched_cnn.cnn_unsupported`)."""
+    if agent.hyper["policy"] == "CnnPolicy":
+        from cobelrun.agents.batched_cnn import cnn_unsupported
+
+        return cnn_unsupported(agent)
+    return _mlp_unsupported(agent)
+
+
+def make_batched(
+    template: Any, seeds: Sequence[np.random.SeedSequence], capacity: int, device: str = "cpu"
+) -> BatchedDQN:
+    """The batched learner of ``template``'s network: :class:`BatchedDQN` (MLP) or
+    :class:`~cobelrun.agents.batched_cnn.BatchedCNNDQN` (``CnnPolicy``)."""
+    if template.hyper["policy"] == "CnnPolicy":
+        from cobelrun.agents.batched_cnn import BatchedCNNDQN
+
+        return BatchedCNNDQN(template, seeds, capacity=capacity, device=device)
+    return BatchedDQN(template, seeds, capacity=capacity, device=device)
+
+
+def auto_declines(agent: Any) -> str | None:
+    """Why ``task.batch_runs=auto`` keeps a batchable DQN's runs sequential (measured not to
+    pay: :func:`cobelrun.agents.batched_cnn.auto_declines`), or None."""
+    if agent.hyper["policy"] == "CnnPolicy":
+        from cobelrun.agents.batched_cnn import auto_declines as cnn_declines
+
+        return cnn_declines(agent)
+    return None
+
+
+def _mlp_unsupported(agent: Any) -> str | None:
+    """Why the MLP path (:class:`BatchedDQN`) cannot batch ``agent``, or None."""
     m = agent.model
     hyper = agent.hyper
     if hyper["policy"] != "MlpPolicy":
@@ -109,6 +151,9 @@ class BatchedDQN:
         torch device (``"auto"``: CUDA when present).
     """
 
+    #: Adam's fused kernel (None: on CPU and CUDA); False: the sequential agents' own Adam
+    fused_adam: bool | None = None
+
     def __init__(
         self,
         template: Any,
@@ -116,7 +161,7 @@ class BatchedDQN:
         capacity: int,
         device: str = "cpu",
     ) -> None:
-        why = unsupported(template)
+        why = self.unsupported(template)
         if why is not None:
             raise ConfigError(f"task.batch_runs: cannot batch this DQN: {why}")
         m = template.model
@@ -126,7 +171,10 @@ class BatchedDQN:
         self.n_actions = int(template.n_actions)
         space = m.observation_space
         self.discrete_obs = isinstance(space, gym.spaces.Discrete)
-        self.obs_dim = int(space.n) if self.discrete_obs else int(space.shape[0])
+        self.obs_dim = int(space.n) if self.discrete_obs else int(np.prod(space.shape))
+        #: one observation as the replay memory holds it (vectors: float32)
+        self.obs_shape: tuple[int, ...] = (self.obs_dim,)
+        self.obs_dtype: np.dtype = np.dtype(np.float32)
         self.gamma, self.tau = float(m.gamma), float(m.tau)
         self.batch_size, self.learning_starts = int(m.batch_size), int(m.learning_starts)
         self.target_update_interval = max(int(m.target_update_interval), 1)
@@ -142,14 +190,12 @@ class BatchedDQN:
         self.act = activation(template.hyper["activation"])
         self.capacity = max(1, min(int(m.buffer_size), int(capacity)))
 
+        self._setup_networks(template)
         # -- per-run streams, exactly those of a sequential DQNAgent with the same seed
-        init, q_init = template.hyper.get("init", "torch"), template.hyper.get("q_init")
         self.np_rngs: list[np.random.RandomState] = []
         self.per_rngs: list[np.random.Generator] = []  # prioritized replay's sampling streams
         self.spaces: list[gym.spaces.Discrete] = []
-        sizes = [self.obs_dim, *template.hyper["net_arch"], self.n_actions]
-        weights: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
-        biases: list[list[torch.Tensor]] = [[] for _ in range(len(sizes) - 1)]
+        per_run: list[list[torch.Tensor]] = []  # each run's initial parameters, in layout order
         for seq in seeds:
             np_seed, torch_seed, space_seed, per_seed = seq.generate_state(4)
             self.np_rngs.append(np.random.RandomState(int(np_seed)))
@@ -157,39 +203,28 @@ class BatchedDQN:
             sp = gym.spaces.Discrete(self.n_actions)
             sp.seed(int(space_seed))
             self.spaces.append(sp)
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(int(torch_seed))
-                # SB3's q_net: Linear layers created in order with torch's default init
-                layers = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
-                if init != "torch" or q_init is not None:
-                    # SB3 builds the target network next; DQNAgent re-initialises after it
-                    _target = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
-                    INITS[init](torch.nn.Sequential(*layers))
-                    if q_init is not None:
-                        with torch.no_grad():
-                            layers[-1].bias.fill_(float(q_init))
-            for i, layer in enumerate(layers):
-                weights[i].append(layer.weight.detach().T)
-                biases[i].append(layer.bias.detach()[None])
+            per_run.append(self._initial_params(int(torch_seed)))
         dev = self.device
         # every run's parameters in one (R, P) tensor; the layers are leaf views into it (the
         # backward pass fills one gradient per layer), clipping and Adam work on it whole
-        pieces = [torch.stack(t).reshape(R, -1)
-                  for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
-        self.shapes = [tuple(torch.stack(t).shape[1:])
-                       for pair in zip(weights, biases, strict=True) for t in pair]  # fmt: skip
-        self.flat = torch.cat(pieces, dim=1).to(dev)
+        self.shapes = [tuple(t.shape) for t in per_run[0]]
+        self.flat = torch.stack([torch.cat([t.reshape(-1) for t in ts]) for ts in per_run]).to(dev)
         self.flat_target = self.flat.clone()
         self._leaves = [v.requires_grad_() for v in self.layers(self.flat)]
         # Adam with a step count per run (a waiting run does not step)
-        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps)
+        self.adam = RowAdam([self.flat], self.lr, self.betas, self.adam_eps, fused=self.fused_adam)
         self.version = 0  # bumped at every parameter change (caches of predictions)
         self._cache: tuple[int, bytes, np.ndarray] | None = None
         self.num_timesteps = np.zeros(R, np.int64)
         self.n_calls = np.zeros(R, np.int64)
         # replay buffers: (R, capacity, ...) with a write position per run
         cap = self.capacity
-        self.buf_obs = torch.zeros((R, cap, self.obs_dim), dtype=torch.float32, device=dev)
+        obs_dtype = torch.from_numpy(np.zeros(0, self.obs_dtype)).dtype
+        per_obs = int(np.prod(self.obs_shape)) * self.obs_dtype.itemsize
+        check_allocation("task.batch_runs", R * cap * (2 * per_obs + 8 + 4 + 4),
+                         f"{R} runs' replay memories of {cap:,} transitions",
+                         "lower task.batch_runs (runs at once) or agent.buffer_size")  # fmt: skip
+        self.buf_obs = torch.zeros((R, cap, *self.obs_shape), dtype=obs_dtype, device=dev)
         self.buf_next = torch.zeros_like(self.buf_obs)
         self.buf_action = torch.zeros((R, cap), dtype=torch.long, device=dev)
         self.buf_reward = torch.zeros((R, cap), dtype=torch.float32, device=dev)
@@ -215,6 +250,50 @@ class BatchedDQN:
         return DQNRunView(self, run)
 
     # -- networks ----------------------------------------------------------------------------
+    @staticmethod
+    def unsupported(template: Any) -> str | None:
+        """Why this class cannot batch ``template``, or None."""
+        return _mlp_unsupported(template)
+
+    def _setup_networks(self, template: Any) -> None:
+        """Read the network's settings off the template (the MLP's layer sizes)."""
+        self.sizes = [self.obs_dim, *template.hyper["net_arch"], self.n_actions]
+        self.init = template.hyper.get("init", "torch")
+        self.q_init = template.hyper.get("q_init")
+
+    def _initial_params(self, torch_seed: int) -> list[torch.Tensor]:
+        """One run's initial parameters ``[W0, b0, W1, b1, ...]`` (``W`` ``(in, out)``, ``b``
+        ``(1, out)``), drawn from the torch stream a sequential agent of this seed draws them
+        from."""
+        sizes, init, q_init = self.sizes, self.init, self.q_init
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(torch_seed)
+            # SB3's q_net: Linear layers created in order with torch's default init
+            layers = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
+            if init != "torch" or q_init is not None:
+                # SB3 builds the target network next; DQNAgent re-initialises after it
+                _target = [torch.nn.Linear(a, b) for a, b in itertools.pairwise(sizes)]
+                INITS[init](torch.nn.Sequential(*layers))
+                if q_init is not None:
+                    with torch.no_grad():
+                        layers[-1].bias.fill_(float(q_init))
+        out: list[torch.Tensor] = []
+        for layer in layers:
+            out += [layer.weight.detach().T, layer.bias.detach()[None]]
+        return out
+
+    def _online_q(self, obs: torch.Tensor, train: np.ndarray) -> torch.Tensor:
+        """Q values ``(R, B, A)`` of the online networks in a gradient step (``train``: the
+        runs that learn in it)."""
+        return self.forward(self.params, obs)
+
+    def _greedy(self, obs: np.ndarray, runs: np.ndarray) -> np.ndarray:
+        """Greedy actions of the runs ``runs`` at their current observations ``obs[runs]``
+        (``obs``: every run's; the MLPs of all runs are evaluated, it costs no more)."""
+        with torch.no_grad():
+            q = self.forward(self.params, torch.as_tensor(obs, device=self.device)[:, None])
+        return q[:, 0].argmax(dim=1).cpu().numpy()[runs]
+
     def _obs_array(self, obs: Any) -> np.ndarray:
         if self.discrete_obs:
             v = np.zeros(self.obs_dim, np.float32)
@@ -338,7 +417,7 @@ class BatchedDQN:
             else:
                 next_q = self.forward(self.layers(self.flat_target), nxt).max(dim=2).values
                 target = rew + (1 - done) * self.gamma * next_q
-        current = self.forward(self.params, obs).gather(2, act[..., None])[..., 0]
+        current = self._online_q(obs, train).gather(2, act[..., None])[..., 0]
         if self.huber:
             per = F.smooth_l1_loss(current, target, reduction="none")
         else:
@@ -439,7 +518,7 @@ class BatchedDQN:
         posed = [isinstance(e.unwrapped, Posed) for e in envs]
         finished: list[list[dict[str, Any]]] = [[] for _ in range(R)]
         current: list[dict[str, Any] | None] = [None] * R
-        obs = np.zeros((R, self.obs_dim), np.float32)
+        obs = np.zeros((R, *self.obs_shape), self.obs_dtype)
         active = np.full(R, n_trials > 0)
         eps = self.epsilon if learn else self.test_epsilon
 
@@ -457,10 +536,8 @@ class BatchedDQN:
             begin(r)
         while active.any():
             runs = np.flatnonzero(active)
-            with torch.no_grad():
-                q = self.forward(self.params, torch.as_tensor(obs, device=self.device)[:, None])
-            greedy = q[:, 0].argmax(dim=1).cpu().numpy()
             actions = np.zeros(R, np.int64)
+            greedy_runs = []
             for r in runs:
                 # SB3's DQN holds exploration_rate 0.0 until its first step ends, so a run's very
                 # first learning step is greedy (its uniform is still drawn)
@@ -470,7 +547,10 @@ class BatchedDQN:
                 elif (learn or eps > 0) and self.np_rngs[r].rand() < run_eps:
                     actions[r] = self.spaces[r].sample()
                 else:
-                    actions[r] = greedy[r]
+                    greedy_runs.append(r)
+            if greedy_runs:  # the networks' choices (no random draws: after them is the same)
+                greedy = np.asarray(greedy_runs)
+                actions[greedy] = self._greedy(obs, greedy)
             nxt = obs.copy()
             rewards = np.zeros(R)
             dones = np.zeros(R, bool)
@@ -506,7 +586,7 @@ class BatchedDQN:
                 n_steps = np.where(train, self.gradient_steps + self.trial_end_updates * ended, 0)
                 for k in range(int(n_steps.max(initial=0))):
                     self._gradient_step(n_steps > k)
-            obs = np.where(ended[:, None], obs, nxt)
+            obs = np.where(ended.reshape(-1, *([1] * len(self.obs_shape))), obs, nxt)
             for r in np.flatnonzero(ended):
                 last = len(finished[r]) >= n_trials
                 if last:  # no reset after the call's last trial (as the sequential agent)

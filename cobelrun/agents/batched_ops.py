@@ -82,16 +82,24 @@ class RowAdam:
     """
 
     def __init__(
-        self, tensors: Sequence[torch.Tensor], lr: float, betas: tuple[float, float], eps: float
+        self,
+        tensors: Sequence[torch.Tensor],
+        lr: float,
+        betas: tuple[float, float],
+        eps: float,
+        fused: bool | None = None,
     ) -> None:
         self.tensors = list(tensors)
         self.R = int(self.tensors[0].shape[0])
         # params[r][k]: run r's slice of tensor k
         self.params = [[t[r].detach().requires_grad_() for t in self.tensors]
                        for r in range(self.R)]  # fmt: skip
-        fused = self.tensors[0].device.type in ("cpu", "cuda")
+        if fused is None:
+            fused = self.tensors[0].device.type in ("cpu", "cuda")
         flat = [p for row in self.params for p in row]
-        self.opt = torch.optim.Adam(flat, lr=lr, betas=betas, eps=eps, fused=fused)
+        # not fused: torch's single-tensor Adam, the sequential agents' on the CPU (bit for bit)
+        self.opt = torch.optim.Adam(flat, lr=lr, betas=betas, eps=eps, fused=fused or None,
+                                    foreach=None if fused else False)  # fmt: skip
         self.steps = np.zeros(self.R, np.int64)
 
     def step(self, grads: Sequence[torch.Tensor], runs: np.ndarray) -> None:

@@ -487,13 +487,19 @@ class DQNAgent(Agent):
 
         return unsupported(self)
 
+    def batch_auto_declines(self) -> str | None:
+        from cobelrun.agents.batched_dqn import auto_declines
+
+        return auto_declines(self)
+
     def batch_learner(
         self, seeds: Sequence[np.random.SeedSequence], steps: int, make: Any = None
     ) -> Any:
-        """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` for one run per seed."""
-        from cobelrun.agents.batched_dqn import BatchedDQN
+        """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` (or its CNN subclass) for one run
+        per seed."""
+        from cobelrun.agents.batched_dqn import make_batched
 
-        return BatchedDQN(self, seeds, capacity=steps, device=self.device)
+        return make_batched(self, seeds, capacity=steps, device=self.device)
 
     # -- rng bookkeeping -----------------------------------------------------------------
     @contextlib.contextmanager

@@ -2,7 +2,7 @@
 
 :class:`BatchedCNNDQN` is :class:`~cobelrun.agents.batched_dqn.BatchedDQN` (the same lock-step
 loop, replay memories per run, target updates, masked Adam per run, clipping per run) with
-cobel's :class:`~cobelrun.agents.dqn.ConvFeatures` network in place of the MLP:
+cobel's :class:`~cobelrun.agents.conv.ConvFeatures` network in place of the MLP:
 
 - each run's parameters are the sequential ``q_net``'s parameters in their order and shapes
   (``features_extractor.cnn.*``, ``features_extractor.linear.0``, the Q head), one row of the
@@ -45,7 +45,7 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 from cobelrun.agents.batched_dqn import BatchedDQN, DQNRunView, resolve_device
 from cobelrun.agents.batched_ops import ACTIVATION_NAMES, activation
-from cobelrun.agents.dqn import ACTIVATIONS
+from cobelrun.agents.conv import ACTIVATIONS
 from cobelrun.agents.torch_init import INITS
 
 __all__ = [
@@ -64,7 +64,7 @@ CONV_MODES = ("grouped", "loop")
 
 def cnn_unsupported(agent: Any) -> str | None:
     """Why a ``CnnPolicy`` :class:`~cobelrun.agents.dqn.DQNAgent` cannot be batched, or None."""
-    from cobelrun.agents.dqn import ConvFeatures
+    from cobelrun.agents.conv import ConvFeatures
 
     m = agent.model
     q_net = m.q_net

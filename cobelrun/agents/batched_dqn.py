@@ -39,7 +39,7 @@ maximum priority and beta schedule (see :meth:`BatchedDQN._sample_prioritized`).
 Supported: vector (``Box``) or ``Discrete`` observations with the MLP policy, uniform or
 prioritized replay, ``train_freq`` 1; image observations with ``CnnPolicy`` (dropout included)
 through the subclass :class:`~cobelrun.agents.batched_cnn.BatchedCNNDQN`
-(:func:`make_batched` picks). Other settings (Dict observations, other ``train_freq``s) run
+(:func:`cobelrun.agents.batched_pick.make_batched` picks). Other settings (Dict observations, other ``train_freq``s) run
 sequentially; :func:`unsupported` says why.
 """
 
@@ -67,10 +67,8 @@ from cobelrun.safety import check_allocation
 __all__ = [
     "BatchedDQN",
     "DQNRunView",
-    "auto_declines",
-    "make_batched",
+    "mlp_unsupported",
     "resolve_device",
-    "unsupported",
 ]
 
 
@@ -81,39 +79,7 @@ def resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
-def unsupported(agent: Any) -> str | None:
-    """Why ``agent`` (a built :class:`~cobelrun.agents.dqn.DQNAgent`) cannot be batched, or
-    None (image DQNs: :func:`cobelrun.agents.batched_cnn.cnn_unsupported`)."""
-    if agent.hyper["policy"] == "CnnPolicy":
-        from cobelrun.agents.batched_cnn import cnn_unsupported
-
-        return cnn_unsupported(agent)
-    return _mlp_unsupported(agent)
-
-
-def make_batched(
-    template: Any, seeds: Sequence[np.random.SeedSequence], capacity: int, device: str = "cpu"
-) -> BatchedDQN:
-    """The batched learner of ``template``'s network: :class:`BatchedDQN` (MLP) or
-    :class:`~cobelrun.agents.batched_cnn.BatchedCNNDQN` (``CnnPolicy``)."""
-    if template.hyper["policy"] == "CnnPolicy":
-        from cobelrun.agents.batched_cnn import BatchedCNNDQN
-
-        return BatchedCNNDQN(template, seeds, capacity=capacity, device=device)
-    return BatchedDQN(template, seeds, capacity=capacity, device=device)
-
-
-def auto_declines(agent: Any) -> str | None:
-    """Why ``task.batch_runs=auto`` keeps a batchable DQN's runs sequential (measured not to
-    pay: :func:`cobelrun.agents.batched_cnn.auto_declines`), or None."""
-    if agent.hyper["policy"] == "CnnPolicy":
-        from cobelrun.agents.batched_cnn import auto_declines as cnn_declines
-
-        return cnn_declines(agent)
-    return None
-
-
-def _mlp_unsupported(agent: Any) -> str | None:
+def mlp_unsupported(agent: Any) -> str | None:
     """Why the MLP path (:class:`BatchedDQN`) cannot batch ``agent``, or None."""
     m = agent.model
     hyper = agent.hyper
@@ -253,7 +219,7 @@ class BatchedDQN:
     @staticmethod
     def unsupported(template: Any) -> str | None:
         """Why this class cannot batch ``template``, or None."""
-        return _mlp_unsupported(template)
+        return mlp_unsupported(template)
 
     def _setup_networks(self, template: Any) -> None:
         """Read the network's settings off the template (the MLP's layer sizes)."""

@@ -41,9 +41,9 @@ import torch
 import torch.nn.functional as F
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from cobelrun.agents.base import Agent, ArraySpec, SeedLike, TrialCallback, layer_sizes
+from cobelrun.agents.conv import ACTIVATIONS, DEFAULT_CONVS, ConvFeatures
 from cobelrun.agents.networks import set_torch_threads
 from cobelrun.agents.per import PrioritizedDQN, PrioritizedReplayBuffer
 from cobelrun.agents.sb3 import TrialDQN, TrialRecorder
@@ -62,21 +62,11 @@ from cobelrun.errors import ConfigError
 from cobelrun.records import TrialBatch
 from cobelrun.safety import check_allocation
 
-#: activation functions by config name
-ACTIVATIONS: dict[str, type[torch.nn.Module]] = {
-    "tanh": torch.nn.Tanh,
-    "relu": torch.nn.ReLU,
-    "elu": torch.nn.ELU,
-    "sigmoid": torch.nn.Sigmoid,
-    "linear": torch.nn.Identity,
-}
 POLICIES = ("auto", "MlpPolicy", "CnnPolicy", "MultiInputPolicy")
 
 
 #: TD losses by config name: SB3's Huber (smooth L1, delta 1) or keras-rl's squared error
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": F.smooth_l1_loss, "mse": F.mse_loss}
-#: Fig. 6A's convolutional stack: [channels, kernel, stride] per layer, then dense 256
-DEFAULT_CONVS = ((16, 8, 4), (32, 4, 2))
 #: SB3's NatureCNN (used for image inputs of a Dict observation by MultiInputPolicy)
 NATURE_CONVS = ((32, 8, 4), (64, 4, 2), (64, 3, 1))
 #: Layer name aliases of the CNN network: ``analysis`` is the dense ReLU layer after the
@@ -137,51 +127,6 @@ def _channel_first(space: gym.spaces.Space) -> tuple[int, int, int]:
     if is_image_space_channels_first(space):  # type: ignore[arg-type]
         return c, h, w
     return w, c, h
-
-
-class ConvFeatures(BaseFeaturesExtractor):
-    """Convolutions ``[channels, kernel, stride]`` (ReLU), flattened, then a dense ReLU layer.
-
-    Default: Fig. 6A's conv 16@8x8/4 -> conv 32@4x4/2 -> dense 256 (docs/paper-settings.md). ``padding``:
-    ``"valid"`` (none, default) or ``"same"`` (Keras': zero padding so that a layer's output is
-    ``ceil(input / stride)``; the original's Fig. 4 network, which also takes 16 x 16 images).
-    ``dropout > 0`` adds dropout after the dense layer (Fig. 8: dense 50 ReLU -> dropout 0.35);
-    the dense ReLU output is the ``analysis`` layer of :meth:`DQNAgent.activations`.
-    """
-
-    def __init__(
-        self,
-        observation_space: gym.spaces.Box,
-        convs: Sequence[Sequence[int]] = DEFAULT_CONVS,
-        features_dim: int = 256,
-        padding: str = "valid",
-        dropout: float = 0.0,
-    ) -> None:
-        super().__init__(observation_space, features_dim)
-        layers: list[torch.nn.Module] = []
-        channels, h, w = observation_space.shape
-        for out, kernel, stride in convs:
-            k, st = int(kernel), int(stride)
-            if padding == "same":  # Keras/TensorFlow "same": extra padding goes right/bottom
-                ph = max((-(-h // st) - 1) * st + k - h, 0)
-                pw = max((-(-w // st) - 1) * st + k - w, 0)
-                layers.append(torch.nn.ZeroPad2d((pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)))
-                h, w = -(-h // st), -(-w // st)
-            else:
-                h, w = (h - k) // st + 1, (w - k) // st + 1
-            layers += [torch.nn.Conv2d(channels, int(out), k, st), torch.nn.ReLU()]
-            channels = int(out)
-        layers.append(torch.nn.Flatten())
-        self.cnn = torch.nn.Sequential(*layers)
-        with torch.no_grad():
-            n_flat = self.cnn(torch.zeros(1, *observation_space.shape)).shape[1]
-        dense: list[torch.nn.Module] = [torch.nn.Linear(n_flat, features_dim), torch.nn.ReLU()]
-        if dropout > 0:
-            dense.append(torch.nn.Dropout(float(dropout)))
-        self.linear = torch.nn.Sequential(*dense)
-
-    def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.linear(self.cnn(observations))
 
 
 def replay_bytes(space: gym.Space, capacity: int) -> int:
@@ -483,12 +428,12 @@ class DQNAgent(Agent):
 
     # -- batched runs ----------------------------------------------------------------------
     def batch_unsupported(self) -> str | None:
-        from cobelrun.agents.batched_dqn import unsupported
+        from cobelrun.agents.batched_pick import unsupported
 
         return unsupported(self)
 
     def batch_auto_declines(self) -> str | None:
-        from cobelrun.agents.batched_dqn import auto_declines
+        from cobelrun.agents.batched_pick import auto_declines
 
         return auto_declines(self)
 
@@ -497,7 +442,7 @@ class DQNAgent(Agent):
     ) -> Any:
         """:class:`~cobelrun.agents.batched_dqn.BatchedDQN` (or its CNN subclass) for one run
         per seed."""
-        from cobelrun.agents.batched_dqn import make_batched
+        from cobelrun.agents.batched_pick import make_batched
 
         return make_batched(self, seeds, capacity=steps, device=self.device)
 

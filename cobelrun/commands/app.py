@@ -20,6 +20,7 @@ from cobelrun.commands.common import (
     AllowTarget,
     allow_targets,
     fail,
+    launcher_choice,
 )
 from cobelrun.errors import CobelError
 
@@ -511,7 +512,7 @@ def figure_cmd(
             Console().print(table)
             return
         chosen = list(known.values()) if name == "all" else [get(name)]
-        hydra_launcher = _launcher_overrides(launcher, launcher_arg or [])
+        hydra_launcher = launcher_choice(launcher, launcher_arg or [])
         for fig in chosen:
             files = build(fig, quick=quick, out_dir=out, reuse_from=from_ or (), jobs=jobs,
                           finished_only=finished_only, launcher=hydra_launcher,
@@ -522,23 +523,3 @@ def figure_cmd(
         fail(str(exc))
     except KeyboardInterrupt:
         fail("interrupted", EXIT_INTERRUPTED)
-
-
-def _launcher_overrides(name: str | None, args: list[str]) -> list[str]:
-    """``cobel figure --launcher NAME --launcher-arg K=V``: the Hydra overrides that choose the
-    launcher of the figure's sweeps; a malformed argument is one line."""
-    import re
-
-    if name is None:
-        if args:
-            raise CobelError("--launcher-arg needs --launcher NAME (the launcher it configures)")
-        return []
-    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
-        raise CobelError(f"--launcher {name!r}: give a launcher config name (e.g. slurm, local)")
-    out = [f"hydra/launcher={name}"]
-    for arg in args:
-        key, sep, value = arg.partition("=")
-        if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.]*", key):
-            raise CobelError(f"--launcher-arg {arg!r}: give KEY=VALUE (e.g. partition=gpu)")
-        out.append(f"hydra.launcher.{key}={value}")
-    return out

@@ -85,3 +85,26 @@ def allow_targets(patterns: list[str] | None) -> None:
         allow(patterns or [])
     except CobelError as exc:
         fail(str(exc))
+
+
+def launcher_choice(name: str | None, args: list[str]) -> list[str]:
+    """``--launcher NAME --launcher-arg K=V`` (``cobel figure``, ``cobel recover``): the Hydra
+    overrides that choose the launcher of the command's sweeps; a malformed argument is one
+    line."""
+    import re
+
+    from cobelrun.errors import CobelError
+
+    if name is None:
+        if args:
+            raise CobelError("--launcher-arg needs --launcher NAME (the launcher it configures)")
+        return []
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
+        raise CobelError(f"--launcher {name!r}: give a launcher config name (e.g. slurm, local)")
+    out = [f"hydra/launcher={name}"]
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.]*", key):
+            raise CobelError(f"--launcher-arg {arg!r}: give KEY=VALUE (e.g. partition=gpu)")
+        out.append(f"hydra.launcher.{key}={value}")
+    return out

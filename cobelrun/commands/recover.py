@@ -233,12 +233,11 @@ def register(app: typer.Typer) -> None:
             ),
         ] = None,
     ) -> None:
-        from cobelrun.cli import _launcher_overrides
-        from cobelrun.commands.common import fail
+        from cobelrun.commands.common import fail, launcher_choice
         from cobelrun.errors import CobelError
 
         try:
-            hydra_launcher = _launcher_overrides(launcher, launcher_arg or [])
+            hydra_launcher = launcher_choice(launcher, launcher_arg or [])
             p = plan(list(ctx.args), hydra_launcher)
             folder = out or Path(f"recover-{p['task'].name}")
             if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -213,20 +213,12 @@ class ChoiceTask:
             return self._condition(agent, env_seed)
         rows = np.zeros((self.n_trials, 3))
         t = 0
-        first = True
-        for phase in self.phases:
-            self.protocol.apply(phase, self.env)
-            for k in range(phase.trials):
-                self.protocol.apply_trial(phase, k, self.env)
-                seed_now = int(env_seed.generate_state(1)[0]) if first else None
-                _, info = self.env.reset(seed=seed_now)
-                first = False
-                s = int(info.get("state", 0))
-                a = agent.act(s)
-                _, r, _, _, _ = self.env.step(a)
-                agent.learn(s, a, float(r))
-                rows[t] = (s, a, r)
-                t += 1
+        for _phase, s in self._trial_starts(env_seed):
+            a = agent.act(s)
+            _, r, _, _, _ = self.env.step(a)
+            agent.learn(s, a, float(r))
+            rows[t] = (s, a, r)
+            t += 1
         return pd.DataFrame({"trial": np.arange(1, t + 1), "state": rows[:, 0].astype(np.int64),
                              "choice": rows[:, 1].astype(np.int64), "reward": rows[:, 2]})  # fmt: skip
 
@@ -235,7 +227,25 @@ class ChoiceTask:
         rewards it delivers; responses do not change a scripted trial), the model responds at
         the cue's onset and learns from the trial if its phase learns."""
         rows = np.zeros((self.n_trials, 4))
-        t, first = 0, True
+        t = 0
+        for phase, s in self._trial_starts(env_seed):
+            outcome, done = 0.0, False
+            while not done:
+                _, r, terminated, truncated, _ = self.env.step(0)
+                outcome += float(r)
+                done = terminated or truncated
+            a = agent.trial(s, outcome, bool(phase.learning))
+            rows[t] = (s, a, outcome, float(phase.learning))
+            t += 1
+        return pd.DataFrame({"trial": np.arange(1, t + 1), "state": rows[:, 0].astype(np.int64),
+                             "choice": rows[:, 1].astype(np.int64), "reward": rows[:, 2],
+                             "learn": rows[:, 3].astype(np.int64)})  # fmt: skip
+
+    def _trial_starts(self, env_seed: Any) -> Iterator[tuple[Any, int]]:
+        """The protocol's trials in order: each phase and trial change applied and the env
+        reset for the trial (the first reset seeded from ``env_seed``); yields the phase and
+        the trial's start state."""
+        first = True
         for phase in self.phases:
             self.protocol.apply(phase, self.env)
             for k in range(phase.trials):
@@ -243,18 +253,7 @@ class ChoiceTask:
                 seed_now = int(env_seed.generate_state(1)[0]) if first else None
                 _, info = self.env.reset(seed=seed_now)
                 first = False
-                s = int(info.get("state", 0))
-                outcome, done = 0.0, False
-                while not done:
-                    _, r, terminated, truncated, _ = self.env.step(0)
-                    outcome += float(r)
-                    done = terminated or truncated
-                a = agent.trial(s, outcome, bool(phase.learning))
-                rows[t] = (s, a, outcome, float(phase.learning))
-                t += 1
-        return pd.DataFrame({"trial": np.arange(1, t + 1), "state": rows[:, 0].astype(np.int64),
-                             "choice": rows[:, 1].astype(np.int64), "reward": rows[:, 2],
-                             "learn": rows[:, 3].astype(np.int64)})  # fmt: skip
+                yield phase, int(info.get("state", 0))
 
     @property
     def models(self) -> list[str]:

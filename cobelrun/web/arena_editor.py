@@ -145,8 +145,6 @@ def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign
                with_task: bool = False) -> Path:  # fmt: skip
     """Write ``env/NAME.yaml`` (and, ``with_task``, ``task/NAME.yaml``: the task that came
     with the arena, its env and name set to NAME) after the checks; the env file written."""
-    from cobelrun.targets import check_config
-
     ec.check_name(name)
     problems = design.problems()
     if problems:
@@ -160,13 +158,7 @@ def save_arena(folder: Path, name: str, loaded: LoadedArena, design: ArenaDesign
         text = ec.protocol_task_text(loaded.task_doc, name, design, loaded.loaded)
         outputs.append((ec._inside(folder, folder / "task" / f"{name}.yaml"), text,
                         loaded.task_source))  # fmt: skip
-    for out, text, source in outputs:
-        ours = source is not None and out.resolve() == source.resolve()
-        if out.exists() and not ours and out.read_text(encoding="utf-8") != text:
-            raise CobelError(f"{out} exists; pick another name (or load it to edit it)")
-        check_config(ec.plain(ec._yaml().load(text)), "env" if out == path else "task")
-    for out, text, _ in outputs:
-        ec._write(out, text)
+    ec.write_configs(folder, [(out, text, (source,)) for out, text, source in outputs], path)
     return path
 
 

@@ -17,6 +17,7 @@ import os
 import re
 import tempfile
 import textwrap
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -468,8 +469,6 @@ def save(folder: Path, name: str, loaded: Loaded, design: GridDesign, *,
         A bad name, a design ``cobel run`` would refuse (its message), a file that exists and
         is not the one loaded (unless ``overwrite``), a path leading outside ``folder``.
     """
-    from cobelrun.targets import check_config
-
     check_name(name)
     problems = design.problems()
     if problems:
@@ -479,9 +478,27 @@ def save(folder: Path, name: str, loaded: Loaded, design: GridDesign, *,
     if with_task:
         outputs.append((_inside(folder, folder / "task" / f"{name}.yaml"),
                         task_text(loaded, design, name)))  # fmt: skip
-    for path, text in outputs:
-        ours = any(src is not None and path.resolve() == src.resolve()
-                   for src in (loaded.source, loaded.task_source))  # fmt: skip
+    sources = (loaded.source, loaded.task_source)
+    write_configs(folder, [(path, text, sources) for path, text in outputs], env_path,
+                  overwrite=overwrite)  # fmt: skip
+    return [p for p, _ in outputs]
+
+
+def write_configs(
+    folder: Path,
+    outputs: Sequence[tuple[Path, str, Sequence[Path | None]]],
+    env_path: Path,
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Write an editor page's config files, all or none: each ``(path, text, sources)`` text
+    must pass ``cobel run``'s check of an env (``path == env_path``) or task config, and a
+    file that exists with other text is refused in one line unless it is one the page loaded
+    (``sources``) or ``overwrite``."""
+    from cobelrun.targets import check_config
+
+    for path, text, loaded_from in outputs:
+        ours = any(src is not None and path.resolve() == src.resolve() for src in loaded_from)
         if (
             path.exists()
             and not ours
@@ -492,6 +509,5 @@ def save(folder: Path, name: str, loaded: Loaded, design: GridDesign, *,
         check_config(plain(_yaml().load(text)), "env" if path == env_path else "task")
     if not folder.exists():
         folder.mkdir(parents=True)
-    for path, text in outputs:
+    for path, text, _ in outputs:
         _write(path, text)
-    return [p for p, _ in outputs]

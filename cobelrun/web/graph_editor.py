@@ -220,8 +220,6 @@ def save_graph(folder: Path, name: str, loaded: LoadedGraph, design: GraphDesign
     """Write ``env/NAME.yaml`` (and, ``with_task``, ``task/NAME.yaml``: the graph's task with
     its env and name set to NAME and edited phases inline) after the checks; the files
     written."""
-    from cobelrun.targets import check_config
-
     ec.check_name(name)
     problems = design.problems()
     if problems:
@@ -234,13 +232,7 @@ def save_graph(folder: Path, name: str, loaded: LoadedGraph, design: GraphDesign
         text = ec.protocol_task_text(loaded.task_doc, name, design, loaded.loaded)
         outputs.append((ec._inside(folder, folder / "task" / f"{name}.yaml"), text,
                         loaded.task_source))  # fmt: skip
-    for out, text, source in outputs:
-        ours = source is not None and out.resolve() == source.resolve()
-        if out.exists() and not ours and out.read_text(encoding="utf-8") != text:
-            raise CobelError(f"{out} exists; pick another name (or load it to edit it)")
-        check_config(ec.plain(ec._yaml().load(text)), "env" if out == path else "task")
-    for out, text, _ in outputs:
-        ec._write(out, text)
+    ec.write_configs(folder, [(out, text, (source,)) for out, text, source in outputs], path)
     return [out for out, _, _ in outputs]
 
 

@@ -27,10 +27,9 @@ from cobelrun.errors import CobelError
 from cobelrun.web import edit_config as ec
 from cobelrun.web.grid_design import GridDesign, same_world
 from tests import inprocess
+from tests.webpages import free_port, headless_chromium, web_command
 
 REPO = Path(__file__).resolve().parents[1]
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
 DOCS_IMG = REPO / "docs" / "img"
 cli = inprocess.cli  # fixture: cobel in this process
 
@@ -269,12 +268,6 @@ def test_graph_and_arena_export_draw_the_env() -> None:
 
 
 # -- the page in Chromium ---------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("edit")
@@ -282,51 +275,14 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def server(workdir: Path):
-    pytest.importorskip("nicegui", reason="cobel edit needs the web extra (NiceGUI)")
-    port = _free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
-    env.update(PYTHONPATH=str(REPO), COBEL_DEBUG="1")
-    code = "from cobelrun.cli import main; main()"
-    cmd = [sys.executable, "-c", code, "edit", "env=open_field", "-cd", str(workdir / "conf"),
-           "--port", str(port), "--results", str(workdir / "results")]  # fmt: skip
-    proc = subprocess.Popen(cmd, env=env, cwd=workdir, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT)  # fmt: skip
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                break
-        except OSError:
-            if proc.poll() is not None:
-                out = proc.stdout.read().decode() if proc.stdout else ""
-                pytest.fail(f"cobel edit exited: {out}")
-            time.sleep(0.2)
-    else:
-        proc.kill()
-        pytest.fail("cobel edit did not listen within 60 s")
-    yield f"http://127.0.0.1:{port}"
-    proc.terminate()
-    try:
-        proc.wait(15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
+    port = free_port()
+    yield from web_command(["edit", "env=open_field", "-cd", str(workdir / "conf"), "--port",
+                            str(port), "--results", str(workdir / "results")], port, cwd=workdir)
 
 
 @pytest.fixture(scope="module")
 def browser():
-    if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
-        pytest.skip(f"needs Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}); "
-                    "`apt-get install chromium chromium-driver` (.ci/run does)")  # fmt: skip
-    webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (dev extra)")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                "--window-size=1500,1000"):  # fmt: skip
-        opts.add_argument(arg)
-    service = webdriver.ChromeService(executable_path=str(CHROMEDRIVER))
-    driver = webdriver.Chrome(options=opts, service=service)
-    yield driver
-    driver.quit()
+    yield from headless_chromium(1500)
 
 
 def _wait_text(driver, css: str, pattern: str, timeout: float = 20.0) -> str:
@@ -1168,7 +1124,7 @@ def test_run_it_links_the_dashboard_only_once_it_listens(tmp_path: Path) -> None
     editor = Editor(folder=tmp_path / "conf", results=results)
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     editor.dashboard = Child(sleeper, "cobel serve")  # started, not listening yet
-    editor.dashboard_port = _free_port()
+    editor.dashboard_port = free_port()
     run = Child(sleeper, "cobel run", out=out)
     try:
         assert editor.dashboard_url(run) is None  # a link now would be refused

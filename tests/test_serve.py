@@ -27,17 +27,10 @@ from cobelrun.errors import CobelError
 from cobelrun.io.parquet import PartedTableWriter
 from cobelrun.io.run_folder import RunFolder
 from cobelrun.web import data
+from tests.webpages import free_port, headless_chromium, web_command
 
 REPO = Path(__file__).resolve().parents[1]
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
 DOCS_IMG = REPO / "docs" / "img"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
@@ -142,51 +135,13 @@ def test_not_a_results_folder_and_busy_port_are_one_line(results: Path, tmp_path
 # -- the page in Chromium ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def server(results: Path):
-    pytest.importorskip("nicegui", reason="cobel serve needs the web extra (NiceGUI)")
-    port = _free_port()
-    # NiceGUI takes a process with PYTEST_CURRENT_TEST for its own test harness
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
-    env.update(PYTHONPATH=str(REPO), COBEL_DEBUG="1")
-    code = "from cobelrun.cli import main; main()"
-    cmd = [sys.executable, "-c", code, "serve", str(results), "--port", str(port)]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                break
-        except OSError:
-            if proc.poll() is not None:
-                out = proc.stdout.read().decode() if proc.stdout else ""
-                pytest.fail(f"cobel serve exited: {out}")
-            time.sleep(0.2)
-    else:
-        proc.kill()
-        pytest.fail("cobel serve did not listen within 60 s")
-    yield url
-    proc.terminate()
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
+    port = free_port()
+    yield from web_command(["serve", str(results), "--port", str(port)], port, stop_timeout=10)
 
 
 @pytest.fixture(scope="module")
 def browser():
-    if not (CHROMIUM.is_file() and CHROMEDRIVER.is_file()):
-        pytest.skip(f"needs Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}); "
-                    "`apt-get install chromium chromium-driver` (.ci/run does)")  # fmt: skip
-    webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (dev extra)")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                "--window-size=1400,1000"):  # fmt: skip
-        opts.add_argument(arg)
-    service = webdriver.ChromeService(executable_path=str(CHROMEDRIVER))
-    driver = webdriver.Chrome(options=opts, service=service)
-    yield driver
-    driver.quit()
+    yield from headless_chromium(1400)
 
 
 def _wait(driver, css: str, timeout: float = 20.0):

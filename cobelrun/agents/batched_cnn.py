@@ -411,17 +411,4 @@ class CNNRunView(DQNRunView):
         for prefix, flat in (("policy.q_net", b.flat), ("policy.q_net_target", b.flat_target)):
             for name, t in zip(names, b.layers(flat[r : r + 1]), strict=True):
                 arrays[f"{prefix}.{name}"] = t[0].detach().cpu().numpy().copy()
-        ((exp_avg, exp_avg_sq),) = b.adam.moments(r)
-        moments = zip(b.layers(exp_avg[None]), b.layers(exp_avg_sq[None]), strict=True)
-        for j, (m, v) in enumerate(moments):
-            arrays[f"optimizer.{j}.step"] = np.array(float(b.adam_steps[r]), np.float32)
-            arrays[f"optimizer.{j}.exp_avg"] = m[0].detach().cpu().numpy().copy()
-            arrays[f"optimizer.{j}.exp_avg_sq"] = v[0].detach().cpu().numpy().copy()
-        arrays["num_timesteps"] = np.array(b.num_timesteps[r], np.int64)
-        arrays["n_calls"] = np.array(b.n_calls[r], np.int64)
-        schema = self.state_schema()
-        if set(arrays) != set(schema):  # the SB3 policy's layout changed under us
-            raise RuntimeError(
-                f"batched CNN state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}"
-            )
-        return arrays
+        return self._optimizer_and_counters(arrays, lambda _j, t: t, "batched CNN")

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -622,19 +622,33 @@ class DQNRunView:
                 arrays[f"{prefix}.{2 * i}.bias"] = (
                     params[2 * i + 1][r, 0].detach().cpu().numpy().copy()
                 )
+        # stacked (in, out) weights and (1, out) biases -> torch.nn.Linear's (out, in) and (out,)
+        return self._optimizer_and_counters(
+            arrays, lambda j, t: t.T if j % 2 == 0 else t[0], "batched DQN"
+        )
+
+    def _optimizer_and_counters(
+        self,
+        arrays: dict[str, np.ndarray],
+        layout: Callable[[int, np.ndarray], np.ndarray],
+        what: str,
+    ) -> dict[str, np.ndarray]:
+        """``arrays`` (the run's weights) completed with the run's Adam step count and moments
+        per parameter (``layout(j, moment)``: parameter ``j``'s moment in ``DQNAgent``'s
+        shape) and counters, checked against ``DQNAgent``'s file layout."""
+        b, r = self.batch, self.run
         ((exp_avg, exp_avg_sq),) = b.adam.moments(r)
         moments = zip(b.layers(exp_avg[None]), b.layers(exp_avg_sq[None]), strict=True)
         for j, (m, v) in enumerate(moments):
-            tr = (lambda t: t.T) if j % 2 == 0 else (lambda t: t[0])
             arrays[f"optimizer.{j}.step"] = np.array(float(b.adam_steps[r]), np.float32)
-            arrays[f"optimizer.{j}.exp_avg"] = tr(m[0].detach().cpu().numpy()).copy()
-            arrays[f"optimizer.{j}.exp_avg_sq"] = tr(v[0].detach().cpu().numpy()).copy()
+            arrays[f"optimizer.{j}.exp_avg"] = layout(j, m[0].detach().cpu().numpy()).copy()
+            arrays[f"optimizer.{j}.exp_avg_sq"] = layout(j, v[0].detach().cpu().numpy()).copy()
         arrays["num_timesteps"] = np.array(b.num_timesteps[r], np.int64)
         arrays["n_calls"] = np.array(b.n_calls[r], np.int64)
         schema = self.state_schema()
         if set(arrays) != set(schema):  # the SB3 policy's layout changed under us
             raise RuntimeError(
-                f"batched DQN state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}"
+                f"{what} state keys differ from DQNAgent's: {sorted(set(schema) ^ set(arrays))}"
             )
         return arrays
 

@@ -309,6 +309,11 @@ def generating_theta(model: ChoiceModel, priors: Mapping[str, Prior],
                      for p in model.params])  # fmt: skip
 
 
+#: most synthetic agents per model of one recovery (a config asking for more is refused before
+#: any agent's seed is spawned: each agent is a fit of every candidate model)
+MAX_AGENTS = 100_000
+
+
 def work_items(models: Sequence[str], n: int, seed: int) -> list[tuple[str, int, Any]]:
     """Every synthetic agent as ``(model, agent, SeedSequence)``: agent ``i`` of model ``j``
     gets child ``j * n + i`` of ``SeedSequence(seed)``."""
@@ -322,8 +327,8 @@ def check_setup(task: ChoiceTask, models: Sequence[str], candidates: Sequence[st
     the defaults."""
     check_models(models, task)
     check_models(candidates, task)
-    if n < 1:
-        raise ConfigError(f"n must be >= 1 synthetic agents, got {n}")
+    if not 1 <= n <= MAX_AGENTS:
+        raise ConfigError(f"n must be 1..{MAX_AGENTS:,} synthetic agents per model, got {n}")
     full = {**default_priors(), **(priors or {})}
     missing = sorted({k for m in models for k in MODELS[m].default_keys} - set(full))
     if missing:
@@ -506,6 +511,9 @@ class RecoveryJob:
                                 ("chunks", self.chunks, 1), ("chunk", self.chunk, 0)):  # fmt: skip
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"task.job.{key} must be an integer >= {low}, got {value!r}")
+        if self.n > MAX_AGENTS:  # checked before the agents' seeds are spawned
+            raise ConfigError(f"task.job.n must be 1..{MAX_AGENTS:,} synthetic agents per model, "
+                              f"got {self.n}")  # fmt: skip
         if self.chunk >= self.chunks:
             raise ConfigError(f"task.job.chunk must lie in 0..{self.chunks - 1}, got {self.chunk}")
         self._priors = parse_priors([str(p) for p in self.priors])

@@ -388,3 +388,13 @@ def test_model_recovery_on_the_long_reversal_design():
     assert min(diagonal.values()) >= 0.8, diagonal
     params = parameter_recovery(table)
     assert params["coverage"].between(0.85, 1.0).all(), params
+
+
+def test_too_many_agents_is_one_line_before_anything_is_spawned():
+    """A stranger's task.job asking for 10**12 agents is refused at build time."""
+    from cobelrun.errors import ConfigError
+    from cobelrun.recover import MAX_AGENTS, RecoveryJob
+
+    with pytest.raises(ConfigError, match=r"task.job.n must be 1\.\.100,000"):
+        RecoveryJob(models=["q_learning"], n=10**12)
+    assert MAX_AGENTS == 100_000

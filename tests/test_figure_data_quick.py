@@ -26,9 +26,9 @@ QUICK = {
     "revaluation": ["reward", "transition", "policy"],
     "fig7_paper": None,
 }
-#: figures whose committed tables are still transcribed (Fig. 4: wall-clock timings, to be run
-#: again on a quiet machine with ``python -m cobelrun.figures.data fig4``)
-TRANSCRIBED = {"fig4"}
+#: figures whose committed tables are still transcribed (none: Fig. 4 was measured again with
+#: ``python -m cobelrun.figures.data fig4`` on 2026-11-28)
+TRANSCRIBED: set[str] = set()
 #: committed tables of each figure (its summary function's table names)
 TABLES = {
     "fig4": ["fig4"],

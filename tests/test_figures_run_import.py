@@ -70,7 +70,10 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
         assert row["trials_to_extinction"] == first_left
         manifest = json.loads((sweep / str(row["job"]) / "manifest.json").read_text())
         assert row["wall_time_s"] == pytest.approx(manifest["wall_time_s"])
-    summary = pd.read_csv(tmp_path / "out" / "fig6a.csv").set_index("measure")
+    assert (per_run["task"] == "tmaze_extinction").all()
+    summary = pd.read_csv(tmp_path / "out" / "fig6a.csv")
+    assert (summary["task"] == "tmaze_extinction").all()
+    summary = summary.set_index("measure")
     for col in ("right_1_20", "right_101_110", "trials_to_extinction"):
         assert summary.loc[col, "mean"] == pytest.approx(per_run[col].mean(), rel=1e-5)
         assert summary.loc[col, "runs"] == 2

@@ -16,10 +16,10 @@ from a checkpoint records the wall time of its last launch only (``resumed_from`
 
 Tables:
 
-- ``fig6a_runs`` (per run: right-arm response rate per block of trials, trials to extinction,
-  trials, steps, wall and CPU time of its folder) and ``fig6a`` (per measure: runs, mean, SD,
-  SE, median; block means over the finished runs, and the figure's own extinction trial: where
-  the mean rate over the runs first falls below 0.5);
+- ``fig6a_runs`` (per run: task, right-arm response rate per block of trials, trials to
+  extinction, trials, steps, wall and CPU time of its folder) and ``fig6a`` (per task and
+  measure: runs, mean, SD, SE, median; block means over the finished runs, and the figure's
+  own extinction trial: where the mean rate over the runs first falls below 0.5);
 - ``fig8_runs`` (per run and snapshot: place cells with the original script's box comparison
   by area, live units: units with a blob in some map, units, the median spatial information;
   whether the run is finished and its last trial; unfinished runs are listed with
@@ -236,7 +236,8 @@ def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
             raise CobelError(f"{info.run_dir}: the trials table has no 'response' column "
                              "(not an extinction task)")  # fmt: skip
         for run, t in trials.groupby("run", sort=True):
-            row: dict[str, Any] = {"job": info.job, "seed": info.seed, "run": int(run)}
+            row: dict[str, Any] = {"task": info.manifest.get("task"), "job": info.job,
+                                   "seed": info.seed, "run": int(run)}  # fmt: skip
             for lo, hi in FIG6A_BLOCKS:
                 row[f"right_{lo}_{hi}"] = t.loc[t["trial"].between(lo, hi), "response"].mean()
             row["trials_to_extinction"] = trials_to_extinction(t)
@@ -249,9 +250,10 @@ def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
 
 
 def fig6a_summary(per_run: pd.DataFrame, pooled_extinction: float) -> pd.DataFrame:
-    """Per measure of ``per_run``: runs (with a value), mean, SD, SE, median; and the
-    figure's extinction trial (``pooled_extinction``: where the mean rate over the runs first
-    falls below 0.5) and the share of runs that chose the left arm in extinction."""
+    """Per measure of ``per_run`` (the runs of one task): runs (with a value), mean, SD, SE,
+    median; and the figure's extinction trial (``pooled_extinction``: where the mean rate over
+    the runs first falls below 0.5) and the share of runs that chose the left arm in
+    extinction."""
     rows = []
     for col in (c for c in per_run.columns if c.startswith("right_") or c in
                 ("trials_to_extinction", "steps")):  # fmt: skip
@@ -274,10 +276,14 @@ def import_fig6a(used: Sequence[RunInfo]) -> dict[str, pd.DataFrame]:
     from cobelrun.results import load_table
 
     per_run = fig6a_runs(used)
-    pooled = pd.concat([load_table(r.run_dir, "trials").assign(job=r.job) for r in used],
-                       ignore_index=True)  # fmt: skip
-    return {"fig6a_runs": per_run,
-            "fig6a": fig6a_summary(per_run, trials_to_extinction(pooled))}  # fmt: skip
+    parts = []
+    for task, rows in per_run.groupby("task", sort=False):  # DQN and Dyna-Q never mix
+        runs = [r for r in used if r.manifest.get("task") == task]
+        pooled = pd.concat([load_table(r.run_dir, "trials").assign(job=r.job) for r in runs],
+                           ignore_index=True)  # fmt: skip
+        summary = fig6a_summary(rows, trials_to_extinction(pooled))
+        parts.append(summary.assign(task=task)[["task", *summary.columns]])
+    return {"fig6a_runs": per_run, "fig6a": pd.concat(parts, ignore_index=True)}
 
 
 def fig8_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:

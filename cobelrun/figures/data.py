@@ -287,8 +287,26 @@ def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> p
     return pd.DataFrame(rows)
 
 
+def summary_from_runs(name: str) -> Summary:
+    """The tables :mod:`cobelrun.figures.run_import` writes for ``name`` (``fig6a``, ``fig8``)
+    from a long sweep's folders, here from the figure's own runs (every label), so the figure
+    path and ``--runs`` give the same tables."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        from cobelrun.figures import run_import
+
+        runs = [run_import.run_info(ref.run_dir, ref.job, ref.params.get("seed"))
+                for refs in data.runs.values() for ref in refs]  # fmt: skip
+        return run_import.IMPORTERS[name](runs, runs)
+
+    return summary
+
+
 SUMMARIES: dict[str, Summary] = {
     "fig4": summary_fig4,
+    "fig6a": summary_from_runs("fig6a"),
+    "fig6a_paper": summary_from_runs("fig6a"),
+    "fig8": summary_from_runs("fig8"),
     "fig6b": summary_fig6b,
     "morris": summary_morris,
     "fig7": summary_fig7,

@@ -85,7 +85,7 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
     assert "seed=0,1" in prov["sweeps"][0]["command"] and prov["runs"][0]["command"]
 
 
-def test_an_unfinished_run_is_named_and_never_averaged(sweep, tmp_path, monkeypatch):
+def test_an_unfinished_run_is_named_and_never_averaged(sweep, tmp_path, monkeypatch, capsys):
     """A run stopped mid-way (its checkpoint kept): the import refuses and writes nothing;
     with --finished-only it uses the finished runs, as *_partial tables saying so."""
     from tests.test_resume import FAST, stop_at
@@ -107,6 +107,9 @@ def test_an_unfinished_run_is_named_and_never_averaged(sweep, tmp_path, monkeypa
     written = run_import.import_runs("fig6a", [sweep, stopped], out_dir=out, finished_only=True)
     assert sorted(p.name for p in written) == ["fig6a_partial.csv", "fig6a_runs_partial.csv"]
     assert tree(stopped) == before
+    assert (
+        "1 of 3 runs are not finished; the means are over the 2 finished" in capsys.readouterr().err
+    )
     assert pd.read_csv(out / "fig6a_runs_partial.csv")["seed"].tolist() == [0, 1]
     prov = json.loads((out / "fig6a_partial.provenance.json").read_text())
     assert (prov["runs_used"], prov["runs_total"], prov["partial"]) == (2, 3, True)

@@ -31,6 +31,7 @@ Tables:
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -357,6 +358,11 @@ def import_runs(
     tables = IMPORTERS[name](used, listed)
     command = (f"python -m cobelrun.figures.data {name} --runs {' '.join(map(str, paths))}"
                + (" --finished-only" if finished_only else ""))  # fmt: skip
+    if partial:
+        print(f"cobel: warning: {name}: {len(runs) - len(used)} of {len(runs)} runs are not "
+              f"finished; the means are over the {len(used)} finished ones only (tables "
+              "*_partial; the slowest runs, e.g. a Fig. 8 run whose layer died, are left out)",
+              file=sys.stderr)  # fmt: skip
     written = []
     for table, frame in tables.items():
         stem = f"{table}_partial" if partial else table

@@ -184,3 +184,55 @@ def test_fig8_runs_from_real_runs(cli, tmp_path):  # noqa: F811 (fixture)
         and prov["cpu_time_s"] > 0
         and os.path.isabs(prov["runs"][0]["run_dir"])
     )
+
+
+def maps_folder(path: Path, place_cells_at: dict[int, int], units: int = 8) -> None:
+    """Activity maps of Fig. 8's probe grid in which, at trial t, the first
+    ``place_cells_at[t]`` units have one Gaussian field (the same at every heading) and the
+    others uniform noise (as tests/test_fig8.py's folders, built in one go)."""
+    from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, probe_grid
+    from cobelrun.envs import topology as topo
+
+    rng = np.random.default_rng(0)
+    grid = probe_grid(topo.hexagonal().positions)
+    iy, ix = np.nonzero(grid.inside)
+    heads = np.arange(6) * 60.0
+    frames = []
+    for trial, n_cells in place_cells_at.items():
+        for u in range(units):
+            if u < n_cells:
+                cy, cx = rng.uniform(5, 20, 2)
+                field = np.exp(-((iy - cy) ** 2 + (ix - cx) ** 2) / (2 * 2.0**2))
+                values = np.tile(field, len(heads))
+            else:
+                values = rng.random(len(heads) * len(iy))
+            frames.append(pd.DataFrame({
+                "run": 0, "trial": trial, "layer": "analysis", "unit": u,
+                "heading": np.repeat(heads, len(iy)), "ix": np.tile(ix, len(heads)),
+                "iy": np.tile(iy, len(heads)), "x": np.tile(grid.x_centres[ix], len(heads)),
+                "y": np.tile(grid.y_centres[iy], len(heads)), "value": values,
+            }))  # fmt: skip
+    path.mkdir(parents=True)
+    pd.concat(frames).to_parquet(path / f"{MAPS_TABLE}.parquet")
+    gy, gx = (a.ravel() for a in np.indices((grid.ny, grid.nx)))
+    pd.DataFrame({"ix": gx, "iy": gy, "x0": grid.x_edges[gx], "x1": grid.x_edges[gx + 1],
+                  "y0": grid.y_edges[gy], "y1": grid.y_edges[gy + 1],
+                  "explored": grid.inside.ravel()}).to_parquet(path / f"{GRID_TABLE}.parquet")  # fmt: skip
+
+
+def test_fig8_lists_unfinished_runs_without_averaging_them(tmp_path, capsys):
+    """A Fig. 8 run still going (activity maps with 0, 3 and 6 place cells so far, its
+    manifest saying ``running``): refused without --finished-only; with it, the per-run table
+    lists its snapshots (``complete`` false) and no summary is written."""
+    run = tmp_path / "run"
+    maps_folder(run, {0: 0, 800: 3, 1600: 6})
+    (run / "manifest.json").write_text(json.dumps({"status": "running", "seed": 3}))
+    before = tree(run)
+    with pytest.raises(CobelError, match=r"1 of 1 runs are not finished: .*\(running\)"):
+        run_import.import_runs("fig8", [run], out_dir=tmp_path / "out")
+    written = run_import.import_runs("fig8", [run], out_dir=tmp_path / "out", finished_only=True)
+    assert [p.name for p in written] == ["fig8_runs_partial.csv"] and tree(run) == before
+    listed = pd.read_csv(written[0])
+    assert listed["place_cells"].tolist() == [0, 3, 6] and listed["seed"].tolist() == [3] * 3
+    assert not listed["complete"].any() and (listed["live_units"] >= listed["place_cells"]).all()
+    assert "no means" in capsys.readouterr().err

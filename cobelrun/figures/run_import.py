@@ -10,7 +10,10 @@ a run is *finished* only when it has its done marker and a ``completed`` manifes
 Every job must be finished, or the command says which are not and writes nothing;
 ``--finished-only`` uses the finished runs and writes the tables as ``TABLE_partial`` (so a
 partial sweep never replaces a committed table), their sidecars saying how many runs of how
-many were used and which were not (status, last trial). Per run, the sidecar holds the
+many were used and which were not (status, last trial: the last of its trials table as it is
+on disk; a running run's newest trials may still be in its writer's parts). Fig. 8's per-run
+table lists the unfinished runs' snapshots too, and with no run finished it is written alone
+(the snapshots so far, no means). Per run, the sidecar holds the
 manifest's command, config hash, cobel commit, seed, machine, dates and times; a run resumed
 from a checkpoint records the wall time of its last launch only (``resumed_from`` says so).
 
@@ -139,9 +142,9 @@ def _describe(info: RunInfo) -> str:
     return f"{where} ({info.status}{last})"
 
 
-def select(runs: Sequence[RunInfo], finished_only: bool) -> list[RunInfo]:
+def select(runs: Sequence[RunInfo], finished_only: bool, none_ok: bool = False) -> list[RunInfo]:
     """The finished runs; a CobelError when one is not finished (unless ``finished_only``) or
-    none is."""
+    none is (unless ``none_ok``: a per-run listing of unfinished runs, with no summary)."""
     done = [r for r in runs if r.complete]
     todo = [r for r in runs if not r.complete]
     if todo and not finished_only:
@@ -149,7 +152,7 @@ def select(runs: Sequence[RunInfo], finished_only: bool) -> list[RunInfo]:
         raise CobelError(f"{len(todo)} of {len(runs)} runs are not finished: {shown}; wait for "
                          f"them, or add --finished-only to use the {len(done)} finished ones "
                          "(tables *_partial)")  # fmt: skip
-    if not done:
+    if not done and not none_ok:
         raise CobelError(f"none of the {len(runs)} runs is finished yet")
     return done
 
@@ -335,6 +338,10 @@ IMPORTERS: dict[str, Callable[[Sequence[RunInfo], Sequence[RunInfo]], dict[str, 
 }
 
 
+#: figures whose per-run table also lists unfinished runs (with ``complete`` false)
+LISTS_UNFINISHED = {"fig8"}
+
+
 def import_runs(
     name: str,
     paths: Sequence[Path],
@@ -351,18 +358,23 @@ def import_runs(
         raise CobelError(f"no run import for figure {name!r}{suggest(name, IMPORTERS)}; "
                          f"allowed: {allowed_list(IMPORTERS)}")  # fmt: skip
     runs, sweeps = scan(paths)
-    used = select(runs, finished_only)
+    # fig8's per-run table lists the unfinished runs' snapshots too (flagged, never averaged);
+    # with no run finished it is written alone (the snapshots so far, no summary)
+    lists = name in LISTS_UNFINISHED
+    used = select(runs, finished_only, none_ok=lists)
     partial = len(used) < len(runs)
-    # fig8's per-run table lists the unfinished runs' snapshots too (flagged, never averaged)
-    listed = runs if name == "fig8" else used
+    listed = runs if lists else used
     tables = IMPORTERS[name](used, listed)
+    if not used:
+        tables = {k: v for k, v in tables.items() if k.endswith("_runs")}
     command = (f"python -m cobelrun.figures.data {name} --runs {' '.join(map(str, paths))}"
                + (" --finished-only" if finished_only else ""))  # fmt: skip
     if partial:
+        what = (f"the means are over the {len(used)} finished ones only" if used else
+                "only the per-run table is written (the snapshots so far), no means")  # fmt: skip
         print(f"cobel: warning: {name}: {len(runs) - len(used)} of {len(runs)} runs are not "
-              f"finished; the means are over the {len(used)} finished ones only (tables "
-              "*_partial; the slowest runs, e.g. a Fig. 8 run whose layer died, are left out)",
-              file=sys.stderr)  # fmt: skip
+              f"finished; {what} (tables *_partial; the slowest runs, e.g. a Fig. 8 run whose "
+              "layer died, are left out)", file=sys.stderr)  # fmt: skip
     written = []
     for table, frame in tables.items():
         stem = f"{table}_partial" if partial else table

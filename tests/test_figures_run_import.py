@@ -83,6 +83,7 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
     hashes = {json.loads((sweep / j / "manifest.json").read_text())["config_hash"] for j in "01"}
     assert set(prov["config_hashes"]) == hashes
     assert "seed=0,1" in prov["sweeps"][0]["command"] and prov["runs"][0]["command"]
+    assert [len(r["launches"]) for r in prov["runs"]] == [1, 1]  # from each job's cobel.log
 
 
 def test_an_unfinished_run_is_named_and_never_averaged(sweep, tmp_path, monkeypatch, capsys):

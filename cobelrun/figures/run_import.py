@@ -34,6 +34,7 @@ Tables:
 from __future__ import annotations
 
 import os
+import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -136,6 +137,21 @@ def scan(paths: Sequence[Path]) -> tuple[list[RunInfo], list[dict[str, Any]]]:
     return runs, sweeps
 
 
+#: the line a job logs when it starts (cobelrun.hydra_app.log_start) in RUN_DIR/cobel.log
+_LAUNCH = re.compile(r"^\[(?P<at>[\d-]+ [\d:,]+)\]\[cobel\]\[INFO\] - task \S+, seed ")
+
+
+def launches(run_dir: Path) -> list[str]:
+    """When each launch of the run started (a resumed run has several), from its
+    ``cobel.log`` (empty where there is none): a resumed run's manifest keeps its last launch
+    only."""
+    log = run_dir / "cobel.log"
+    if not log.is_file():
+        return []
+    with log.open(encoding="utf-8", errors="replace") as f:
+        return [m.group("at") for line in f if (m := _LAUNCH.match(line))]
+
+
 def _describe(info: RunInfo) -> str:
     where = f"job {info.job}" if info.job is not None else str(info.run_dir)
     last = f", trial {info.last_trial}" if info.last_trial is not None else ""
@@ -187,7 +203,8 @@ def provenance(
                  "command": " ".join(m.get("command") or []), "host": m.get("hostname"),
                  "started_at": m.get("started_at"), "ended_at": m.get("ended_at"),
                  "wall_time_s": m.get("wall_time_s"), "cpu_time_s": m.get("cpu_time_s"),
-                 "resumed_from": m.get("resumed_from"), "run_dir": str(r.run_dir)}  # fmt: skip
+                 "resumed_from": m.get("resumed_from"), "launches": launches(r.run_dir),
+                 "run_dir": str(r.run_dir)}  # fmt: skip
         entries.append(entry)
         if entry["used"]:
             commits.add(f"{git.get('commit')}{' (dirty)' if git.get('dirty') else ''}")
@@ -218,7 +235,8 @@ def provenance(
         "cpu_time_s": round(float(np.nansum(cpus)), 1),
         "wall_time_note": "sums over the used runs of their manifests' wall_time_s and "
         "cpu_time_s.simulation_thread; a run resumed from a checkpoint records its last "
-        f"launch only (resumed: jobs {resumed or 'none'})",
+        f"launch only (resumed: jobs {resumed or 'none'}; each run's launches, from its "
+        "cobel.log, are listed with it)",
         "runs": entries,
     }
 

@@ -27,7 +27,7 @@ Tables:
   by area, live units: units with a blob in some map, units, the median spatial information;
   whether the run is finished and its last trial; unfinished runs are listed with
   ``--finished-only`` but never averaged) and ``fig8``
-  (:func:`cobelrun.figures.data.fig8_summary`: the mean over the finished runs per snapshot,
+  (:func:`cobelrun.figures.tables.fig8_summary`: the mean over the finished runs per snapshot,
   dead layers included, Spearman's rho of the mean and the per-run trend test).
 """
 
@@ -343,7 +343,7 @@ def fig8_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
 
 
 def import_fig8(used: Sequence[RunInfo], listed: Sequence[RunInfo]) -> dict[str, pd.DataFrame]:
-    from cobelrun.figures.data import fig8_summary
+    from cobelrun.figures.tables import fig8_summary
 
     per_run = fig8_runs(listed)
     return {"fig8_runs": per_run, "fig8": fig8_summary(per_run)}
@@ -370,7 +370,7 @@ def import_runs(
     """Read figure ``name``'s runs under ``paths`` and write its tables and sidecars to
     ``out_dir`` (``TABLE_partial`` where runs are unfinished); returns the CSVs written.
     Everything is checked and computed before anything is written."""
-    from cobelrun.figures.data import write_table
+    from cobelrun.figures.tables import write_table
 
     if name not in IMPORTERS:
         raise CobelError(f"no run import for figure {name!r}{suggest(name, IMPORTERS)}; "

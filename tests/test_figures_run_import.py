@@ -119,6 +119,36 @@ def test_an_unfinished_run_is_named_and_never_averaged(sweep, tmp_path, monkeypa
     assert prov["seeds"] == [0, 1]
 
 
+def test_fig6a_paper_tables_have_their_own_names_and_tasks_are_checked(sweep, tmp_path):
+    """The paper scale's import writes fig6a_paper tables (the same reduction), never the CPU
+    default's fig6a ones; a run of the paper's task given to fig6a is refused, naming the
+    figure it belongs to, before anything is written."""
+    import shutil
+
+    written = run_import.import_runs("fig6a_paper", [sweep], out_dir=tmp_path / "paper")
+    assert sorted(p.name for p in written) == ["fig6a_paper.csv", "fig6a_paper_runs.csv"]
+    run_import.import_runs("fig6a", [sweep], out_dir=tmp_path / "cpu")
+    for table in ("", "_runs"):
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "paper" / f"fig6a_paper{table}.csv"),
+                                      pd.read_csv(tmp_path / "cpu" / f"fig6a{table}.csv"))  # fmt: skip
+    prov = json.loads((tmp_path / "paper" / "fig6a_paper.provenance.json").read_text())
+    assert prov["table"] == "fig6a_paper" and prov["command"].startswith(
+        "python -m cobelrun.figures.data fig6a_paper --runs"
+    )
+    paper_run = tmp_path / "paper_run"
+    shutil.copytree(sweep / "0", paper_run)
+    manifest = json.loads((paper_run / "manifest.json").read_text())
+    (paper_run / "manifest.json").write_text(
+        json.dumps({**manifest, "task": "tmaze_extinction_3d_paper"})
+    )
+    out = tmp_path / "out"
+    with pytest.raises(CobelError, match=r"task=tmaze_extinction_3d_paper, not of fig6a's tasks "
+                       r"\(tmaze_extinction, tmaze_extinction_3d\); these are fig6a_paper's runs"):  # fmt: skip
+        run_import.import_runs("fig6a", [sweep, paper_run], out_dir=out)
+    assert not out.exists()
+    assert run_import.import_runs("fig6a_paper", [paper_run], out_dir=out)
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     assert data.main(["fig6c", "--runs", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "no run import for figure 'fig6c'" in capsys.readouterr().err

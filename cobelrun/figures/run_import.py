@@ -1,9 +1,9 @@
 """Per-run tables of long sweeps, read from their run folders without writing to them.
 
 ``python -m cobelrun.figures.data NAME --runs PATH [PATH ...] [--finished-only] [--out DIR]``
-reads the run folders of figure ``NAME`` (:data:`IMPORTERS`: ``fig6a``, ``fig8``) from ``PATH``:
-a sweep folder (``cobel run -m``; its ``sweep.json`` lists the jobs, each job folder is one run
-folder) or a run folder. The folders may belong to a sweep that is still running: nothing in
+reads the run folders of figure ``NAME`` (:data:`IMPORTERS`: ``fig6a``, ``fig6a_paper``,
+``fig8``) from ``PATH``: a sweep folder (``cobel run -m``; its ``sweep.json`` lists the jobs,
+each job folder is one run folder) or a run folder. The folders may belong to a sweep that is still running: nothing in
 them is written, repaired or locked (unlike ``cobel status``, which repairs what it reads), and
 a run is *finished* only when it has its done marker and a ``completed`` manifest.
 
@@ -22,7 +22,9 @@ Tables:
 - ``fig6a_runs`` (per run: task, right-arm response rate per block of trials, trials to
   extinction, trials, steps, wall and CPU time of its folder) and ``fig6a`` (per task and
   measure: runs, mean, SD, SE, median; block means over the finished runs, and the figure's
-  own extinction trial: where the mean rate over the runs first falls below 0.5);
+  own extinction trial: where the mean rate over the runs first falls below 0.5); the paper
+  scale's as ``fig6a_paper_runs`` and ``fig6a_paper``; a run of another figure's task (e.g. an 84 x 84 run given to ``fig6a``)
+  is refused, naming the figure it belongs to;
 - ``fig8_runs`` (per run and snapshot: place cells with the original script's box comparison
   by area, live units: units with a blob in some map, units, the median spatial information;
   whether the run is finished and its last trial; unfinished runs are listed with
@@ -48,8 +50,8 @@ import pandas as pd
 from cobelrun.errors import CobelError, allowed_list, suggest
 
 #: Fig. 6A's blocks of trials (as ``fig6a.csv``): acquisition 1-100, extinction 101-200
-FIG6A_BLOCKS = ((1, 20), (81, 100), (101, 110), (111, 120), (121, 140), (141, 160), (161, 180),
-                (181, 200))  # fmt: skip
+FIG6A_BLOCKS = ((1, 20), (21, 40), (81, 100), (101, 110), (111, 120), (121, 140), (141, 160),
+                (161, 180), (181, 200))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -349,11 +351,44 @@ def import_fig8(used: Sequence[RunInfo], listed: Sequence[RunInfo]) -> dict[str,
     return {"fig8_runs": per_run, "fig8": fig8_summary(per_run)}
 
 
-#: figure -> (function of (used runs, runs listed in the per-run table), its tables)
+def _renamed(tables: Mapping[str, pd.DataFrame], old: str, new: str) -> dict[str, pd.DataFrame]:
+    return {new + k.removeprefix(old): v for k, v in tables.items()}
+
+
+#: figure -> (function of (used runs, runs listed in the per-run table), its tables); Fig. 6A's
+#: CPU default (``fig6a``: 36 x 36) and paper scale (``fig6a_paper``: 84 x 84, 50 runs) are
+#: reduced alike into tables of their own name, so neither import replaces the other's
 IMPORTERS: dict[str, Callable[[Sequence[RunInfo], Sequence[RunInfo]], dict[str, pd.DataFrame]]] = {
     "fig6a": lambda used, listed: import_fig6a(used),
+    "fig6a_paper": lambda used, listed: _renamed(import_fig6a(used), "fig6a", "fig6a_paper"),
     "fig8": import_fig8,
 }
+
+#: figures whose runs must be of the figure's own tasks (``task=`` of its run labels): a
+#: paper-scale sweep imported as ``fig6a`` would replace the CPU default's tables
+CHECKS_TASKS = {"fig6a", "fig6a_paper"}
+
+
+def check_tasks(name: str, runs: Sequence[RunInfo]) -> None:
+    """A CobelError naming the figure the runs belong to when a run of ``runs`` is not of one
+    of figure ``name``'s tasks (only for :data:`CHECKS_TASKS`; runs without a manifest pass)."""
+    if name not in CHECKS_TASKS:
+        return
+    from cobelrun.figures import registry
+
+    def tasks(figure: str) -> set[str]:
+        return {o.split("=", 1)[1] for ovs in registry.get(figure).runs.values() for o in ovs
+                if o.startswith("task=")}  # fmt: skip
+
+    allowed = tasks(name)
+    for r in runs:
+        task = r.manifest.get("task")
+        if task is None or task in allowed:
+            continue
+        owner = [f for f in sorted(CHECKS_TASKS) if task in tasks(f)]
+        hint = f"; these are {owner[0]}'s runs: give {owner[0]} --runs" if owner else ""
+        raise CobelError(f"{name} --runs: {_describe(r)} is a run of task={task}, not of "
+                         f"{name}'s tasks ({', '.join(sorted(allowed))}){hint}")  # fmt: skip
 
 
 #: figures whose per-run table also lists unfinished runs (with ``complete`` false)
@@ -376,6 +411,7 @@ def import_runs(
         raise CobelError(f"no run import for figure {name!r}{suggest(name, IMPORTERS)}; "
                          f"allowed: {allowed_list(IMPORTERS)}")  # fmt: skip
     runs, sweeps = scan(paths)
+    check_tasks(name, runs)
     # fig8's per-run table lists the unfinished runs' snapshots too (flagged, never averaged);
     # with no run finished it is written alone (the snapshots so far, no summary)
     lists = name in LISTS_UNFINISHED

@@ -125,3 +125,68 @@ def test_fig4_medians_are_those_of_its_repetitions():
     steps = reps.groupby("agent")["steps"].max()
     assert (fig4["mfec_steps_per_repetition"] == steps["mfec"]).all()
     assert (fig4["dqn_steps_per_repetition"] == steps["dqn"]).all()
+
+
+def test_fig6b_draws_the_originals_runs_and_the_comparison():
+    """Fig. 6B's figure shows the original's committed runs (mean and 95 % interval of its
+    per-run measures) and, in its title, the two-sample comparison with the figure's runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cobelrun.figures.bands import ci_half_width
+    from cobelrun.figures.registry import get
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for run in range(4):
+        cum = 0
+        for trial in range(1, 201):
+            response = int(rng.random() < (0.9 if trial <= 100 else 0.1))
+            cum += response
+            rows.append({"run": run, "job": 0, "trial": trial, "response": response,
+                         "phase": "acquisition" if trial <= 100 else "extinction",
+                         "cumulative_response": cum, "steps": int(rng.integers(8, 36))})  # fmt: skip
+    trials = pd.DataFrame(rows)
+
+    class Data:
+        def trials(self, label):
+            return trials.copy()
+
+    per_run = data.fig6b_per_run(trials)
+    assert per_run["latency_91_100"].tolist() == pytest.approx(
+        trials[trials["trial"].between(91, 100)].groupby("run")["steps"].mean().tolist()
+    )
+    assert (
+        per_run["cumulative_200"].tolist()
+        == trials.groupby("run")["cumulative_response"].max().tolist()
+    )
+    original = pd.read_csv(DATA / "fig6b_original_runs.csv")
+    # the title's numbers are fig6b_compare.csv's (two_sample's) for the committed runs
+    committed = pd.read_csv(DATA / "fig6b_compare.csv").set_index("measure")
+    ours = pd.read_csv(DATA / "fig6b_runs.csv")
+    for col, _ in data.FIG6B_NOTE:
+        got = data.diff_and_superiority(ours[col], original[col])
+        for key, value in got.items():
+            assert value == pytest.approx(committed.loc[col, key], rel=1e-5, abs=1e-9), (col, key)
+    fig, _table = get("fig6b").draw(Data())
+    try:
+        title = fig._suptitle.get_text()
+        assert title.splitlines()[1].startswith("vs original (100 runs): cobel - original")
+        assert data.fig6b_compare_note(per_run, original) in title
+        (cum_bars,) = fig.axes[0].containers
+        (lat_bars,) = fig.axes[1].containers
+        x, y = cum_bars.lines[0].get_data()
+        assert list(x) == [100, 200]
+        assert list(y) == pytest.approx([original["cumulative_100"].mean(),
+                                         original["cumulative_200"].mean()])  # fmt: skip
+        x, y = lat_bars.lines[0].get_data()
+        assert list(x) == [15.5, 25.5, 95.5, 195.5]
+        assert y[2] == pytest.approx(original["latency_91_100"].mean())
+        col = original["latency_91_100"]
+        (segments,) = [c for c in lat_bars.lines[2]]
+        lo, hi = segments.get_segments()[2][:, 1]
+        assert hi - lo == pytest.approx(2 * float(ci_half_width(col.std(ddof=1), len(col))))
+    finally:
+        plt.close(fig)

@@ -56,25 +56,39 @@ def _block_mean(trials: pd.DataFrame, column: str, lo: int, hi: int) -> pd.Serie
     return rows.groupby("run")[column].mean()
 
 
-def summary_fig6b(data: registry.FigureData) -> dict[str, pd.DataFrame]:
-    """Fig. 6B per run: right-arm response rate and escape latency per block of trials, and
-    the cumulative responses at trials 100 and 200."""
-    from cobelrun.figures.extinction import summarize
+#: Fig. 6B's per-run measures (as ``fig6b_runs.csv`` and the original's
+#: ``fig6b_original_runs.csv``): right-arm rate and latency per block, cumulative responses
+FIG6B_RIGHT_BLOCKS = ((91, 100), (101, 110), (111, 120), (191, 200))
+FIG6B_LATENCY_BLOCKS = ((11, 20), (21, 30), (91, 100), (191, 200))
+FIG6B_CUMULATIVE_AT = (100, 200)
 
-    trials = data.trials("dyna_q")
+
+def fig6b_per_run(trials: pd.DataFrame) -> pd.DataFrame:
+    """Fig. 6B per run (``run``) of a trials table: right-arm response rate and escape latency
+    per block of trials, and the cumulative responses at trials 100 and 200."""
     per_run = pd.DataFrame({"run": np.sort(trials["run"].unique())}).set_index("run")
-    for lo, hi in ((91, 100), (101, 110), (111, 120), (191, 200)):
+    for lo, hi in FIG6B_RIGHT_BLOCKS:
         per_run[f"right_{lo}_{hi}"] = _block_mean(trials, "response", lo, hi)
-    for t in (100, 200):
+    for t in FIG6B_CUMULATIVE_AT:
         per_run[f"cumulative_{t}"] = trials[trials["trial"] == t].set_index("run")[
             "cumulative_response"
         ]
-    for lo, hi in ((11, 20), (21, 30), (91, 100), (191, 200)):
+    for lo, hi in FIG6B_LATENCY_BLOCKS:
         per_run[f"latency_{lo}_{hi}"] = _block_mean(trials, "steps", lo, hi)
+    return per_run.reset_index()
+
+
+def summary_fig6b(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+    """Fig. 6B per run (:func:`fig6b_per_run`) and the means over the runs, with the first
+    trial at which the mean latency is at most 10 steps."""
+    from cobelrun.figures.extinction import summarize
+
+    trials = data.trials("dyna_q")
+    per_run = fig6b_per_run(trials)
     lat = summarize(trials, "steps")["mean"]
     first10 = int(lat.index[lat.to_numpy() <= 10][0]) if (lat <= 10).any() else -1
-    summary = _means(per_run.reset_index(), extra={"first_trial_mean_latency_le_10": first10})
-    return {"fig6b_runs": per_run.reset_index(), "fig6b": summary}
+    summary = _means(per_run, extra={"first_trial_mean_latency_le_10": first10})
+    return {"fig6b_runs": per_run, "fig6b": summary}
 
 
 def summary_morris(data: registry.FigureData) -> dict[str, pd.DataFrame]:
@@ -306,7 +320,7 @@ def summary_from_runs(name: str) -> Summary:
 SUMMARIES: dict[str, Summary] = {
     "fig4": summary_fig4,
     "fig6a": summary_from_runs("fig6a"),
-    "fig6a_paper": summary_from_runs("fig6a"),
+    "fig6a_paper": summary_from_runs("fig6a_paper"),
     "fig8": summary_from_runs("fig8"),
     "fig6b": summary_fig6b,
     "morris": summary_morris,
@@ -378,13 +392,54 @@ def fig9_compare_note(
             f"[{c['diff_lo']:+.3f}, {c['diff_hi']:+.3f}], P(cobel > orig.) {c['p_superiority']:.2f}")  # fmt: skip
 
 
+def fig6b_original_table() -> pd.DataFrame | None:
+    """The original's Fig. 6B runs (``fig6b_original_runs.csv``: CoBeL-RL v2.0.0's Dyna-Q,
+    block measures per run) from the committed figure data; None where it is not there (an
+    installed wheel ships no docs)."""
+    path = DATA_DIR / "fig6b_original_runs.csv"
+    return pd.read_csv(path) if path.is_file() else None
+
+
+def diff_and_superiority(a: pd.Series, b: pd.Series) -> dict[str, float]:
+    """The parts of :func:`~cobelrun.figures.twosample.two_sample` a figure shows, without its
+    bootstrap (seconds): ``diff`` = mean a - mean b with Welch's 95 % interval (``diff_lo``,
+    ``diff_hi``) and the probability of superiority P(a > b) (Mann-Whitney U / n_a n_b)."""
+    from scipy import stats
+
+    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ci = stats.ttest_ind(x, y, equal_var=False).confidence_interval(0.95)
+    u = stats.mannwhitneyu(x, y, alternative="two-sided").statistic
+    return {"diff": float(x.mean() - y.mean()), "diff_lo": float(ci.low),
+            "diff_hi": float(ci.high), "p_superiority": float(u / (x.size * y.size))}  # fmt: skip
+
+
+#: the measures Fig. 6B's title compares with the original (column, as shown)
+FIG6B_NOTE = (("right_101_110", "right arm 101-110"), ("cumulative_200", "cum. at 200"),
+              ("latency_11_20", "latency 11-20"), ("latency_91_100", "91-100"))  # fmt: skip
+
+
+def fig6b_compare_note(per_run: pd.DataFrame, original: pd.DataFrame) -> str:
+    """Three lines: the figure's runs (:func:`fig6b_per_run`) against the original's on
+    :data:`FIG6B_NOTE` (:func:`diff_and_superiority`: cobel - original with Welch's 95 %
+    interval, P(cobel > original))."""
+    parts = []
+    for col, what in FIG6B_NOTE:
+        c = diff_and_superiority(per_run[col], original[col])
+        parts.append(f"{what} {c['diff']:+.3f} [{c['diff_lo']:+.3f}, {c['diff_hi']:+.3f}], "
+                     f"P {c['p_superiority']:.2f}")  # fmt: skip
+    head = f"vs original ({len(original)} runs): cobel - original [95% CI], P(cobel > orig.)"
+    return f"{head}:\n{'; '.join(parts[:2])}\n{'; '.join(parts[2:])}"
+
+
 def fig6b_compare(per_run: pd.DataFrame) -> pd.DataFrame:
     """cobel's Fig. 6B runs (``fig6b_runs``) against the original's (``fig6b_original_runs``,
     CoBeL-RL v2.0.0's Dyna-Q through ``benchmarks/original_fig6b_runs.py``), measure by
     measure: :func:`~cobelrun.figures.twosample.two_sample` (a = cobel, b = the original)."""
     from cobelrun.figures.twosample import two_sample
 
-    original = pd.read_csv(DATA_DIR / "fig6b_original_runs.csv")
+    original = fig6b_original_table()
+    if original is None:
+        raise CobelError(f"fig6b_compare: no {DATA_DIR / 'fig6b_original_runs.csv'}")
     rows = []
     for col in (c for c in per_run.columns if c != "run" and c in original):
         rows.append({"measure": col, **two_sample(per_run[col], original[col])})

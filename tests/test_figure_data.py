@@ -18,7 +18,8 @@ DATA = Path(__file__).resolve().parents[1] / "docs" / "figures" / "data"
 
 
 @pytest.mark.parametrize(("summary", "runs"), [("fig6b", "fig6b_runs"), ("fig9", "fig9_runs"),
-                                               ("fig9_seeds", "fig9_seeds_runs")])  # fmt: skip
+                                               ("fig9_seeds", "fig9_seeds_runs"),
+                                               ("fig9_fast", "fig9_fast_runs")])  # fmt: skip
 def test_summaries_are_the_means_of_their_runs(summary, runs):
     means = pd.read_csv(DATA / f"{summary}.csv").set_index("measure")
     per_run = pd.read_csv(DATA / f"{runs}.csv")
@@ -190,3 +191,11 @@ def test_fig6b_draws_the_originals_runs_and_the_comparison():
         assert hi - lo == pytest.approx(2 * float(ci_half_width(col.std(ddof=1), len(col))))
     finally:
         plt.close(fig)
+
+
+def test_fig9_fast_is_seed_0_of_fig9_fast_seeds():
+    """fig9_fast's committed agents are the same run as seed 0's of fig9_fast_seeds."""
+    fast = pd.read_csv(DATA / "fig9_fast_runs.csv")
+    seeds = pd.read_csv(DATA / "fig9_fast_seeds_runs.csv")
+    pd.testing.assert_frame_equal(fast, seeds[seeds["seed"] == 0].reset_index(drop=True),
+                                  check_dtype=False)  # fmt: skip

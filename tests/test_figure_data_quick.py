@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -22,6 +23,7 @@ QUICK = {
     "pma": None,
     "fig9": None,
     "fig9_seeds": None,
+    "fig9_fast": None,
     "fig9_fast_seeds": None,
     "revaluation": ["reward", "transition", "policy"],
     "fig7_paper": None,
@@ -37,6 +39,7 @@ TABLES = {
     "pma": ["pma", "pma_runs", "pma_criterion", "pma_events"],
     "fig9": ["fig9", "fig9_runs"],
     "fig9_seeds": ["fig9_seeds", "fig9_seeds_runs"],
+    "fig9_fast": ["fig9_fast", "fig9_fast_runs"],
     "fig9_fast_seeds": ["fig9_fast_seeds", "fig9_fast_seeds_runs"],
     "revaluation": ["revaluation", "revaluation_runs"],
     "fig7_paper": ["fig7", "fig7_runs", "fig7_sr", "fig7_compare"],
@@ -84,7 +87,7 @@ def test_quick_tables_match_the_committed_schema(tmp_path, name):
 
 #: figures whose committed tables wait for a long sweep (transcribed until then, in their own
 #: columns): their tables come from ``cobelrun.figures.run_import``, by the figure path and by
-#: ``--runs`` alike. (fig8's quick path, 2 x 300 trials, takes ~15 min: not run here.)
+#: ``--runs`` alike (Fig. 8's quick paths: test_fig8_quick_tables_match_the_committed_schema).
 LONG_SWEEPS = {"fig6a": ["fig6a", "fig6a_runs"]}
 
 
@@ -104,3 +107,34 @@ def test_quick_tables_of_long_sweeps_equal_the_run_import(tmp_path, name):
         quick = pd.read_csv(tmp_path / "out" / path.name.replace(".csv", "_quick.csv"))
         pd.testing.assert_frame_equal(quick, pd.read_csv(path), obj=path.name)
         assert len(quick) > 0
+
+
+#: Fig. 8's quick paths: fig8 (the original's training, seeds 0 and 1 x 300 trials, maps every
+#: 50) and fig8_stable (cobel's stabilised training, one job of 2 runs x 500 trials, maps every
+#: 100); ~12-15 min each on 2 free cores. Their summaries have the committed fig8.csv's
+#: columns; the committed fig8_runs.csv is transcribed (seed, trial, place cells, live units,
+#: units), so the quick per-run table must start with its columns.
+FIG8_QUICK = {"fig8": ([0, 1], list(range(0, 301, 50))),
+              "fig8_stable": ([0], list(range(0, 501, 100)))}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(FIG8_QUICK))
+def test_fig8_quick_tables_match_the_committed_schema(tmp_path, name):
+    written = data.export(name, quick=True, out_dir=tmp_path / "out", root=tmp_path / "res")
+    assert sorted(p.name for p in written) == [f"{name}_quick.csv", f"{name}_runs_quick.csv"]
+    summary = pd.read_csv(tmp_path / "out" / f"{name}_quick.csv")
+    assert list(summary.columns) == list(pd.read_csv(DATA / "fig8.csv").columns)
+    per_run = pd.read_csv(tmp_path / "out" / f"{name}_runs_quick.csv")
+    committed = list(pd.read_csv(DATA / "fig8_runs.csv").columns)
+    assert list(per_run.columns[: len(committed)]) == committed
+    seeds, snapshots = FIG8_QUICK[name]
+    assert sorted(per_run["seed"].unique()) == seeds and per_run["complete"].all()
+    assert len(per_run[["seed", "run"]].drop_duplicates()) == 2  # two runs either way
+    assert sorted(per_run["trial"].unique()) == snapshots and (per_run["units"] == 50).all()
+    assert (per_run["live_units"] >= per_run["place_cells"]).all()
+    means = per_run.groupby("trial")["place_cells"].mean()
+    np.testing.assert_allclose(summary.set_index("trial")["mean"], means)
+    assert (summary["runs"] == 2).all()
+    prov = json.loads((tmp_path / "out" / f"{name}_quick.provenance.json").read_text())
+    assert prov["quick"] is True and prov["source"] == "run" and prov["figure"] == name

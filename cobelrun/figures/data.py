@@ -322,6 +322,7 @@ SUMMARIES: dict[str, Summary] = {
     "fig6a": summary_from_runs("fig6a"),
     "fig6a_paper": summary_from_runs("fig6a_paper"),
     "fig8": summary_from_runs("fig8"),
+    "fig8_stable": summary_from_runs("fig8_stable"),
     "fig6b": summary_fig6b,
     "morris": summary_morris,
     "fig7": summary_fig7,

@@ -2,9 +2,9 @@
 
 ``python -m cobelrun.figures.data NAME --runs PATH [PATH ...] [--finished-only] [--out DIR]``
 reads the run folders of figure ``NAME`` (:data:`IMPORTERS`: ``fig6a``, ``fig6a_paper``,
-``fig8``) from ``PATH``: a sweep folder (``cobel run -m``; its ``sweep.json`` lists the jobs,
-each job folder is one run folder) or a run folder. The folders may belong to a sweep that is still running: nothing in
-them is written, repaired or locked (unlike ``cobel status``, which repairs what it reads), and
+``fig8``, ``fig8_stable``) from ``PATH``: a sweep folder (``cobel run -m``; its ``sweep.json``
+lists the jobs, each job folder is one run folder) or a run folder. The folders may belong to
+a sweep that is still running: nothing in them is written, repaired or locked (unlike ``cobel status``, which repairs what it reads), and
 a run is *finished* only when it has its done marker and a ``completed`` manifest.
 
 Every job must be finished, or the command says which are not and writes nothing;
@@ -30,7 +30,8 @@ Tables:
   whether the run is finished and its last trial; unfinished runs are listed with
   ``--finished-only`` but never averaged) and ``fig8``
   (:func:`cobelrun.figures.tables.fig8_summary`: the mean over the finished runs per snapshot,
-  dead layers included, Spearman's rho of the mean and the per-run trend test).
+  dead layers included, Spearman's rho of the mean and the per-run trend test); cobel's
+  stabilised training's (``fig8_stable``) as ``fig8_stable_runs`` and ``fig8_stable``.
 """
 
 from __future__ import annotations
@@ -362,6 +363,7 @@ IMPORTERS: dict[str, Callable[[Sequence[RunInfo], Sequence[RunInfo]], dict[str, 
     "fig6a": lambda used, listed: import_fig6a(used),
     "fig6a_paper": lambda used, listed: _renamed(import_fig6a(used), "fig6a", "fig6a_paper"),
     "fig8": import_fig8,
+    "fig8_stable": lambda used, listed: _renamed(import_fig8(used, listed), "fig8", "fig8_stable"),
 }
 
 #: figures whose runs must be of the figure's own tasks (``task=`` of its run labels): a
@@ -392,7 +394,7 @@ def check_tasks(name: str, runs: Sequence[RunInfo]) -> None:
 
 
 #: figures whose per-run table also lists unfinished runs (with ``complete`` false)
-LISTS_UNFINISHED = {"fig8"}
+LISTS_UNFINISHED = {"fig8", "fig8_stable"}
 
 
 def import_runs(

@@ -199,3 +199,28 @@ def test_fig9_fast_is_seed_0_of_fig9_fast_seeds():
     seeds = pd.read_csv(DATA / "fig9_fast_seeds_runs.csv")
     pd.testing.assert_frame_equal(fast, seeds[seeds["seed"] == 0].reset_index(drop=True),
                                   check_dtype=False)  # fmt: skip
+
+
+def test_revaluation_graph_and_grid_designs_get_tables_of_their_own(tmp_path):
+    """The graph designs' scores go to ``revaluation`` (the committed table), the grid ones'
+    to ``revaluation_grid``: building the grid designs never replaces the graph table."""
+    from cobelrun.figures.registry import FigureData, RunRef
+
+    runs = {}
+    for k, label in enumerate(("reward", "reward_grid", "policy_grid")):
+        d = tmp_path / label
+        d.mkdir()
+        pd.DataFrame({"maze": ["graph" if k == 0 else "grid"], "agent": ["sr_td"], "run": [0],
+                      "choice_before": [0], "choice_after": [1]}).to_csv(d / "revaluation.csv", index=False)  # fmt: skip
+        pd.DataFrame({"agent": ["sr_td"], "score": [k / 2]}).to_csv(
+            d / "revaluation_scores.csv", index=False
+        )
+        runs[label] = [RunRef(label, 0, (), {}, d, "h")]
+    tables = data.summary_revaluation(FigureData(quick=False, runs=runs))
+    assert sorted(tables) == ["revaluation", "revaluation_grid", "revaluation_grid_runs",
+                              "revaluation_runs"]  # fmt: skip
+    assert tables["revaluation"]["design"].tolist() == ["reward"]
+    assert tables["revaluation_grid"]["design"].tolist() == ["reward_grid", "policy_grid"]
+    assert tables["revaluation_grid"]["score"].tolist() == [0.5, 1.0]
+    only_graph = data.summary_revaluation(FigureData(quick=False, runs={"reward": runs["reward"]}))
+    assert sorted(only_graph) == ["revaluation", "revaluation_runs"]

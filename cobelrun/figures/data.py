@@ -187,14 +187,21 @@ def summary_pma(data: registry.FigureData) -> dict[str, pd.DataFrame]:
 def summary_revaluation(data: registry.FigureData) -> dict[str, pd.DataFrame]:
     """Russek et al.: per design, agent, budget and run the greedy choice before and after
     (each run's ``revaluation.csv``), and the scores (``revaluation_scores.csv``), for the
-    designs built (the graph ones: ``--labels reward,transition,policy``)."""
-    runs, scores = [], []
-    for label in data.runs:
-        for d in data.run_dirs(label):
-            runs.append(pd.read_csv(d / "revaluation.csv").assign(design=label))
-            scores.append(pd.read_csv(d / "revaluation_scores.csv").assign(design=label))
-    runs_t, scores_t = pd.concat(runs, ignore_index=True), pd.concat(scores, ignore_index=True)
-    return {"revaluation_runs": runs_t, "revaluation": scores_t}
+    designs built: the graph ones as ``revaluation_runs`` and ``revaluation`` (``--labels
+    reward,transition,policy``), the grid ones (labels ``*_grid``) as ``revaluation_grid_runs``
+    and ``revaluation_grid``, so that building one never replaces the other's tables."""
+    tables: dict[str, pd.DataFrame] = {}
+    for stem, grid in (("revaluation", False), ("revaluation_grid", True)):
+        labels = [x for x in data.runs if x.endswith("_grid") == grid]
+        runs, scores = [], []
+        for label in labels:
+            for d in data.run_dirs(label):
+                runs.append(pd.read_csv(d / "revaluation.csv").assign(design=label))
+                scores.append(pd.read_csv(d / "revaluation_scores.csv").assign(design=label))
+        if runs:
+            tables[f"{stem}_runs"] = pd.concat(runs, ignore_index=True)
+            tables[stem] = pd.concat(scores, ignore_index=True)
+    return tables
 
 
 def summary_fig4(data: registry.FigureData) -> dict[str, pd.DataFrame]:

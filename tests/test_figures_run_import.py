@@ -217,9 +217,10 @@ def test_fig8_runs_from_real_runs(cli, tmp_path):  # noqa: F811 (fixture)
     )
 
 
-def maps_folder(path: Path, place_cells_at: dict[int, int], units: int = 8) -> None:
+def maps_folder(path: Path, place_cells_at: dict[int, int], units: int = 8, bands: int = 0) -> None:
     """Activity maps of Fig. 8's probe grid in which, at trial t, the first
-    ``place_cells_at[t]`` units have one Gaussian field (the same at every heading) and the
+    ``place_cells_at[t]`` units have one Gaussian field (the same at every heading), the next
+    ``bands`` a thin band along x across the grid (small in area, wide in extent), and the
     others uniform noise (as tests/test_fig8.py's folders, built in one go)."""
     from cobelrun.analysis.maps import GRID_TABLE, MAPS_TABLE, probe_grid
     from cobelrun.envs import topology as topo
@@ -234,6 +235,10 @@ def maps_folder(path: Path, place_cells_at: dict[int, int], units: int = 8) -> N
             if u < n_cells:
                 cy, cx = rng.uniform(5, 20, 2)
                 field = np.exp(-((iy - cy) ** 2 + (ix - cx) ** 2) / (2 * 2.0**2))
+                values = np.tile(field, len(heads))
+            elif u < n_cells + bands:
+                cy = rng.uniform(8, 16)
+                field = np.exp(-((iy - cy) ** 2) / (2 * 1.0**2))
                 values = np.tile(field, len(heads))
             else:
                 values = rng.random(len(heads) * len(iy))
@@ -267,3 +272,26 @@ def test_fig8_lists_unfinished_runs_without_averaging_them(tmp_path, capsys):
     assert listed["place_cells"].tolist() == [0, 3, 6] and listed["seed"].tolist() == [3] * 3
     assert not listed["complete"].any() and (listed["live_units"] >= listed["place_cells"]).all()
     assert "no means" in capsys.readouterr().err
+
+
+def test_fig8_stable_counts_place_cells_as_its_figure_does(tmp_path):
+    """fig8 compares the blob's box by area (the original's script), fig8_stable by extent (its
+    figure's reading): each import's counts are the classifier's with that setting."""
+    from cobelrun.analysis.maps import classify_snapshots, load_activity_maps
+    from cobelrun.analysis.place_cells import PlaceCellCriterion
+
+    run = tmp_path / "run"
+    maps_folder(run, {0: 0, 800: 3, 1600: 6}, bands=2)
+    (run / "manifest.json").write_text(json.dumps({"status": "running", "seed": 3}))
+    df, grid = load_activity_maps(run)
+    counts = {}
+    for name, measure in (("fig8", "area"), ("fig8_stable", "extent")):
+        (written,) = run_import.import_runs(
+            name, [run], out_dir=tmp_path / name, finished_only=True
+        )
+        assert written.name == f"{name}_runs_partial.csv"
+        _, snaps = classify_snapshots(df, grid, criterion=PlaceCellCriterion(box_measure=measure),
+                                      rsa=False)  # fmt: skip
+        counts[name] = pd.read_csv(written)["place_cells"].tolist()
+        assert counts[name] == snaps["place_cells"].tolist()
+    assert counts["fig8"] != counts["fig8_stable"]  # the bands pass by area only

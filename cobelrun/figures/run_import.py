@@ -31,7 +31,8 @@ Tables:
   ``--finished-only`` but never averaged) and ``fig8``
   (:func:`cobelrun.figures.tables.fig8_summary`: the mean over the finished runs per snapshot,
   dead layers included, Spearman's rho of the mean and the per-run trend test); cobel's
-  stabilised training's (``fig8_stable``) as ``fig8_stable_runs`` and ``fig8_stable``.
+  stabilised training's (``fig8_stable``) as ``fig8_stable_runs`` and ``fig8_stable``, boxes
+  compared by extent as its figure does.
 """
 
 from __future__ import annotations
@@ -311,10 +312,11 @@ def import_fig6a(used: Sequence[RunInfo]) -> dict[str, pd.DataFrame]:
     return {"fig6a_runs": per_run, "fig6a": pd.concat(parts, ignore_index=True)}
 
 
-def fig8_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
-    """Per run and snapshot: place cells (the original script's box comparison, by area),
-    live units (a blob in some map), units, the median spatial information; whether the run
-    is finished and its last trial. A run without activity maps yet is left out."""
+def fig8_runs(runs: Sequence[RunInfo], box_measure: str = "area") -> pd.DataFrame:
+    """Per run and snapshot: place cells (``box_measure``: the original script's box
+    comparison by ``area``, as ``fig8`` draws it; ``extent`` as ``fig8_stable`` does), live
+    units (a blob in some map), units, the median spatial information; whether the run is
+    finished and its last trial. A run without activity maps yet is left out."""
     from cobelrun.analysis.maps import (
         GRID_TABLE,
         MAPS_TABLE,
@@ -328,7 +330,7 @@ def fig8_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
         if not all((info.run_dir / f"{t}.parquet").is_file() for t in (MAPS_TABLE, GRID_TABLE)):
             continue
         df, grid = load_activity_maps(info.run_dir)
-        units, snaps = classify_snapshots(df, grid, criterion=PlaceCellCriterion(box_measure="area"),
+        units, snaps = classify_snapshots(df, grid, criterion=PlaceCellCriterion(box_measure=box_measure),
                                           rsa=False)  # fmt: skip
         blobs = [c for c in units.columns if c.startswith("n_blobs_")]
         live = units[blobs].gt(0).any(axis=1).groupby([units["run"], units["trial"]]).sum()
@@ -345,10 +347,12 @@ def fig8_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True)
 
 
-def import_fig8(used: Sequence[RunInfo], listed: Sequence[RunInfo]) -> dict[str, pd.DataFrame]:
+def import_fig8(
+    used: Sequence[RunInfo], listed: Sequence[RunInfo], box_measure: str = "area"
+) -> dict[str, pd.DataFrame]:
     from cobelrun.figures.tables import fig8_summary
 
-    per_run = fig8_runs(listed)
+    per_run = fig8_runs(listed, box_measure)
     return {"fig8_runs": per_run, "fig8": fig8_summary(per_run)}
 
 
@@ -363,7 +367,9 @@ IMPORTERS: dict[str, Callable[[Sequence[RunInfo], Sequence[RunInfo]], dict[str, 
     "fig6a": lambda used, listed: import_fig6a(used),
     "fig6a_paper": lambda used, listed: _renamed(import_fig6a(used), "fig6a", "fig6a_paper"),
     "fig8": import_fig8,
-    "fig8_stable": lambda used, listed: _renamed(import_fig8(used, listed), "fig8", "fig8_stable"),
+    "fig8_stable": lambda used, listed: _renamed(
+        import_fig8(used, listed, "extent"), "fig8", "fig8_stable"
+    ),  # its figure's box comparison
 }
 
 #: figures whose runs must be of the figure's own tasks (``task=`` of its run labels): a

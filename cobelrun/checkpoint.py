@@ -539,10 +539,22 @@ class RunCheckpoints:
             c.every_minutes is not None and now() - self._last >= 60.0 * c.every_minutes
         )
 
+    def chunk(self, run: int) -> dict[str, Any] | None:
+        """The header of the checkpoint a resumed batched chunk starting at run ``run`` goes
+        on from, if it was written inside that chunk (None: the chunk starts afresh)."""
+        header = self.resumed
+        if header is None or header.get("agent") is None or header["position"]["run"] != run:
+            return None
+        return header
+
     def save(self, position: Position, recorder: Any, *, agent: Any = None, env: Any = None,
-             monitors: list[Any] | None = None) -> int:  # fmt: skip
+             monitors: list[Any] | None = None,
+             chunk: tuple[Any, dict[str, np.ndarray], dict[str, Any]] | None = None) -> int:  # fmt: skip
         """Write the checkpoint of ``position``: the recorder's watermarks (after making its
-        rows durable) and, inside a run, the agent, the env's generator and the monitors.
+        rows durable) and, inside a run, the agent, the env's generator and the monitors;
+        inside a batched chunk (``chunk``: its learner, more arrays and the header's
+        ``batch`` entry; :meth:`cobelrun.batched.BatchedRuns.save`) the batched learner as
+        the agent, and every run's env generator, monitors and rows held back.
         Returns its size in bytes."""
         arrays: dict[str, np.ndarray] = {}
         header: dict[str, Any] = {"config_hash": self.config_hash,
@@ -551,6 +563,13 @@ class RunCheckpoints:
             arrays, header["agent"] = agent_entry(agent)
             header["env"] = env_state(env)
             header["monitors"] = [m.checkpoint_state() for m in monitors or []]
+        elif chunk is not None:
+            learner, more, header["batch"] = chunk
+            arrays, header["agent"] = agent_entry(learner)
+            clash = set(arrays) & set(more)
+            if clash:
+                raise ValueError(f"array names {sorted(clash)[:3]} used twice")
+            arrays.update(more)
         header["recorder"] = recorder.durable()
         header["written_unix"] = time.time()
         size = write_checkpoint(self.folder.checkpoint, header, arrays)

@@ -29,8 +29,9 @@ the run folder has the same tables, rows and order as a sequential run.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,8 @@ __all__ = ["DEFAULT_CHUNK", "BatchedRuns", "batch_plan", "why_sequential"]
 
 #: runs trained at once when ``task.batch_runs`` is ``auto`` or ``true``
 DEFAULT_CHUNK = 128
+#: a chunk checkpoint's member holding the structure of its runs' held-back rows (JSON text)
+PENDING_INDEX = "pending/index"
 
 
 def why_sequential(task: Any, template: Any) -> str | None:
@@ -110,8 +113,10 @@ def _make_envs(
 # A chunk's runs record through recorder forks that hold every row until the chunk ends (so
 # the run folder keeps a sequential run's row order). A checkpoint inside the chunk therefore
 # keeps those rows too: every array of every held-back entry goes into one of a few pools (one
-# flat array per dtype, members ``pending/<dtype>``) and the entry's structure into the
-# header, with ``[pool, offset, shape, dtype]`` in place of each array.
+# flat array per dtype, members ``pending/<dtype>``) and the entries' structure, with
+# ``[pool, offset, shape, dtype]`` in place of each array, into one more member as JSON text
+# (``pending/index``, UTF-8 bytes: it grows with the chunk's pieces, and the header is kept
+# small). JSON is data: nothing of it is executed.
 
 
 class _Pools:
@@ -182,19 +187,6 @@ def _pack_entry(pools: _Pools, kind: str, payload: Any) -> dict[str, Any]:
                            "first_trial": int(info.first_trial),
                            "first_in_phase": int(info.first_in_phase)}  # fmt: skip
     return entry
-
-
-def _pool_refs(node: Any) -> Iterator[list[Any]]:
-    """Every array reference in a packed structure."""
-    if isinstance(node, dict):
-        for v in node.values():
-            yield from _pool_refs(v)
-    elif isinstance(node, list):
-        if len(node) == 4 and isinstance(node[0], str) and isinstance(node[2], list):
-            yield node
-        else:
-            for v in node:
-                yield from _pool_refs(v)
 
 
 class _Unpack:
@@ -318,11 +310,15 @@ class BatchedRuns:
         pools = _Pools()
         pending = [[_pack_entry(pools, kind, payload) for kind, payload in fork.pending]
                    for fork in self.forks]  # fmt: skip
+        arrays = pools.arrays()
+        arrays[PENDING_INDEX] = np.frombuffer(
+            json.dumps(pending, separators=(",", ":")).encode(), np.uint8
+        )
         batch = {"runs": list(self.runs), "envs": [env_state(e) for e in self._envs],
                  "monitors": [[m.checkpoint_state() for m in fork.monitors]
                               for fork in self.forks],
-                 "pending": pending}  # fmt: skip
-        checkpoints.save(position, self.recorder, chunk=(self.learner, pools.arrays(), batch))
+                 "pools": sorted(pools.parts)}  # fmt: skip
+        checkpoints.save(position, self.recorder, chunk=(self.learner, arrays, batch))
 
     def _restore(self, checkpoints: Any, header: dict[str, Any]) -> None:
         """Go on from a checkpoint written inside this chunk (one CheckpointError line if it
@@ -348,17 +344,22 @@ class BatchedRuns:
         if batch.get("runs") != list(self.runs):
             raise fail(f"it holds the runs {batch.get('runs')}, this chunk is {self.runs}")
         specs = agent_specs(self.learner)
+        specs[PENDING_INDEX] = ArraySpec((None,), "u")
         try:
-            pending = batch["pending"]
-            for ref in _pool_refs(pending):
-                key = ref[0]
-                kind = "U" if key == "U" else np.dtype(key).kind
+            for key in batch["pools"]:
+                kind = "U" if key == "U" else np.dtype(str(key)).kind
                 specs[f"pending/{key}"] = ArraySpec((None,), kind, finite=False)
         except (KeyError, TypeError, ValueError) as exc:
             raise fail(f"its held-back rows are not readable ({exc})") from None
         found = read_checkpoint(path, specs, config_hash=checkpoints.config_hash)
+        try:
+            pending = json.loads(found.arrays[PENDING_INDEX].tobytes().decode())
+        except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError included
+            raise fail(f"its held-back rows are not readable ({exc})") from None
         restore_agent(self.learner, found, path)
         try:
+            if not isinstance(pending, list):
+                raise ValueError("pending rows: expected a list per run")
             unpack = _Unpack(found.arrays, self.recorder.env)
             entries = [[unpack.entry(e) for e in run] for run in pending]
             envs, monitors = batch["envs"], batch["monitors"]

@@ -51,21 +51,24 @@ def measure(name: str, trials: int, every: int) -> dict[str, object]:
         header = read_header(path)
         pos = header["position"]
         done = pos["first"] - 1 + pos["k"]  # trials of each run before the checkpoint
-        groups = {"learner_replay": 0, "learner_fixed": 0, "held_back_rows": 0,
-                  "held_back_index": 0, "header": 0}  # fmt: skip
+        names = ("learner_replay", "learner_fixed", "held_back_rows", "held_back_index", "header")
+        groups = dict.fromkeys(names, 0)  # uncompressed bytes
+        packed = dict.fromkeys(names, 0)  # bytes in the file (members are deflated)
         with zipfile.ZipFile(path) as zf:
             for info in zf.infolist():
                 key = info.filename
                 if key.startswith("agent/replay."):
-                    groups["learner_replay"] += info.file_size
+                    group = "learner_replay"
                 elif key.startswith("agent/"):
-                    groups["learner_fixed"] += info.file_size
+                    group = "learner_fixed"
                 elif key == "pending/index.npy":
-                    groups["held_back_index"] += info.file_size
+                    group = "held_back_index"
                 elif key.startswith("pending/"):
-                    groups["held_back_rows"] += info.file_size
+                    group = "held_back_rows"
                 else:
-                    groups["header"] += info.file_size
+                    group = "header"
+                groups[group] += info.file_size
+                packed[group] += info.compress_size
         runs = len(header["batch"]["runs"])
 
         with np.load(path) as z:
@@ -78,9 +81,11 @@ def measure(name: str, trials: int, every: int) -> dict[str, object]:
         "case": name, "task": task, "runs_in_chunk": runs, "trials_run": trials,
         "checkpoint_at_trial": done, "steps_before_checkpoint_all_runs": steps_before,
         "replay_slots_kept_per_run": stored, "file_bytes": file_bytes,
-        "groups_bytes_uncompressed": groups,
+        "groups_bytes_uncompressed": groups, "groups_bytes_in_file": packed,
         "bytes_per_transition_per_run": groups["learner_replay"] / max(runs * stored, 1),
+        "file_bytes_per_transition_per_run": packed["learner_replay"] / max(runs * stored, 1),
         "held_back_bytes_per_step": groups["held_back_rows"] / max(steps_before, 1),
+        "file_held_back_bytes_per_step": packed["held_back_rows"] / max(steps_before, 1),
         "index_bytes_per_trial": groups["held_back_index"] / max(runs * done, 1),
         "header_bytes": groups["header"],
         "run_cpu_s": round(cpu, 2),

@@ -126,7 +126,17 @@ class _Pools:
         self.parts: dict[str, list[np.ndarray]] = {}
         self.sizes: dict[str, int] = {}
 
+    def _add(self, key: str, flat: np.ndarray) -> int:
+        at = self.sizes.get(key, 0)
+        self.parts.setdefault(key, []).append(flat)
+        self.sizes[key] = at + flat.size
+        return at
+
     def put(self, value: Any) -> list[Any]:
+        """``[pool, offset, shape, dtype]`` of ``value`` added to its pool; strings as
+        ``[pool, offset of the distinct strings, shape, dtype, offset of the codes, count]``
+        (a column repeats a few strings, e.g. a layer's name on each of an activity map's
+        rows)."""
         a = np.asarray(value)
         dtype = a.dtype.str
         if a.dtype.hasobject:  # monitors' string columns (e.g. the phase's name)
@@ -134,11 +144,13 @@ class _Pools:
                 raise CobelError("cannot checkpoint a batched chunk: a monitor's column holds "
                                  "Python objects other than strings")  # fmt: skip
             a, dtype = a.astype(str), "O"
-        key = "U" if a.dtype.kind == "U" else a.dtype.str.lstrip("<>|=")
-        at = self.sizes.get(key, 0)
-        self.parts.setdefault(key, []).append(a.reshape(-1))
-        self.sizes[key] = at + a.size
-        return [key, at, list(a.shape), dtype]
+        if a.dtype.kind == "U":
+            uniq, codes = np.unique(a.reshape(-1), return_inverse=True)
+            at = self._add("U", uniq)
+            at_codes = self._add("i4", codes.astype(np.int32).reshape(-1))
+            return ["U", at, list(a.shape), dtype, at_codes, int(uniq.size)]
+        key = a.dtype.str.lstrip("<>|=")
+        return [key, self._add(key, a.reshape(-1)), list(a.shape), dtype]
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {f"pending/{k}": np.concatenate(v) for k, v in self.parts.items()}
@@ -196,22 +208,27 @@ class _Unpack:
     def __init__(self, pools: dict[str, np.ndarray], env: Any) -> None:
         self.pools, self.env = pools, env
 
-    def get(self, ref: Any) -> np.ndarray:
-        if not (isinstance(ref, list) and len(ref) == 4):
-            raise ValueError(f"pending rows: bad array reference {ref!r}")
-        key, at, shape, dtype = ref
+    def _slice(self, key: Any, at: Any, n: int, ref: Any) -> np.ndarray:
         pool = self.pools.get(f"pending/{key}")
-        if (
-            pool is None
-            or not isinstance(at, int)
-            or not isinstance(shape, list)
-            or not all(isinstance(n, int) and n >= 0 for n in shape)
-        ):
+        if pool is None or not isinstance(at, int) or not 0 <= at <= at + n <= len(pool):
+            raise ValueError(f"pending rows: reference {ref!r} is outside its pool")
+        return pool[at : at + n]
+
+    def get(self, ref: Any) -> np.ndarray:
+        if not (isinstance(ref, list) and len(ref) in (4, 6)):
+            raise ValueError(f"pending rows: bad array reference {ref!r}")
+        key, at, shape, dtype = ref[:4]
+        if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape):
             raise ValueError(f"pending rows: bad array reference {ref!r}")
         n = math.prod(shape)
-        if not 0 <= at <= at + n <= len(pool):
-            raise ValueError(f"pending rows: reference {ref!r} is outside its pool")
-        a = pool[at : at + n].reshape(shape)
+        if len(ref) == 6:  # strings: the distinct ones and a code per element
+            uniq = self._slice(key, at, ref[5] if isinstance(ref[5], int) else -1, ref)
+            codes = self._slice("i4", ref[4], n, ref)
+            if n and (codes.min() < 0 or codes.max() >= len(uniq)):
+                raise ValueError(f"pending rows: reference {ref!r} has codes outside its strings")
+            a = uniq[codes].reshape(shape)
+        else:
+            a = self._slice(key, at, n, ref).reshape(shape)
         return a.astype(object) if dtype == "O" else a.astype(np.dtype(dtype), copy=True)
 
     def cols(self, node: Any) -> dict[str, Any]:

@@ -32,14 +32,14 @@ CASES = {
 }
 
 
-def measure(name: str, trials: int, every: int) -> dict[str, object]:
+def measure(name: str, trials: int, every: int, extra: list[str]) -> dict[str, object]:
     import numpy as np
 
     from cobelrun import api, runner
     from cobelrun.checkpoint import read_header
 
     task, overrides = CASES[name]
-    cfg = api.compose(task, [*overrides, f"task.protocol.phases=[{{name: training, trials: {trials}}}]",
+    cfg = api.compose(task, [*overrides, *extra, f"task.protocol.phases=[{{name: training, trials: {trials}}}]",
                              f"task.checkpoint.every_trials={every}",
                              "task.checkpoint.every_minutes=null", "task.checkpoint.keep=true",
                              "task.record.flush_seconds=0.05"])  # fmt: skip
@@ -78,7 +78,7 @@ def measure(name: str, trials: int, every: int) -> dict[str, object]:
             steps_before = int(z["agent/replay.pos"].sum())
         file_bytes = path.stat().st_size
     return {
-        "case": name, "task": task, "runs_in_chunk": runs, "trials_run": trials,
+        "case": name, "task": task, "overrides": [*overrides, *extra], "runs_in_chunk": runs, "trials_run": trials,
         "checkpoint_at_trial": done, "steps_before_checkpoint_all_runs": steps_before,
         "replay_slots_kept_per_run": stored, "file_bytes": file_bytes,
         "groups_bytes_uncompressed": groups, "groups_bytes_in_file": packed,
@@ -98,8 +98,9 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=30)
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
-    result = measure(args.case, args.trials, args.every)
+    ap.add_argument("overrides", nargs="*", help="more config overrides")
+    args = ap.parse_intermixed_args()
+    result = measure(args.case, args.trials, args.every, args.overrides)
     text = json.dumps(result, indent=2)
     print(text)
     if args.out is not None:

@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 from cobelrun import api, runner
 from cobelrun.batched import BatchedRuns
 from cobelrun.checkpoint import CheckpointError, read_header
+from tests.inprocess import cli  # noqa: F401 (fixture)
 from tests.test_resume import FAST, assert_same_tables, mcap_messages, stop_at, tables
 
 #: two runs in one chunk: every checkpoint but the first lies inside the chunk
@@ -174,3 +175,43 @@ def test_signal_stops_a_chunk_at_the_next_piece_with_a_checkpoint(
     ran = resumed_counting(folder, monkeypatch)
     assert ran[0][0] == header["position"]["first"] + header["position"]["k"]
     assert_same_tables(ref, folder)
+
+
+@pytest.mark.slow
+def test_sigterm_to_a_batched_cli_run_exits_75_and_cobel_resume_finishes_it(
+    tmp_path: Path,
+    cli: Any,  # noqa: F811
+) -> None:
+    """A real ``cobel run`` of a batched chunk sent SIGTERM mid-phase: checkpoint inside the
+    chunk, exit 75; ``cobel resume`` then ends with the tables of the run without the stop."""
+    import subprocess
+    import time
+
+    from cobelrun.checkpoint import REQUEUE_EXIT
+    from tests.conftest import cobel_exe
+
+    args = ["task=two_afc", "agent=dqn", *CHUNK, "task.protocol.phases.0.trials=400",
+            "agent.net_arch=[16]", "agent.learning_starts=10",
+            "task.record.flush_seconds=0.05", "task.checkpoint.every_minutes=30"]  # fmt: skip
+    out = tmp_path / "run"
+    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
+    env.pop("HYDRA_FULL_ERROR", None)
+    proc = subprocess.Popen([*cobel_exe(), "run", *args, f"hydra.run.dir={out}", "--quiet"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.time() + 300
+    # the chunk's first checkpoint (its start) is written once the signal guard is installed
+    while time.time() < deadline and proc.poll() is None:
+        if (out / "checkpoint.npz").is_file():
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == REQUEUE_EXIT, err
+    header = read_header(out / "checkpoint.npz")
+    assert header["position"]["k"] > 0 and header["batch"]["runs"] == [0, 1]
+    result = cli("resume", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert not (out / "checkpoint.npz").exists() and (out / ".done").is_file()
+    ref = runner.run(api.compose(None, args), tmp_path / "ref")
+    assert_same_tables(ref, out)

@@ -197,7 +197,7 @@ def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path,
     """One ``cobel run`` of ``name``; ``checkout``: run that checkout of cobel instead."""
     out = tmp / f"cobel_{name}_{time.monotonic_ns()}"
     args = [*cobel_cmd(), "run", "task=gridworld", "env.world.width=9", "env.world.height=9",
-            "+env.world.starts=[0]", "+env.world.goal=80", *COBEL[name],
+            "env.world.starts=[0]", "env.world.goal=80", *COBEL[name],
             "agent.policy=softmax", "agent.beta=50", "agent.gamma=0.95",
             f"task.runs={seeds}", f"task.protocol.phases.0.trials={episodes}",
             f"task.protocol.max_steps={max_steps}", "task.record.steps=false",

@@ -21,7 +21,39 @@ Prints and writes ``benchmarks/results/recover.json``:
   they learn (``prior.agent.beta=loguniform(3,20)``; ``--default-priors``: the defaults) on
   BLOCKS blocks of 50 trials, the better arm (0.8 vs 0.2) switching every block;
 * conditioning (``--conditioning``): recovery of ``rw_response``, ``ph_response`` and
-  ``td_response`` on ``task=latent_inhibition`` and ``task=second_order``.
+  ``td_response`` on ``task=latent_inhibition`` and ``task=second_order``;
+* ``--two-afc``: parameter recovery of Q-learning (the default priors, 100 agents x 200
+  trials) on the two-alternative task's designs, written to ``results/recover_two_afc.json``;
+* ``--short-reversal``: model recovery of the four models (the default priors) on reversal
+  designs of 400 trials, written to ``results/recover_short_reversal.json``.
+
+Designs declared before they were measured (2026-11-28, issue 36), each run once with the one
+seed 0 and reported whatever it gives. Parameter recovery is a property of the design and of
+the prior range (Wilson & Collins 2019, eLife 8:e49547: design the experiment so that the
+parameters change the behaviour, and check by simulation that they come back; Spektor & Kellen
+2018, Psychon Bull Rev 25:2047: poor recovery from an uninformative design is not rescued by
+the estimation method). ``--two-afc``:
+
+* ``two_afc`` (deterministic rewards) and ``two_afc_probabilistic`` (0.8 / 0.2): the task as it
+  is, and the acceptance measure with probabilistic rewards;
+* ``two_afc_reversal``: 0.8 / 0.2, the better stimulus swapping every 50 trials (3 reversals).
+  Why: with stable contingencies an exploiting agent's values settle and its choices saturate
+  (an inverse temperature of 5 already gives ~95 % correct at a value difference of 0.6), so
+  high inverse temperatures look alike; after each reversal the values cross and choices are
+  graded at any inverse temperature, and the speed of relearning is set by the learning rate;
+* ``two_afc_reversal env.choices=[[0,1]]``: the same with one stimulus pair. Why: the task's
+  displays are separate look-ups for a tabular learner (docs/two_afc.md), so 200 trials over 4
+  displays are ~50 learning trials per value; one pair (2 displays, sides still random) gives
+  each display ~100 trials, and ~25 per display between reversals instead of ~12.
+
+``--short-reversal`` (item 3 of the acceptance: model recovery among Q-learning,
+Rescorla-Wagner, Dyna-Q and WSLS within ~400 trials):
+
+* 16 blocks of 25 trials, 0.8 / 0.2 (15 reversals). Why: Dyna-Q differs from Q-learning in the
+  unchosen arm (its replay pulls it to the arm's remembered reward), which shows when an agent
+  has to switch back after a reversal; more reversals give more such switches;
+* 16 blocks of 25 trials, 0.9 / 0.1. Why: more reliable outcomes make the remembered rewards
+  (and so the replayed values) differ more from a slowly learning Q-learner's values.
 """
 
 from __future__ import annotations
@@ -69,12 +101,18 @@ def main() -> None:
     parser.add_argument("--skip-speed", action="store_true")
     parser.add_argument("--conditioning", action="store_true")
     parser.add_argument("--long-reversal", type=int, default=0, metavar="BLOCKS")
+    parser.add_argument("--two-afc", action="store_true", help="the two_afc designs only")
+    parser.add_argument("--short-reversal", action="store_true",
+                        help="model recovery on the 400-trial reversal designs only")  # fmt: skip
     parser.add_argument(
         "--default-priors",
         action="store_true",
         help="--long-reversal with the default priors (beta logU(1,10))",
     )
     args = parser.parse_args()
+    if args.two_afc or args.short_reversal:
+        designs(args.n, args.two_afc, args.short_reversal)
+        return
     from cobelrun.recover import recover
 
     out: dict = {"host": platform.node(), "cpus": os.cpu_count(), "n": args.n,
@@ -113,6 +151,10 @@ def main() -> None:
         two_afc = _task(["task=two_afc", "task.protocol.phases.0.trials=200"])
         out["two_afc_q_learning"] = _summary(recover(two_afc, ["q_learning"], args.n))
         print("two_afc:", json.dumps(out["two_afc_q_learning"]), flush=True)
+        prob = _task(["task=two_afc_probabilistic"])
+        out["two_afc_probabilistic_q_learning"] = _summary(recover(prob, ["q_learning"], args.n))
+        print("two_afc_probabilistic:", json.dumps(out["two_afc_probabilistic_q_learning"]),
+              flush=True)  # fmt: skip
         four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
         out["reversal_4_models"] = _summary(recover(reversal, four, args.n))
         print("reversal:", json.dumps(out["reversal_4_models"]), flush=True)
@@ -151,6 +193,66 @@ def main() -> None:
     out["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     name = "recover.json" if not args.skip_acceptance else "recover_speed.json"
     (HERE / "results" / name).write_text(json.dumps(out, indent=2) + "\n")
+
+
+#: ``--two-afc``: (label, overrides) of each design, in the order declared above
+TWO_AFC_DESIGNS = [
+    ("two_afc (deterministic)", ["task=two_afc", "task.protocol.phases.0.trials=200"]),
+    ("two_afc_probabilistic (0.8/0.2)", ["task=two_afc_probabilistic"]),
+    ("two_afc_reversal (0.8/0.2, 3 reversals)", ["task=two_afc_reversal"]),
+    ("two_afc_reversal, one stimulus pair", ["task=two_afc_reversal", "env.choices=[[0,1]]"]),
+]
+
+
+def _blocks(n_blocks: int, trials: int, good: float, bad: float) -> str:
+    """``task.protocol.phases=[...]`` of a bandit whose better arm switches every block."""
+    arms = [(good, bad), (bad, good)]
+    return (
+        "task.protocol.phases=["
+        + ",".join(
+            f"{{name:b{i + 1},trials:{trials},rewards:{{0:{arms[i % 2][0]},1:{arms[i % 2][1]}}}}}"
+            for i in range(n_blocks)
+        )
+        + "]"
+    )
+
+
+#: ``--short-reversal``: (label, overrides) of each design, in the order declared above
+SHORT_REVERSAL_DESIGNS = [
+    ("16 blocks of 25, 0.8/0.2", ["task=reversal_bandit", _blocks(16, 25, 0.8, 0.2)]),
+    ("16 blocks of 25, 0.9/0.1", ["task=reversal_bandit", _blocks(16, 25, 0.9, 0.1)]),
+]
+
+
+def designs(n: int, two_afc: bool, short_reversal: bool) -> None:
+    """Run the declared designs (module docstring), one at a time; print and write each."""
+    from cobelrun.recover import recover
+
+    def run(label: str, overrides: list[str], models: list[str]) -> dict:
+        task = _task(overrides)
+        t, c = time.perf_counter(), time.process_time()
+        row = {"overrides": overrides, "n_trials": task.n_trials, **_summary(
+            recover(task, models, n))}  # fmt: skip
+        row["wall_s"] = round(time.perf_counter() - t, 1)
+        row["cpu_s"] = round(time.process_time() - c, 1)
+        row["load"] = os.getloadavg()
+        print(f"{label}:", json.dumps(row), flush=True)
+        return row
+
+    (HERE / "results").mkdir(exist_ok=True)
+    parts = []
+    if two_afc:
+        parts.append(("recover_two_afc.json", TWO_AFC_DESIGNS, ["q_learning"]))
+    if short_reversal:
+        four = ["q_learning", "rescorla_wagner", "dyna_q", "wsls"]
+        parts.append(("recover_short_reversal.json", SHORT_REVERSAL_DESIGNS, four))
+    for name, rows, models in parts:
+        out: dict = {"host": platform.node(), "cpus": os.cpu_count(), "n": n, "seed": 0,
+                     "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                     "designs": {}}  # fmt: skip
+        for label, overrides in rows:
+            out["designs"][label] = run(label, overrides, models)
+            (HERE / "results" / name).write_text(json.dumps(out, indent=2) + "\n")
 
 
 if __name__ == "__main__":

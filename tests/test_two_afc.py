@@ -179,3 +179,20 @@ def test_cli_recover_on_the_probabilistic_task(tmp_path, monkeypatch):
     assert summary["n_trials"] == 200 and summary["models"] == ["q_learning"]
     table = pd.read_parquet(tmp_path / "rec" / "recovery.parquet")
     assert len(table) == 3 and table["fit:agent.learning_rate"].between(0, 1).all()
+
+
+@pytest.mark.slow
+def test_trials_table_records_the_drawn_rewards(tmp_path):
+    """`cobel run task=two_afc_probabilistic`: the trials table's reward is each trial's drawn
+    outcome (0 or 1, at the stated rate for correct and incorrect choices), with the choice."""
+    import cobelrun
+
+    r = cobelrun.run("two_afc_probabilistic", ["task.runs=2", "env.reward_probs=[0.7,0.3]",
+                                               "task.protocol.phases.0.trials=150"],
+                     out=tmp_path / "run")  # fmt: skip
+    t = r.trials
+    assert len(t) == 300 and set(np.unique(t["reward"])) <= {0.0, 1.0}
+    correct = (t["choice"] == t["start_state"] % 2).to_numpy()
+    assert 0 < (~correct).sum() and 0 < correct.sum()
+    _within_binomial(t["reward"].to_numpy()[correct], 0.7)
+    _within_binomial(t["reward"].to_numpy()[~correct], 0.3)

@@ -15,6 +15,10 @@ The reductions (``SUMMARIES``) are per figure: a function ``FigureData -> {table
 every table also gets a ``quick`` flag in its sidecar, and ``--quick`` tables are written with a
 ``_quick`` suffix (``tests/test_figure_data_quick.py`` compares their columns with the
 committed tables').
+
+``python -m cobelrun.figures.data NAME --runs SWEEP_DIR [--finished-only]`` reads the runs of a
+long sweep (Fig. 6A at the paper's scale, Fig. 8's 10 runs) from its folders, also while it
+runs, without writing to them: :mod:`cobelrun.figures.run_import`.
 """
 
 from __future__ import annotations
@@ -283,8 +287,26 @@ def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> p
     return pd.DataFrame(rows)
 
 
+def summary_from_runs(name: str) -> Summary:
+    """The tables :mod:`cobelrun.figures.run_import` writes for ``name`` (``fig6a``, ``fig8``)
+    from a long sweep's folders, here from the figure's own runs (every label), so the figure
+    path and ``--runs`` give the same tables."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        from cobelrun.figures import run_import
+
+        runs = [run_import.run_info(ref.run_dir, ref.job, ref.params.get("seed"))
+                for refs in data.runs.values() for ref in refs]  # fmt: skip
+        return run_import.IMPORTERS[name](runs, runs)
+
+    return summary
+
+
 SUMMARIES: dict[str, Summary] = {
     "fig4": summary_fig4,
+    "fig6a": summary_from_runs("fig6a"),
+    "fig6a_paper": summary_from_runs("fig6a"),
+    "fig8": summary_from_runs("fig8"),
     "fig6b": summary_fig6b,
     "morris": summary_morris,
     "fig7": summary_fig7,
@@ -300,17 +322,50 @@ SUMMARIES: dict[str, Summary] = {
 
 def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
     """Fig. 8 per snapshot from the per-run counts: the runs measured there, the mean number
-    of place cells over them (no run counted where it was not run), its range, and the
-    Spearman rho of that mean over the snapshots the surviving runs share (every snapshot
-    with more than one run)."""
+    of place cells over them (no run counted where it was not run; a run whose layer died
+    counts with its zeros), its range, and the Spearman rho of that mean over the snapshots
+    the surviving runs share (every snapshot with more than one run); beside it the per-run
+    trend test (:func:`fig8_trend`), the same on every row. Rows of unfinished runs
+    (``complete`` false, from :mod:`cobelrun.figures.run_import`) are left out."""
     from scipy import stats
 
+    if "complete" in per_run:
+        per_run = per_run[per_run["complete"].astype(bool)]
     g = per_run.groupby("trial")["place_cells"]
     out = pd.DataFrame({"runs": g.count(), "mean": g.mean(), "min": g.min(), "max": g.max()})
     out = out.reset_index()
     shared = out[out["runs"] > 1]
-    rho = stats.spearmanr(shared["trial"], shared["mean"]).statistic
-    return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4))
+    rho = (stats.spearmanr(shared["trial"], shared["mean"]).statistic
+           if shared["mean"].nunique() > 1 else np.nan)  # fmt: skip
+    return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4), **fig8_trend(per_run))
+
+
+def fig8_trend(per_run: pd.DataFrame) -> dict[str, float]:
+    """Does the count rise within runs? Per run (``seed``, and ``run`` where given) with at
+    least 3 snapshots, Spearman's rho of place cells against trial; a run whose count never
+    changes (a dead layer: all zeros) has no rise, rho 0. Across runs: how many, how many
+    rose (rho > 0), the median rho, the one-sided sign test (binomial, runs that did not rise
+    count against the rise) and the one-sided Wilcoxon signed-rank test of the rhos against 0
+    (zeros split between the signs)."""
+    from scipy import stats
+
+    keys = [k for k in ("seed", "run") if k in per_run]
+    rhos = []
+    for _, g in per_run.groupby(keys, sort=True):
+        if g["trial"].nunique() < 3:
+            continue
+        if g["place_cells"].nunique() < 2:
+            rhos.append(0.0)
+        else:
+            rhos.append(float(stats.spearmanr(g["trial"], g["place_cells"]).statistic))
+    r = np.asarray(rhos)
+    n, rising = len(r), int((r > 0).sum())
+    sign_p = stats.binomtest(rising, n, 0.5, alternative="greater").pvalue if n else np.nan
+    wilcoxon_p = (stats.wilcoxon(r, zero_method="zsplit", alternative="greater").pvalue
+                  if n > 1 and np.any(r != 0) else np.nan)  # fmt: skip
+    return {"runs_trend_test": n, "runs_rising": rising,
+            "median_run_rho": round(float(np.median(r)), 4) if n else np.nan,
+            "sign_test_p": round(float(sign_p), 4), "wilcoxon_p": round(float(wilcoxon_p), 4)}  # fmt: skip
 
 
 def fig9_compare(per_run: pd.DataFrame, original: pd.DataFrame) -> pd.DataFrame:
@@ -621,6 +676,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--labels", help="comma-separated run labels (default: all)")
     parser.add_argument("--finished-only", action="store_true",
                         help="run nothing; tables NAME_partial from the runs finished so far")  # fmt: skip
+    parser.add_argument("--runs", nargs="+", type=Path, metavar="PATH",
+                        help="read NAME's runs from these sweep or run folders, never writing "
+                        "to them (cobelrun.figures.run_import: fig6a, fig8)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.derive:
         for path in derive(args.out):
@@ -628,6 +686,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not args.name:
         parser.error("give a figure NAME or --derive")
+    if args.runs:
+        from cobelrun.figures.run_import import import_runs
+
+        try:
+            for path in import_runs(args.name, args.runs, out_dir=args.out,
+                                    finished_only=args.finished_only):  # fmt: skip
+                print(path)
+        except CobelError as exc:
+            print(f"cobel: error: {exc}", file=sys.stderr)
+            return 2
+        return 0
     try:
         for path in export(args.name, quick=args.quick, out_dir=args.out,
                            build=not args.no_build,

@@ -262,6 +262,27 @@ def _diagnostics(table) -> list[dict]:
     return out
 
 
+def _diagonal_by_rate(table) -> dict:
+    """Per generating model with a learning rate: the share of its agents best fitted by their
+    own model (BIC) among agents with a true rate below 0.5 and at or above it."""
+    import numpy as np
+
+    key = "true:agent.learning_rate"
+    if key not in table:
+        return {}
+    best = table.sort_values("bic").groupby(["generating", "agent"], sort=False).head(1)
+    out = {}
+    for model, part in best.groupby("generating", sort=False):
+        rate = part[key].to_numpy()
+        if np.isnan(rate).all():
+            continue
+        right = (part["fitted"] == model).to_numpy()
+        out[str(model)] = {name: {"share": round(float(right[m].mean()), 3), "n": int(m.sum())}
+                           for name, m in (("rate<0.5", rate < 0.5), ("rate>=0.5", rate >= 0.5))
+                           if m.any()}  # fmt: skip
+    return out
+
+
 #: ``--two-afc``, added after the declared designs were measured (post hoc, so labelled): the
 #: one-pair reversal with agents that are neither near random nor saturated, beta logU(2, 10)
 #: (the declared rows showed the learning rate hardly identified for beta < 2)
@@ -299,7 +320,7 @@ SHORT_REVERSAL_POSTHOC = [
 def designs(n: int, two_afc: bool, short_reversal: bool) -> None:
     """Run the declared designs (module docstring), then the post-hoc ones, one at a time;
     print and write each."""
-    from cobelrun.recover import Prior, recover
+    from cobelrun.recover import Prior, confusion, recover
 
     def run(label: str, overrides: list[str], models: list[str], priors: dict) -> dict:
         task = _task(overrides)
@@ -308,7 +329,9 @@ def designs(n: int, two_afc: bool, short_reversal: bool) -> None:
         row = {"overrides": overrides, "priors": {k: f"{v[0]}({v[1]:g},{v[2]:g})"
                                                   for k, v in priors.items()},
                "n_trials": task.n_trials, **_summary(table),
-               "diagnostics": _diagnostics(table)}  # fmt: skip
+               "diagnostics": _diagnostics(table),
+               "bic_diagonal_by_learning_rate": _diagonal_by_rate(table),
+               "bic_confusion": confusion(table, "bic").round(3).to_dict(orient="index")}  # fmt: skip
         row["wall_s"] = round(time.perf_counter() - t, 1)
         row["cpu_s"] = round(time.process_time() - c, 1)
         row["load"] = os.getloadavg()

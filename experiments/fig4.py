@@ -2,8 +2,8 @@
 
 Two ``task=render_benchmark`` runs, one per agent (its job times every repetition x size x mode;
 see :mod:`cobelrun.render.benchmark`), so each agent gets its own step budget: an MFEC frame
-costs 0.03-10 ms, a DQN frame (a gradient step on 32 images) 5-300 ms, so MFEC is timed over
-200 steps per repetition and DQN over 50. The figure draws their ``frame_times.csv``: one column
+costs 0.05-26 ms, a DQN frame (a gradient step on 32 images) 9-370 ms (the 2026-11-28 measurement,
+docs/figures/data/fig4.csv), so MFEC is timed over 200 steps per repetition and DQN over 50. The figure draws their ``frame_times.csv``: one column
 per agent; top, frame time (median and IQR over the interleaved repetitions) online, offline and
 without rendering over image size (pixels), with the paper's published frame times; bottom,
 offline/online with the paper's two ratios (20x80: 0.089, 75x300: 0.71). The CSV holds one row

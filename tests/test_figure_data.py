@@ -103,3 +103,25 @@ def test_fig9_original_tables_agree_and_feed_the_figure():
         f"vs original ({len(runs)} agents), trials 6-10: {c['diff']:+.3f} "
         f"[{c['diff_lo']:+.3f}, {c['diff_hi']:+.3f}], P(cobel > orig.) {c['p_superiority']:.2f}"
     )
+
+
+def test_fig4_medians_are_those_of_its_repetitions():
+    """fig4.csv's frame times and ratios are the medians over the repetitions it was made from
+    (fig4_repetitions.csv, the two runs' frame_times.csv)."""
+    reps = pd.read_csv(DATA / "fig4_repetitions.csv")
+    assert reps["rep"].nunique() == 5 and set(reps["clock"]) == {"wall"}
+    med = reps.groupby(["agent", "height", "width", "mode"])["frame_ms_mean"].median()
+    fig4 = pd.read_csv(DATA / "fig4.csv").set_index("size")
+    for (agent, h, w, mode), value in med.items():
+        col = f"{agent}_{'norender' if mode == 'none' else mode}_ms"
+        assert fig4.loc[f"{h}x{w}", col] == pytest.approx(value, rel=1e-5), (agent, h, w, mode)
+    for agent in ("mfec", "dqn"):
+        ratio = med.xs(agent).unstack("mode")
+        ratio = ratio["offline"] / ratio["online"]
+        for (h, w), value in ratio.items():
+            assert fig4.loc[f"{h}x{w}", f"{agent}_offline_over_online"] == pytest.approx(
+                value, rel=1e-4
+            )
+    steps = reps.groupby("agent")["steps"].max()
+    assert (fig4["mfec_steps_per_repetition"] == steps["mfec"]).all()
+    assert (fig4["dqn_steps_per_repetition"] == steps["dqn"]).all()

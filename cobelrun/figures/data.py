@@ -15,6 +15,10 @@ The reductions (``SUMMARIES``) are per figure: a function ``FigureData -> {table
 every table also gets a ``quick`` flag in its sidecar, and ``--quick`` tables are written with a
 ``_quick`` suffix (``tests/test_figure_data_quick.py`` compares their columns with the
 committed tables').
+
+``python -m cobelrun.figures.data NAME --runs SWEEP_DIR [--finished-only]`` reads the runs of a
+long sweep (Fig. 6A at the paper's scale, Fig. 8's 10 runs) from its folders, also while it
+runs, without writing to them: :mod:`cobelrun.figures.run_import`.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ import pandas as pd
 
 from cobelrun.errors import CobelError, allowed_list, suggest
 from cobelrun.figures import registry
+from cobelrun.figures.tables import fig8_summary, fig8_trend, write_table  # noqa: F401 (re-exported)
 
 #: the committed tables, beside the figure pages
 DATA_DIR = Path(__file__).resolve().parents[2] / "docs" / "figures" / "data"
@@ -283,8 +288,26 @@ def _means(per_run: pd.DataFrame, extra: Mapping[str, float] | None = None) -> p
     return pd.DataFrame(rows)
 
 
+def summary_from_runs(name: str) -> Summary:
+    """The tables :mod:`cobelrun.figures.run_import` writes for ``name`` (``fig6a``, ``fig8``)
+    from a long sweep's folders, here from the figure's own runs (every label), so the figure
+    path and ``--runs`` give the same tables."""
+
+    def summary(data: registry.FigureData) -> dict[str, pd.DataFrame]:
+        from cobelrun.figures import run_import
+
+        runs = [run_import.run_info(ref.run_dir, ref.job, ref.params.get("seed"))
+                for refs in data.runs.values() for ref in refs]  # fmt: skip
+        return run_import.IMPORTERS[name](runs, runs)
+
+    return summary
+
+
 SUMMARIES: dict[str, Summary] = {
     "fig4": summary_fig4,
+    "fig6a": summary_from_runs("fig6a"),
+    "fig6a_paper": summary_from_runs("fig6a"),
+    "fig8": summary_from_runs("fig8"),
     "fig6b": summary_fig6b,
     "morris": summary_morris,
     "fig7": summary_fig7,
@@ -296,21 +319,6 @@ SUMMARIES: dict[str, Summary] = {
     "fig9_seeds": summary_fig9("fig9_seeds"),
     "fig9_fast_seeds": summary_fig9("fig9_fast_seeds", per_seed=True),
 }
-
-
-def fig8_summary(per_run: pd.DataFrame) -> pd.DataFrame:
-    """Fig. 8 per snapshot from the per-run counts: the runs measured there, the mean number
-    of place cells over them (no run counted where it was not run), its range, and the
-    Spearman rho of that mean over the snapshots the surviving runs share (every snapshot
-    with more than one run)."""
-    from scipy import stats
-
-    g = per_run.groupby("trial")["place_cells"]
-    out = pd.DataFrame({"runs": g.count(), "mean": g.mean(), "min": g.min(), "max": g.max()})
-    out = out.reset_index()
-    shared = out[out["runs"] > 1]
-    rho = stats.spearmanr(shared["trial"], shared["mean"]).statistic
-    return out.assign(spearman_rho_mean_vs_trial=round(float(rho), 4))
 
 
 def fig9_compare(per_run: pd.DataFrame, original: pd.DataFrame) -> pd.DataFrame:
@@ -521,20 +529,6 @@ def provenance(
     }
 
 
-def write_table(frame: pd.DataFrame, prov: Mapping[str, Any], out_dir: Path, name: str) -> Path:
-    """``out_dir/name.csv`` (6 significant digits) and ``out_dir/name.provenance.json``."""
-    from cobelrun.io.atomic import atomic_path
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv = out_dir / f"{name}.csv"
-    with atomic_path(csv) as tmp:
-        frame.to_csv(tmp, index=False, float_format="%.6g")
-    side = out_dir / f"{name}.provenance.json"
-    with atomic_path(side) as tmp:
-        Path(tmp).write_text(json.dumps(dict(prov), indent=1) + "\n")
-    return csv
-
-
 def run_missing(
     figure: registry.Figure,
     *,
@@ -621,6 +615,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--labels", help="comma-separated run labels (default: all)")
     parser.add_argument("--finished-only", action="store_true",
                         help="run nothing; tables NAME_partial from the runs finished so far")  # fmt: skip
+    parser.add_argument("--runs", nargs="+", type=Path, metavar="PATH",
+                        help="read NAME's runs from these sweep or run folders, never writing "
+                        "to them (cobelrun.figures.run_import: fig6a, fig8)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.derive:
         for path in derive(args.out):
@@ -628,6 +625,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not args.name:
         parser.error("give a figure NAME or --derive")
+    if args.runs:
+        from cobelrun.figures.run_import import import_runs
+
+        try:
+            for path in import_runs(args.name, args.runs, out_dir=args.out,
+                                    finished_only=args.finished_only):  # fmt: skip
+                print(path)
+        except CobelError as exc:
+            print(f"cobel: error: {exc}", file=sys.stderr)
+            return 2
+        return 0
     try:
         for path in export(args.name, quick=args.quick, out_dir=args.out,
                            build=not args.no_build,

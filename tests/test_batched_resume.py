@@ -204,6 +204,8 @@ def test_sigterm_to_a_batched_cli_run_exits_75_and_cobel_resume_finishes_it(
         if (out / "checkpoint.npz").is_file():
             break
         time.sleep(0.02)
+    # past the chunk's start (a signal there stops it before its first piece, at k = 0)
+    time.sleep(0.5)
     assert proc.poll() is None, proc.communicate()[1]
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)

@@ -37,6 +37,10 @@ CASES = {
                                      "task.protocol.phases.0.trials=4",
                                      "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
                                      "agent.replay_batch=4", "task.protocol.max_steps=10"]),
+    "dyna_dsr": ("latent_learning", [*CHUNK, "task.monitors.activity.every=3",
+                                     "task.protocol.phases.0.trials=4",
+                                     "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
+                                     "agent.replay_batch=4", "task.protocol.max_steps=10"]),
     # Fig. 8's CNN (dropout, the analysis layer's activity maps, saved agents), tiny
     "dqn_fig8": ("place_cells_original", [
         *CHUNK, "task.protocol.phases=[{name: training, trials: 12}]",
@@ -75,7 +79,7 @@ def resumed_counting(folder: Path, monkeypatch: pytest.MonkeyPatch) -> list[tupl
 
 @pytest.mark.parametrize(
     "agent",
-    [pytest.param(a, marks=[pytest.mark.slow] if a == "dqn_fig8" else [])
+    [pytest.param(a, marks=[pytest.mark.slow] if a in ("dqn_fig8", "dyna_dsr") else [])
      for a in CASES],
 )  # fmt: skip
 def test_resumed_chunk_equals_uninterrupted(agent: str, tmp_path: Path,

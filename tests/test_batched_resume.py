@@ -41,6 +41,10 @@ CASES = {
                                      "task.protocol.phases.0.trials=4",
                                      "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
                                      "agent.replay_batch=4", "task.protocol.max_steps=10"]),
+    # Fig. 6A's image DQN (36 x 36 camera views, no dropout), tiny
+    "dqn_images": ("tmaze_extinction_3d", [
+        *CHUNK, "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=2",
+        "task.protocol.max_steps=15", "agent.learning_starts=10", "agent.batch_size=8"]),
     # Fig. 8's CNN (dropout, the analysis layer's activity maps, saved agents), tiny
     "dqn_fig8": ("place_cells_original", [
         *CHUNK, "task.protocol.phases=[{name: training, trials: 12}]",
@@ -79,7 +83,7 @@ def resumed_counting(folder: Path, monkeypatch: pytest.MonkeyPatch) -> list[tupl
 
 @pytest.mark.parametrize(
     "agent",
-    [pytest.param(a, marks=[pytest.mark.slow] if a in ("dqn_fig8", "dyna_dsr") else [])
+    [pytest.param(a, marks=[pytest.mark.slow] if a in ("dqn_fig8", "dqn_images", "dyna_dsr") else [])
      for a in CASES],
 )  # fmt: skip
 def test_resumed_chunk_equals_uninterrupted(agent: str, tmp_path: Path,

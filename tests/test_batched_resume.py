@@ -34,9 +34,9 @@ CASES = {
     "dyna_dqn": ("latent_learning", [*CHUNK, "agent=dyna_dqn",
                                      "task.monitors.activity.layers=[q/output]",
                                      "task.monitors.activity.every=3",
-                                     "task.protocol.phases.0.trials=4",
+                                     "task.protocol.phases.0.trials=2",
                                      "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
-                                     "agent.replay_batch=4", "task.protocol.max_steps=10"]),
+                                     "agent.replay_batch=4", "task.protocol.max_steps=6"]),
     "dyna_dsr": ("latent_learning", [*CHUNK, "task.monitors.activity.every=3",
                                      "task.protocol.phases.0.trials=4",
                                      "task.protocol.phases.1.trials=10", "agent.hidden=[8]",
@@ -83,7 +83,7 @@ def resumed_counting(folder: Path, monkeypatch: pytest.MonkeyPatch) -> list[tupl
 
 @pytest.mark.parametrize(
     "agent",
-    [pytest.param(a, marks=[pytest.mark.slow] if a in ("dqn_fig8", "dqn_images", "dyna_dsr") else [])
+    [pytest.param(a, marks=[pytest.mark.slow] if a in ("dqn_fig8", "dqn_images", "dyna_dsr", "per_dqn") else [])
      for a in CASES],
 )  # fmt: skip
 def test_resumed_chunk_equals_uninterrupted(agent: str, tmp_path: Path,
@@ -148,7 +148,9 @@ def test_chunk_checkpoint_is_bounded_by_the_filled_replay(
         assert z["agent/adam.steps"].min() > 0  # both runs learned before the checkpoint
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGUSR1])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGTERM, pytest.param(signal.SIGUSR1, marks=pytest.mark.slow)]
+)
 def test_signal_stops_a_chunk_at_the_next_piece_with_a_checkpoint(
     sig: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

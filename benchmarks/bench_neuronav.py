@@ -38,6 +38,13 @@ the kernels, the files in the page cache). The mean episode length of the last 2
 both learned the shortest path. ``--baseline CHECKOUT`` also runs ``cobel run`` from another
 checkout of cobel (``PYTHONPATH``), interleaved, as the row's "baseline" process columns.
 
+``--breakdown`` instead splits one ``cobel run`` of each agent into where its CPU time goes
+(:data:`BREAKDOWN_SCRIPT`: in one process, the packages a run imports, in the order given, then
+the run itself with Hydra's composition, the instantiation gate, building the task, Hydra's
+job, cobel's run (manifest, the kernel's load, the loop, the writes) and the end-of-run summary
+timed by ``time.process_time``), medians of ``--repeats`` processes, next to the whole
+process's CPU time of a plain ``cobel run``.
+
 cobel's bytecode is compiled first (``compileall`` of the checkout's ``cobelrun``), as an
 installed package has it: with ``PYTHONDONTWRITEBYTECODE=1`` (set in some development
 shells) a checkout is otherwise compiled from source in every process (~80 modules, ~0.3-0.5 s
@@ -142,6 +149,87 @@ for agent in agents:
 print(json.dumps({"steps": steps, "loop_s": time.perf_counter() - t0}))
 """
 
+#: one ``cobel run`` in this process, its CPU time split into stages (``--breakdown``): the
+#: packages a run imports (in this order, each charged with what it imports first), then the
+#: run itself, with a few functions of Hydra and cobel timed (``time.process_time``, this
+#: process only: the ``git`` and ``uname`` children of the manifest are not in it)
+BREAKDOWN_SCRIPT = r"""
+import functools, importlib, json, os, sys, time
+sys.path[0] = os.path.dirname(sys.executable)  # as the console script's process has it
+T0 = time.process_time()
+os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
+import cobelrun.signals
+from cobelrun import startup
+cobelrun.signals.HOLD_AFTER_STOP = True
+startup.pause_gc()  # as cobel run does
+kernel_module, args = sys.argv[1], json.loads(sys.argv[2])
+last = time.process_time()
+out = {"the interpreter's start": T0, "cobel's entry point (standard library)": last - T0}
+for label, mods in [
+    ("numpy", ["numpy"]), ("OmegaConf", ["omegaconf"]),
+    ("Hydra", ["hydra", "hydra.core.utils"]), ("cobel's CLI and composer", ["cobelrun.hydra_app"]),
+    ("pydantic", ["pydantic"]), ("cobel's config schema (pydantic models)", ["cobelrun.schema"]),
+    ("gymnasium", ["gymnasium"]), ("pyarrow", ["pyarrow", "pyarrow.parquet"]),
+    ("cobel's runner, envs, agents, recorder", ["cobelrun.runner", "cobelrun.agents"]),
+    ("numba", ["numba"]), ("the agent's kernel module", [kernel_module]),
+    ("the summary table (rich)", ["cobelrun.commands.summary"]),
+]:
+    for m in mods:
+        importlib.import_module(m)
+    now = time.process_time()
+    out["import " + label] = now - last
+    last = now
+spent = {}
+def wrap(owner, name, label):
+    fn = getattr(owner, name)
+    @functools.wraps(fn)
+    def timed(*a, **k):
+        t = time.process_time()
+        try:
+            return fn(*a, **k)
+        finally:
+            spent[label] = spent.get(label, 0.0) + time.process_time() - t
+    setattr(owner, name, timed)
+import hydra, hydra.core.utils
+import cobelrun.compose, cobelrun.hydra_app, cobelrun.runner, cobelrun.commands.summary
+import cobelrun.agents.compiled_trials as ct
+wrap(cobelrun.hydra_app, "validate", "validate")  # launch calls it by this name
+wrap(hydra, "compose", "Hydra's composition")
+wrap(cobelrun.compose, "check_config", "the instantiation gate")
+wrap(cobelrun.runner, "build_task", "building and checking the task")
+wrap(hydra.core.utils, "run_job", "Hydra's job")
+wrap(cobelrun.runner, "run", "cobel's run")
+for mod in list(sys.modules.values()):  # the agents import load_kernel by name
+    if getattr(mod, "__name__", "").startswith("cobelrun.agents") and hasattr(mod, "load_kernel"):
+        wrap(mod, "load_kernel", "numba's start and the kernel's load")
+wrap(cobelrun.commands.summary, "print_run_summary", "the end-of-run summary")
+import cobelrun.commands.run as cr
+t = time.process_time()
+code = cr.run_plain(cr.plain_run(args))
+total_run = time.process_time() - t
+v, job = spent.pop("validate", 0.0), spent.pop("Hydra's job", 0.0)
+c, g, b = (spent.get(k, 0.0) for k in ("Hydra's composition", "the instantiation gate",
+                                        "building and checking the task"))
+r, k, sm = (spent.get(k, 0.0) for k in ("cobel's run", "numba's start and the kernel's load",
+                                        "the end-of-run summary"))
+out["Hydra's composition"] = c
+out["the instantiation gate"] = g
+out["building and checking the task"] = b
+out["the rest of the up-front validation (parse, checks)"] = v - c - g - b
+out["numba's start and the kernel's load (first dispatch)"] = k
+out["cobel's run: manifest, loop, writes"] = r - k
+out["the end-of-run summary"] = sm
+out["Hydra's job: .hydra files, logging, copies"] = job - r - sm
+out["the rest (argument parsing, run folder, lock)"] = total_run - v - job
+out["total (this process)"] = time.process_time() - T0
+print(json.dumps(out))
+os._exit(code or 0)
+"""
+
+#: the kernel module of each agent (``--breakdown`` imports it as its own stage)
+KERNELS = {"sr_td": "cobelrun.agents.sr_kernels", "sr_dyna": "cobelrun.agents.sr_kernels",
+           "dyna_q": "cobelrun.agents.kernels", "q_learning": "cobelrun.agents.kernels"}  # fmt: skip
+
 #: cobel agent configs and their overrides for the setting
 COBEL = {
     "q_learning": ["agent=q_learning", "agent.learning_rate=0.3"],
@@ -192,16 +280,21 @@ def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, flo
                 os.waitstatus_to_exitcode(status))  # fmt: skip
 
 
-def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path,
-              checkout: Path | None = None) -> dict:  # fmt: skip
-    """One ``cobel run`` of ``name``; ``checkout``: run that checkout of cobel instead."""
-    out = tmp / f"cobel_{name}_{time.monotonic_ns()}"
-    args = [*cobel_cmd(), "run", "task=gridworld", "env.world.width=9", "env.world.height=9",
-            "+env.world.starts=[0]", "+env.world.goal=80", *COBEL[name],
+def run_args(name: str, seeds: int, episodes: int, max_steps: int, out: Path) -> list[str]:
+    """The words after ``cobel`` of the setting's ``cobel run`` of ``name`` into ``out``."""
+    return ["run", "task=gridworld", "env.world.width=9", "env.world.height=9",
+            "env.world.starts=[0]", "env.world.goal=80", *COBEL[name],
             "agent.policy=softmax", "agent.beta=50", "agent.gamma=0.95",
             f"task.runs={seeds}", f"task.protocol.phases.0.trials={episodes}",
             f"task.protocol.max_steps={max_steps}", "task.record.steps=false",
             "task.record.mcap=false", "task.save_agents=none", f"hydra.run.dir={out}"]  # fmt: skip
+
+
+def run_cobel(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path,
+              checkout: Path | None = None) -> dict:  # fmt: skip
+    """One ``cobel run`` of ``name``; ``checkout``: run that checkout of cobel instead."""
+    out = tmp / f"cobel_{name}_{time.monotonic_ns()}"
+    args = [*cobel_cmd(), *run_args(name, seeds, episodes, max_steps, out)]
     env = None if checkout is None else {**os.environ, "PYTHONPATH": str(checkout)}
     wall, cpu, _, stderr, code = timed(args, env)
     if code != 0:
@@ -235,6 +328,48 @@ def run_cobel_warm(name: str, seeds: int, episodes: int, max_steps: int, tmp: Pa
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def run_breakdown(name: str, seeds: int, episodes: int, max_steps: int, tmp: Path) -> dict:
+    """One ``cobel run`` of ``name`` under :data:`BREAKDOWN_SCRIPT`: CPU seconds by stage."""
+    script = tmp / "cobel_breakdown.py"
+    script.write_text(BREAKDOWN_SCRIPT)
+    out = tmp / f"breakdown_{name}_{time.monotonic_ns()}"
+    args = run_args(name, seeds, episodes, max_steps, out)
+    _, cpu, stdout, stderr, code = timed(
+        [sys.executable, str(script), KERNELS.get(name, "cobelrun.agents.kernels"),
+         json.dumps(args)]
+    )  # fmt: skip
+    shutil.rmtree(out, ignore_errors=True)
+    if code != 0:
+        raise SystemExit(f"cobel breakdown failed for {name}: {stderr.strip()[-400:]}")
+    lines = [line for line in stdout.splitlines() if line.startswith("{")]
+    return {**json.loads(lines[-1]), "whole process (wait4: with its git and uname children)": cpu}
+
+
+def breakdown(agents: list[str], repeats: int, seeds: int, episodes: int,
+              max_steps: int) -> str:  # fmt: skip
+    """The ``--breakdown`` table: medians of ``repeats`` processes per agent, interleaved with
+    a plain ``cobel run`` of the same setting (its whole-process CPU seconds)."""
+    rows: dict[str, list[dict]] = {a: [] for a in agents}
+    plain: dict[str, list[float]] = {a: [] for a in agents}
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        for a in agents:  # untimed: numba's cache, the page cache
+            run_breakdown(a, 1, 2, max_steps, tmp)
+        for _ in range(repeats):
+            for a in agents:
+                rows[a].append(run_breakdown(a, seeds, episodes, max_steps, tmp))
+                plain[a].append(run_cobel(a, seeds, episodes, max_steps, tmp)["process_cpu_s"])
+    keys = list(rows[agents[0]][0])
+    names = " | ".join(NAMES[a] for a in agents)
+    lines = [f"| CPU s (median of {repeats}) | {names} |", "|---|" + "---:|" * len(agents)]
+    for k in keys:
+        lines.append(f"| {k} | " + " | ".join(
+            f"{statistics.median(r[k] for r in rows[a]):.3f}" for a in agents) + " |")  # fmt: skip
+    lines.append("| a plain `cobel run` of the setting, whole process | " + " | ".join(
+        f"{statistics.median(plain[a]):.3f}" for a in agents) + " |")  # fmt: skip
+    return "\n".join(lines)
+
+
 def run_neuronav(python: str, script: Path, name: str, seeds: int, episodes: int,
                  max_steps: int) -> dict:  # fmt: skip
     wall, cpu, stdout, stderr, code = timed(
@@ -262,6 +397,8 @@ def main() -> None:
         help="also run cobel run from this checkout (interleaved)",
     )
     ap.add_argument("--no-warm", action="store_true", help="skip the in-process warm runs")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="only split cobel's whole process into stages (CPU seconds)")  # fmt: skip
     ap.add_argument("--add-warm", type=Path, metavar="JSON",
                     help="only measure cobel warm and add it to an earlier --json file")  # fmt: skip
     args = ap.parse_args()
@@ -279,6 +416,10 @@ def main() -> None:
     unknown = [a for a in agents if a not in COBEL]
     if unknown:
         raise SystemExit(f"unknown agent {unknown[0]!r}; allowed: {', '.join(COBEL)}")
+    if args.breakdown:
+        compile_bytecode(HERE.parent)
+        print(breakdown(agents, args.repeats, args.seeds, args.episodes, args.max_steps))
+        return
     raw: dict[str, dict[str, list[dict]]] = {
         a: {"neuronav": [], "cobel": [], "cobel_warm": [], "baseline": []} for a in agents
     }

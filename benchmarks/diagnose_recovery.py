@@ -7,9 +7,9 @@ Run on demand (not a test)::
 ``two_afc`` part: Q-learning on ``task=two_afc`` (200 trials, the default priors): parameter
 recovery (Pearson r, 95 % interval coverage, bias); whether every fit's likelihood is at least
 that of the true parameters (the optimiser found the maximum); 10 starts instead of 3; 1,000
-trials; a narrower learning-rate prior; and probabilistic rewards (a :class:`TwoAFCEnv`
-subclass that rewards a correct choice with probability ``p`` and a wrong one with ``q``, drawn
-from the env's generator) at 200 and 400 trials.
+trials; a narrower learning-rate prior; and probabilistic rewards (``env=two_afc_probabilistic
+env.reward_probs=[p,q]``: a correct choice rewarded with probability ``p``, a wrong one with
+``q``, drawn from the env's generator) at 200 and 400 trials.
 
 ``models`` part: Q-learning against Dyna-Q alone on ``protocol=reversal_blocks`` (400 trials):
 the BIC confusion diagonal, and per true learning-rate band the share recovered and the median
@@ -43,7 +43,6 @@ def two_afc(n: int) -> None:
     from bench_recover import _task
 
     from cobelrun.choice_models import MODELS, model_logp
-    from cobelrun.envs.choice import TwoAFCEnv
     from cobelrun.recover import Prior, default_priors, recover
 
     task = _task(["task=two_afc", "task.protocol.phases.0.trials=200"])
@@ -70,19 +69,10 @@ def two_afc(n: int) -> None:
     lr = {"agent.learning_rate": Prior("uniform", 0.05, 0.5)}
     _summary(recover(task, ["q_learning"], n, priors=lr), "two_afc 200, lr prior U(0.05,0.5)")
 
-    class ProbabilisticAFC(TwoAFCEnv):
-        probs = (0.8, 0.2)
-
-        def step(self, action):
-            obs, _, term, trunc, info = super().step(action)
-            p = self.probs[0] if int(action) == info["correct"] else self.probs[1]
-            return obs, float(self.np_random.random() < p), term, trunc, info
-
     for probs, trials in (((0.8, 0.2), 200), ((0.8, 0.2), 400), ((0.75, 0.25), 200),
                           ((0.9, 0.1), 200)):  # fmt: skip
-        ProbabilisticAFC.probs = probs
-        t = _task(["task=two_afc", f"task.protocol.phases.0.trials={trials}"])
-        t.env = ProbabilisticAFC()
+        t = _task(["task=two_afc_probabilistic", f"env.reward_probs=[{probs[0]},{probs[1]}]",
+                   f"task.protocol.phases.0.trials={trials}"])  # fmt: skip
         _summary(recover(t, ["q_learning"], n), f"two_afc {trials}, rewards {probs}")
 
 

@@ -431,6 +431,9 @@ class Cohort(Protocol):
     def abort(self) -> None:
         """Stopped or failed: keep what the finished pieces recorded."""
 
+    def save(self, checkpoints: RunCheckpoints, position: Position) -> None:
+        """Write the checkpoint of ``position`` (inside the cohort's runs)."""
+
 
 class OneRun:
     """One run of the sequential path: the task's env re-seeded, a fresh agent."""
@@ -480,17 +483,19 @@ def cohorts(task: Task, recorder: RunRecorder, folder: RunFolder, start: int = 0
     """The task's runs from run ``start`` on, in the order they are trained: one at a time, or
     ``task.batch`` at a time as one computation (``task.batch_runs``). With ``checkpoints``,
     a checkpoint is written before a cohort when one is due (before every batched cohort:
-    a batched chunk is checkpointed at its start), and a stop asked for by a signal happens
-    there."""
+    a batched chunk is checkpointed at its start, a few kB; inside it between pieces, as a
+    sequential run), and a stop asked for by a signal happens there. A resumed chunk goes
+    on from the checkpoint written inside it."""
     if task.batch:
         from cobelrun.batched import BatchedRuns
 
         for first in range(start, task.runs, task.batch):
             runs = list(range(first, min(first + task.batch, task.runs)))
-            if checkpoints is not None:
+            inside = checkpoints is not None and checkpoints.chunk(first) is not None
+            if checkpoints is not None and not inside:
                 checkpoints.save(Position(first), recorder)
                 checkpoints.stop_if_asked()
-            yield BatchedRuns(task, recorder, runs, run_seed)
+            yield BatchedRuns(task, recorder, runs, run_seed, checkpoints)
     else:
         for run in range(start, task.runs):
             if checkpoints is not None and run > start and checkpoints.due(0):
@@ -512,10 +517,10 @@ def run_phases(
     the protocol's changes applied to every env of the cohort. Sequential and batched runs
     differ only in their :class:`Cohort`.
 
-    With ``checkpoints`` a sequential run writes a checkpoint after a piece when one is due
-    (and stops there when a signal asked it to); a resumed run starts at its checkpoint's
-    position: the runs before it are done, the world of its run is rebuilt by applying the
-    protocol's changes up to it."""
+    With ``checkpoints`` a cohort (a sequential run or a batched chunk) writes a checkpoint
+    after a piece when one is due (and stops there when a signal asked it to); a resumed run
+    starts at its checkpoint's position: the runs before it are done, the world of its run
+    (of every run of its chunk) is rebuilt by applying the protocol's changes up to it."""
     protocol = task.protocol
     per_run = protocol.n_trials
     total = task.runs * per_run
@@ -583,15 +588,11 @@ def run_phases(
 
 def _boundary(checkpoints: RunCheckpoints, cohort: Cohort, protocol: TaskProtocol, p: int,
               k: int, first: int, n: int) -> None:  # fmt: skip
-    """After a piece: a sequential run writes its checkpoint when one is due (at the next
-    trial: the end of a phase is the start of the next); the run's last piece leaves it to
-    the boundary before the next run. A batched chunk was checkpointed at its start: a stop
-    asked for by a signal ends it here (the rows after that checkpoint are dropped when it
-    resumes)."""
+    """After a piece: a cohort (one run or a batched chunk) writes its checkpoint when one
+    is due (at the next trial: the end of a phase is the start of the next), and stops there
+    when a signal asked for it; the cohort's last piece leaves it to the boundary before the
+    next cohort."""
     due = checkpoints.due(n)
-    if not isinstance(cohort, OneRun):
-        checkpoints.stop_if_asked()
-        return
     phases = protocol.phases
     if k >= phases[p].trials:  # the next trial is the next phase's (with trials) first
         first, p, k = first + phases[p].trials, p + 1, 0
@@ -600,7 +601,7 @@ def _boundary(checkpoints: RunCheckpoints, cohort: Cohort, protocol: TaskProtoco
         if p == len(phases):
             return  # the run is over: its end is written first (cohorts() goes on)
     if due:
-        cohort.save(checkpoints, Position(cohort.run, p, k, first))
+        cohort.save(checkpoints, Position(cohort.runs[0], p, k, first))
         checkpoints.stop_if_asked()
 
 

@@ -191,8 +191,8 @@ def test_auto_batches_small_cnns_only_on_the_cpu():
 @pytest.mark.slow
 def test_batched_cnn_runs_resume_at_their_chunk(tmp_path, monkeypatch):
     """Batched Fig. 8 runs (task.batch_runs=2 of 4 runs): a chunk is checkpointed at its
-    start; a stop inside the second chunk resumes there, with the tables (activity maps
-    included) of the uninterrupted run."""
+    start and between pieces; a stop inside the second chunk resumes from the checkpoint
+    written inside it, with the tables (activity maps included) of the uninterrupted run."""
     from cobelrun import api, runner
     from cobelrun.batched import BatchedRuns
     from tests.test_resume import FAST, assert_same_tables, stopped_and_resumed

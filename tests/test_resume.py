@@ -203,8 +203,9 @@ def test_sweep_command_again_resumes_a_stopped_job(
 def test_batched_runs_resume_at_their_chunk(
     agent: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Batched runs (task.batch_runs=2 of 4 runs): a chunk is checkpointed at its start; a
-    stop inside the second chunk resumes there, with the tables of the uninterrupted run."""
+    """Batched runs (task.batch_runs=2 of 4 runs): a chunk is checkpointed at its start and
+    between pieces; a stop inside the second chunk resumes from the checkpoint written inside
+    it, with the tables of the uninterrupted run (more: tests/test_batched_resume.py)."""
     from cobelrun.batched import BatchedRuns
 
     task, overrides = CASES[agent]

@@ -20,7 +20,8 @@ from tests.test_env_conformance import HEAVY_TASKS, tiny
 
 #: tasks whose tiny run takes long (deep agents on images, revaluation jobs)
 SLOW = {"place_cells", "place_cells_original", "latent_learning", "reward_revaluation",
-        "transition_revaluation", "policy_revaluation", "two_afc", "two_afc_fast"}  # fmt: skip
+        "transition_revaluation", "policy_revaluation", "two_afc", "two_afc_fast",
+        "two_afc_probabilistic", "two_afc_reversal"}  # fmt: skip
 #: the revaluation jobs' own tiny budget
 JOB_TINY = {"runs": 2, "training_trials": 30, "revaluation_trials": 5, "replay_budgets": [0]}
 

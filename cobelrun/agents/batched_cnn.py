@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.vec_env import VecTransposeImage
 
+from cobelrun.agents.base import ArraySpec
 from cobelrun.agents.batched_dqn import BatchedDQN, DQNRunView, resolve_device
 from cobelrun.agents.batched_ops import ACTIVATION_NAMES, activation
 from cobelrun.agents.conv import ACTIVATIONS
@@ -232,6 +233,30 @@ class BatchedCNNDQN(BatchedDQN):
 
     def view(self, run: int) -> CNNRunView:
         return CNNRunView(self, run)
+
+    # -- checkpoints: BatchedDQN's, plus each run's dropout generator ----------------------------
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        schema = super().checkpoint_schema()
+        size = int(self.torch_gens[0].get_state().numel())
+        schema["rng.dropout"] = ArraySpec((self.R, size), "u")
+        return schema
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays, meta = super().checkpoint_state()
+        arrays["rng.dropout"] = np.stack([g.get_state().numpy() for g in self.torch_gens])
+        return arrays, meta
+
+    def restore_checkpoint(self, arrays: Any, meta: Any) -> None:
+        states = [torch.as_tensor(np.asarray(row, np.uint8)) for row in arrays["rng.dropout"]]
+        for r, state in enumerate(states):  # checked before anything changes
+            try:
+                torch.Generator().set_state(state)
+            except (RuntimeError, ValueError) as exc:
+                raise ValueError(f"run {r}: dropout generator: {exc}") from None
+        super().restore_checkpoint(arrays, meta)
+        for gen, state in zip(self.torch_gens, states, strict=True):
+            gen.set_state(state)
+        self._probe_key = None
 
     # -- forward -------------------------------------------------------------------------------
     def _obs_array(self, obs: Any) -> np.ndarray:

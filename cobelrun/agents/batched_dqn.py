@@ -461,6 +461,152 @@ class BatchedDQN:
         """Adam steps taken by each run."""
         return self.adam.steps
 
+    # -- checkpoints (:mod:`cobelrun.checkpoint`, between pieces of a phase) --------------------
+    def _replay_kept(self, pos: np.ndarray, full: np.ndarray) -> int:
+        """Replay slots a checkpoint keeps: those the fullest run has filled."""
+        return int(self.capacity if full.any() else pos.max(initial=0))
+
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        """Every array of :meth:`checkpoint_state` and what it must look like (the run axis
+        first; the replay memories' slot axis free: a checkpoint keeps the filled slots)."""
+        R, P = (int(n) for n in self.flat.shape)
+        obs_kind = self.obs_dtype.kind
+        schema = {
+            "params": ArraySpec((R, P)),
+            "target": ArraySpec((R, P)),
+            "num_timesteps": ArraySpec((R,), "i", low=0),
+            "n_calls": ArraySpec((R,), "i", low=0),
+            "replay.pos": ArraySpec((R,), "i", low=0, high=self.capacity),
+            "replay.full": ArraySpec((R,), "b"),
+            "replay.obs": ArraySpec((R, None, *self.obs_shape), obs_kind),
+            "replay.next_obs": ArraySpec((R, None, *self.obs_shape), obs_kind),
+            "replay.action": ArraySpec((R, None), "i", low=0, high=self.n_actions),
+            "replay.reward": ArraySpec((R, None)),
+            "replay.done": ArraySpec((R, None), low=0, high=2),
+            "rng.numpy_keys": ArraySpec((R, 624), "u"),
+        }
+        for key, (shape, kind) in self.adam.checkpoint_shapes().items():
+            schema[f"adam.{key}"] = ArraySpec(shape, kind, low=0 if "sq" in key or kind == "i"
+                                              else None)  # fmt: skip
+        if self.prioritized:
+            schema["per.sums"] = ArraySpec(self.tree.sums.shape, "f", low=0)
+            schema["per.mins"] = ArraySpec(self.tree.mins.shape, "f", low=0, finite=False)
+            schema["per.max_priority"] = ArraySpec((R,), "f", low=0)
+            schema["per.new_priority"] = ArraySpec((R,), "f", low=0)
+            schema["per.n_sampled"] = ArraySpec((R,), "i", low=0)
+        return schema
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Every run's state between pieces: parameters, target networks, Adam moments and
+        step counts, counters, the filled part of the replay memories (and PER's sum trees),
+        and the generators each run draws from (numpy's legacy stream of exploration and
+        replay sampling, the action space's, PER's)."""
+        from cobelrun.checkpoint import generator_state
+
+        n = self._replay_kept(self.pos, self.full)
+        arrays: dict[str, np.ndarray] = {
+            "params": self.flat.detach().cpu().numpy().copy(),
+            "target": self.flat_target.detach().cpu().numpy().copy(),
+            "num_timesteps": self.num_timesteps.copy(),
+            "n_calls": self.n_calls.copy(),
+            "replay.pos": self.pos.copy(),
+            "replay.full": self.full.copy(),
+            "replay.obs": self.buf_obs[:, :n].cpu().numpy(),
+            "replay.next_obs": self.buf_next[:, :n].cpu().numpy(),
+            "replay.action": self.buf_action[:, :n].cpu().numpy(),
+            "replay.reward": self.buf_reward[:, :n].cpu().numpy(),
+            "replay.done": self.buf_done[:, :n].cpu().numpy(),
+        }
+        arrays.update({f"adam.{k}": v for k, v in self.adam.checkpoint_arrays().items()})
+        numpy, keys = [], []
+        for rs in self.np_rngs:
+            _, key, pos, has_gauss, gauss = rs.get_state(legacy=True)
+            keys.append(np.asarray(key, np.uint32))
+            numpy.append({"pos": int(pos), "has_gauss": int(has_gauss),
+                          "cached_gaussian": float(gauss)})  # fmt: skip
+        arrays["rng.numpy_keys"] = np.stack(keys)
+        meta: dict[str, Any] = {
+            "numpy": numpy,
+            "action_space": [generator_state(sp.np_random) for sp in self.spaces],
+            "per_rngs": [generator_state(g) for g in self.per_rngs],
+        }
+        if self.prioritized:
+            arrays["per.sums"] = self.tree.sums.copy()
+            arrays["per.mins"] = self.tree.mins.copy()
+            arrays["per.max_priority"] = self.max_priority.copy()
+            arrays["per.new_priority"] = self.new_priority.copy()
+            arrays["per.n_sampled"] = self.n_sampled.copy()
+        return arrays, meta
+
+    def restore_checkpoint(self, arrays: Any, meta: Any) -> None:
+        """Restore :meth:`checkpoint_state` (arrays already checked against
+        :meth:`checkpoint_schema`); ValueError, with nothing changed, if the rest does not
+        fit."""
+        from cobelrun.checkpoint import set_generator_state
+
+        R = self.R
+        pos = np.asarray(arrays["replay.pos"], np.int64)
+        full = np.asarray(arrays["replay.full"], bool)
+        n = self._replay_kept(pos, full)
+        for key in ("obs", "next_obs", "action", "reward", "done"):
+            if arrays[f"replay.{key}"].shape[1] != n:
+                raise ValueError(f"replay.{key}: expected {n} slots, got "
+                                 f"{arrays[f'replay.{key}'].shape[1]}")  # fmt: skip
+        numpy = meta.get("numpy") if isinstance(meta, dict) else None
+        lists = [meta.get(k) for k in ("action_space", "per_rngs")] if numpy else []
+        if not isinstance(numpy, list) or any(not isinstance(v, list) or len(v) != R
+                                              for v in [numpy, *lists]):  # fmt: skip
+            raise ValueError(f"expected the generators of {R} runs")
+        states = []
+        for r, st in enumerate(numpy):
+            if not isinstance(st, dict):
+                raise ValueError(f"run {r}: numpy: expected an MT19937 state")
+            state = ("MT19937", np.asarray(arrays["rng.numpy_keys"][r], np.uint32),
+                     int(st.get("pos", -1)), int(st.get("has_gauss", 0)),
+                     float(st.get("cached_gaussian", 0.0)))  # fmt: skip
+            try:
+                np.random.RandomState().set_state(state)
+            except (ValueError, TypeError) as exc:
+                raise ValueError(f"run {r}: numpy: not a valid MT19937 state ({exc})") from None
+            states.append(state)
+        for what, gens in (("action_space", [sp.np_random for sp in self.spaces]),
+                           ("per_rngs", self.per_rngs)):  # fmt: skip
+            for r, (g, st) in enumerate(zip(gens, meta[what], strict=True)):
+                probe = np.random.Generator(type(g.bit_generator)())
+                set_generator_state(probe, st, f"run {r}: {what}")
+        # everything checked: restore
+        dev = self.device
+        with torch.no_grad():
+            self.flat.copy_(torch.as_tensor(np.asarray(arrays["params"], np.float32)))
+            self.flat_target.copy_(torch.as_tensor(np.asarray(arrays["target"], np.float32)))
+            obs_dtype = self.buf_obs.dtype
+            for buf, key in ((self.buf_obs, "obs"), (self.buf_next, "next_obs")):
+                buf.zero_()
+                buf[:, :n] = torch.as_tensor(arrays[f"replay.{key}"]).to(dev, obs_dtype)
+            for buf, key in ((self.buf_action, "action"), (self.buf_reward, "reward"),
+                             (self.buf_done, "done")):  # fmt: skip
+                buf.zero_()
+                buf[:, :n] = torch.as_tensor(arrays[f"replay.{key}"]).to(dev, buf.dtype)
+        self.adam.restore_arrays({k[len("adam.") :]: v for k, v in arrays.items()
+                                  if k.startswith("adam.")})  # fmt: skip
+        self.num_timesteps = np.asarray(arrays["num_timesteps"], np.int64).copy()
+        self.n_calls = np.asarray(arrays["n_calls"], np.int64).copy()
+        self.pos, self.full = pos.copy(), full.copy()
+        for rs, state in zip(self.np_rngs, states, strict=True):
+            rs.set_state(state)
+        for sp, st in zip(self.spaces, meta["action_space"], strict=True):
+            set_generator_state(sp.np_random, st, "action space")
+        for g, st in zip(self.per_rngs, meta["per_rngs"], strict=True):
+            set_generator_state(g, st, "PER generator")
+        if self.prioritized:
+            self.tree.sums[:] = arrays["per.sums"]
+            self.tree.mins[:] = arrays["per.mins"]
+            self.max_priority = np.asarray(arrays["per.max_priority"], np.float64).copy()
+            self.new_priority = np.asarray(arrays["per.new_priority"], np.float64).copy()
+            self.n_sampled = np.asarray(arrays["per.n_sampled"], np.int64).copy()
+        self.version += 1  # cached predictions are stale
+        self._cache = None
+
     # -- trials ----------------------------------------------------------------------------
     def run_phase(
         self,

@@ -21,14 +21,14 @@ state, its networks get the run's current weights.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from cobelrun.agents.base import TrialCallback, state_of
+from cobelrun.agents.base import ArraySpec, TrialCallback, state_of
 from cobelrun.agents.batched_ops import RowAdam, activation
 from cobelrun.agents.networks import TorchMLP
 from cobelrun.agents.policy import allowed_next, select
@@ -160,6 +160,35 @@ class StackedMLP:
         return {k: v[run].detach().cpu().numpy().copy()
                 for k, v in zip(self._order(), src, strict=True)}  # fmt: skip
 
+    # -- checkpoints --------------------------------------------------------------------------
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        """Stacked online and target layers and the optimizer's arrays (:class:`RowAdam`)."""
+        schema: dict[str, ArraySpec] = {}
+        for k, t in zip(self._order(), self.leaves, strict=True):
+            schema[f"online.{k}"] = ArraySpec(tuple(t.shape))
+            schema[f"target.{k}"] = ArraySpec(tuple(t.shape))
+        for key, (shape, kind) in self.optimizer.checkpoint_shapes().items():
+            schema[f"adam.{key}"] = ArraySpec(shape, kind, low=0 if "sq" in key or kind == "i"
+                                              else None)  # fmt: skip
+        return schema
+
+    def checkpoint_state(self) -> dict[str, np.ndarray]:
+        arrays = {}
+        for k, t, g in zip(self._order(), self.leaves, self.target, strict=True):
+            arrays[f"online.{k}"] = t.detach().cpu().numpy().copy()
+            arrays[f"target.{k}"] = g.detach().cpu().numpy().copy()
+        arrays.update({f"adam.{k}": v for k, v in self.optimizer.checkpoint_arrays().items()})
+        return arrays
+
+    def restore_checkpoint(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Restore :meth:`checkpoint_state` (shapes already checked)."""
+        with torch.no_grad():
+            for k, t, g in zip(self._order(), self.leaves, self.target, strict=True):
+                t.copy_(torch.as_tensor(np.asarray(arrays[f"online.{k}"], np.float32)))
+                g.copy_(torch.as_tensor(np.asarray(arrays[f"target.{k}"], np.float32)))
+        self.optimizer.restore_arrays({k[len("adam.") :]: v for k, v in arrays.items()
+                                       if k.startswith("adam.")})  # fmt: skip
+
     def adam(self, grads: Sequence[torch.Tensor], runs: np.ndarray) -> None:
         """One Adam step of the runs ``runs`` (``grads[k][i]``: run ``runs[i]``'s gradient of
         layer ``k``; the other runs keep parameters and moments)."""
@@ -213,6 +242,49 @@ class BatchedDyna:
 
     def view(self, run: int) -> DynaRunView:
         return DynaRunView(self, run)
+
+    # -- checkpoints (:mod:`cobelrun.checkpoint`, between pieces of a phase) --------------------
+    def _stacks(self) -> dict[str, StackedMLP]:
+        return {"net": self.net} if self.reward is None else {"net": self.net,
+                                                              "reward": self.reward}  # fmt: skip
+
+    def checkpoint_schema(self) -> dict[str, ArraySpec]:
+        """Each run's agent (``run<r>.<key>``: its generator, model memory, ... as a sequential
+        checkpoint holds them) and the stacked networks with their Adam state."""
+        schema: dict[str, ArraySpec] = {}
+        for r, agent in enumerate(self.agents):
+            schema.update({f"run{r}.{k}": v for k, v in agent.checkpoint_schema().items()})
+        for name, stack in self._stacks().items():
+            schema.update({f"{name}.{k}": v for k, v in stack.checkpoint_schema().items()})
+        return schema
+
+    def checkpoint_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays: dict[str, np.ndarray] = {}
+        metas = []
+        for r in range(self.R):
+            own, meta = self.sync(r).checkpoint_state()
+            arrays.update({f"run{r}.{k}": v for k, v in own.items()})
+            metas.append(meta)
+        for name, stack in self._stacks().items():
+            arrays.update({f"{name}.{k}": v for k, v in stack.checkpoint_state().items()})
+        return arrays, {"runs": metas}
+
+    def restore_checkpoint(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> None:
+        """Restore :meth:`checkpoint_state`; ValueError if a run's agent state does not fit
+        (the runs before it are then restored already: the caller drops the learner)."""
+        metas = meta.get("runs") if isinstance(meta, Mapping) else None
+        if not isinstance(metas, list) or len(metas) != self.R:
+            raise ValueError(f"expected the states of {self.R} runs")
+        for r, agent in enumerate(self.agents):
+            prefix = f"run{r}."
+            own = {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+            agent.restore_checkpoint(own, metas[r] if isinstance(metas[r], Mapping) else {})
+        for name, stack in self._stacks().items():
+            prefix = f"{name}."
+            stack.restore_checkpoint({k[len(prefix) :]: v for k, v in arrays.items()
+                                      if k.startswith(prefix)})  # fmt: skip
+        self.version += 1
+        self._synced = [-1] * self.R
 
     # -- weights back into the per-run agents -------------------------------------------------
     def sync(self, run: int) -> Any:

@@ -126,3 +126,46 @@ class RowAdam:
             else:
                 out.append((state["exp_avg"], state["exp_avg_sq"]))
         return out
+
+    # -- checkpoints (:mod:`cobelrun.checkpoint`) ---------------------------------------------
+    def checkpoint_shapes(self) -> dict[str, tuple[tuple[int, ...], str]]:
+        """Shape and dtype kind of every array of :meth:`checkpoint_arrays`."""
+        out: dict[str, tuple[tuple[int, ...], str]] = {"steps": ((self.R,), "i")}
+        for k, t in enumerate(self.tensors):
+            out[f"exp_avg.{k}"] = (tuple(t.shape), "f")
+            out[f"exp_avg_sq.{k}"] = (tuple(t.shape), "f")
+        return out
+
+    def checkpoint_arrays(self) -> dict[str, np.ndarray]:
+        """Every run's step count and moments, stacked like the parameters (zeros for a run
+        that has not stepped yet)."""
+        out: dict[str, np.ndarray] = {"steps": self.steps.copy()}
+        per_run = [self.moments(r) for r in range(self.R)]
+        for k in range(len(self.tensors)):
+            for j, name in enumerate(("exp_avg", "exp_avg_sq")):
+                out[f"{name}.{k}"] = (
+                    torch.stack([per_run[r][k][j].detach() for r in range(self.R)]).cpu().numpy()
+                )
+        return out
+
+    def restore_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore :meth:`checkpoint_arrays` (shapes already checked) through the optimizer's
+        ``load_state_dict``: a run that has stepped gets its step count and moments, one that
+        has not gets no state, as a fresh optimizer (its first step then starts them)."""
+        steps = np.asarray(arrays["steps"], np.int64)
+        state: dict[int, dict[str, torch.Tensor]] = {}
+        K = len(self.tensors)
+        for r in range(self.R):
+            if steps[r] <= 0:
+                continue
+            for k in range(K):
+                state[r * K + k] = {
+                    "step": torch.tensor(float(steps[r]), dtype=torch.float32),
+                    "exp_avg": torch.as_tensor(np.asarray(arrays[f"exp_avg.{k}"][r], np.float32)),
+                    "exp_avg_sq": torch.as_tensor(
+                        np.asarray(arrays[f"exp_avg_sq.{k}"][r], np.float32)
+                    ),
+                }
+        groups = self.opt.state_dict()["param_groups"]
+        self.opt.load_state_dict({"state": state, "param_groups": groups})
+        self.steps = steps.copy()

@@ -142,8 +142,9 @@ def _git(args: list[str], cwd: Path) -> str | None:
 def git_info(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """Commit and dirty flag of the git repository containing ``path``, or None.
 
-    Asked once per process and folder (three ``git`` calls, ~10 ms): a sweep worker's jobs
-    record the state of the repository when the worker started, i.e. of the code it runs.
+    Asked once per process and repository (three ``git`` calls, ~10 ms; none for a folder
+    outside any repository, :func:`_repository_folder`): a sweep worker's jobs record the
+    state of the repository when the worker started, i.e. of the code it runs.
 
     Parameters
     ----------
@@ -156,8 +157,48 @@ def git_info(path: str | os.PathLike[str]) -> dict[str, Any] | None:
         ``{"commit": <sha>, "dirty": bool, "root": <top-level folder>}``; None when ``path`` is
         not in a git repository, git is missing, or git does not answer within 2 s.
     """
-    info = _git_info(str(Path(path).absolute()))
-    return copy.deepcopy(info)
+    folder = Path(path).absolute()
+    if not folder.is_dir():
+        return None
+    if any(name in os.environ for name in _GIT_ENV):
+        key: str | None = str(folder)  # git's discovery is steered from outside: ask git itself
+    else:
+        key = _repository_folder(folder)
+        if key is None:
+            return None  # no repository above it: git would say so, at the cost of a process
+    return copy.deepcopy(_git_info(key))
+
+
+#: environment variables that change where git looks for a repository
+_GIT_ENV = ("GIT_DIR", "GIT_WORK_TREE", "GIT_CEILING_DIRECTORIES",
+            "GIT_DISCOVERY_ACROSS_FILESYSTEM", "GIT_COMMON_DIR")  # fmt: skip
+
+
+def _repository_folder(folder: Path) -> str | None:
+    """The folder at which git's own search for a repository stops when started in
+    ``folder``, or None when it finds none: the nearest folder, ``folder`` itself first (its
+    physical path, as git's working directory is), that holds ``.git`` or is a git directory
+    itself (a bare repository), not crossing into another file system (git stops there too).
+
+    Every folder inside one repository gives the same answer, so the run folder's and
+    cobel's git state, when both lie in one repository, take one set of ``git`` calls, and a
+    folder outside any repository takes none (issue 38: each call is a process).
+    """
+    try:
+        start = folder.resolve()
+        device = start.stat().st_dev
+        for candidate in (start, *start.parents):
+            if candidate.stat().st_dev != device:
+                return None
+            if (candidate / ".git").exists() or (
+                (candidate / "HEAD").is_file()
+                and (candidate / "objects").is_dir()
+                and (candidate / "refs").is_dir()
+            ):
+                return str(candidate)
+    except OSError:
+        return str(folder)  # not readable here: let git decide
+    return None
 
 
 @functools.cache

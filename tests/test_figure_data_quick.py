@@ -15,7 +15,8 @@ import pytest
 from cobelrun.figures import data
 
 DATA = Path(__file__).resolve().parents[1] / "docs" / "figures" / "data"
-#: figure -> run labels to build (None: all); revaluation's grid designs are not committed
+#: figure -> run labels to build (None: all); revaluation: its graph designs (the grid ones are
+#: committed as revaluation_grid; their quick build is not part of this test)
 QUICK = {
     "fig4": None,
     "fig6b": None,

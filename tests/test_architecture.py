@@ -25,6 +25,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "cobelrun.sweep",
         "cobelrun.figures.registry",
         "cobelrun.figures.data",  # builds figures and writes their data tables (docs/figures/data)
+        "cobelrun.figures.run_import",  # reads a figure's sweeps into those tables (asks the registry)
         "cobelrun.render.benchmark",
         "cobelrun.api",
         "cobelrun.recover",

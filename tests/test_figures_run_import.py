@@ -295,3 +295,20 @@ def test_fig8_stable_counts_place_cells_as_its_figure_does(tmp_path):
         counts[name] = pd.read_csv(written)["place_cells"].tolist()
         assert counts[name] == snaps["place_cells"].tolist()
     assert counts["fig8"] != counts["fig8_stable"]  # the bands pass by area only
+
+
+@pytest.mark.parametrize(("name", "task", "owner"), [("fig8", "place_cells", "fig8_stable"),
+                                                     ("fig8_stable", "place_cells_original", "fig8")])  # fmt: skip
+def test_fig8_and_fig8_stable_refuse_each_others_runs(tmp_path, name, task, owner):
+    """fig8 (the original's training) and fig8_stable (cobel's) count place cells differently
+    and write different tables: a run of the other figure's task is refused, naming its
+    figure, before anything is written (as fig6a and fig6a_paper do)."""
+    run = tmp_path / "run"
+    maps_folder(run, {0: 0, 800: 3})
+    (run / "manifest.json").write_text(json.dumps({"status": "running", "seed": 3, "task": task}))
+    out = tmp_path / "out"
+    with pytest.raises(
+        CobelError, match=rf"task={task}, not of {name}'s tasks .*give {owner} --runs"
+    ):
+        run_import.import_runs(name, [run], out_dir=out, finished_only=True)
+    assert not out.exists()

@@ -32,7 +32,7 @@ Tables:
   (:func:`cobelrun.figures.tables.fig8_summary`: the mean over the finished runs per snapshot,
   dead layers included, Spearman's rho of the mean and the per-run trend test); cobel's
   stabilised training's (``fig8_stable``) as ``fig8_stable_runs`` and ``fig8_stable``, boxes
-  compared by extent as its figure does.
+  compared by extent as its figure does; a run of the other one's task is refused likewise.
 """
 
 from __future__ import annotations
@@ -373,8 +373,9 @@ IMPORTERS: dict[str, Callable[[Sequence[RunInfo], Sequence[RunInfo]], dict[str, 
 }
 
 #: figures whose runs must be of the figure's own tasks (``task=`` of its run labels): a
-#: paper-scale sweep imported as ``fig6a`` would replace the CPU default's tables
-CHECKS_TASKS = {"fig6a", "fig6a_paper"}
+#: paper-scale sweep imported as ``fig6a`` would replace the CPU default's tables, and a
+#: ``fig8_stable`` sweep imported as ``fig8`` (or the reverse) would replace the other's
+CHECKS_TASKS = {"fig6a", "fig6a_paper", "fig8", "fig8_stable"}
 
 
 def check_tasks(name: str, runs: Sequence[RunInfo]) -> None:

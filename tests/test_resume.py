@@ -216,3 +216,29 @@ def test_batched_runs_resume_at_their_chunk(
     folder = stopped_and_resumed(tmp_path, monkeypatch, task, overrides, piece=pieces + 2,
                                  cls=BatchedRuns)  # fmt: skip
     assert_same_tables(ref, folder)
+
+
+def test_cobel_resume_logs_its_launch_in_the_run_log(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    cli: Any,  # noqa: F811
+) -> None:
+    """``cobel resume`` appends its launch and how it ended to RUN_DIR/cobel.log, as a sweep's
+    resumed job does, so the run's launches are counted from its log (the run-import
+    sidecars' ``launches``); a refused resume writes nothing to it."""
+    from cobelrun.figures.run_import import launches
+
+    with monkeypatch.context() as m:
+        stop_at(m, 3)
+        first = cli("run", "task=tmaze_extinction", "task.runs=1", *FAST,
+                    "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12")  # fmt: skip
+    assert first.returncode != 0
+    (folder,) = [p.parent for p in (tmp_path / "results").rglob("checkpoint.npz")]
+    assert len(launches(folder)) == 1
+    resumed = cli("resume", str(folder), "--quiet")
+    assert resumed.returncode == 0, resumed.stderr
+    log = (folder / "cobel.log").read_text()
+    assert len(launches(folder)) == 2 and "resumed from its checkpoint" in log
+    assert "status completed" in log.split("resumed from its checkpoint")[1]
+    again = cli("resume", str(folder))
+    assert again.returncode == 2 and (folder / "cobel.log").read_text() == log

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -23,6 +24,38 @@ new checkpoint (resume again), 2 refused, 130 interrupted.
 """
 
 
+def log_launch(run_dir: Path, started: float) -> None:
+    """Append this resumed launch to ``RUN_DIR/cobel.log`` as a ``cobel run`` job logs its own:
+    the start line at the launch's time (so a run's launches can be counted from its log, as
+    :func:`cobelrun.figures.run_import.launches` does), then how it ended. Called once the
+    resume ran (a refused resume writes nothing)."""
+    import logging
+
+    from omegaconf import OmegaConf
+
+    from cobelrun.hydra_app import LOG, log_end
+
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    handler = logging.FileHandler(run_dir / "cobel.log", encoding="utf-8")
+    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    for msg, args in (("task %s, seed %s, folder %s", (cfg.task.name, cfg.seed, run_dir)),
+                      ("resumed from its checkpoint (cobel resume)", ())):  # fmt: skip
+        record = LOG.makeRecord(LOG.name, logging.INFO, __file__, 0, msg, args, None)
+        record.created, record.msecs = started, (started % 1) * 1000
+        handler.handle(record)
+    level, propagate = LOG.level, LOG.propagate
+    LOG.addHandler(handler)
+    LOG.setLevel(logging.INFO)
+    LOG.propagate = False  # the end lines go to the file only, as in a cobel run job
+    try:
+        log_end(run_dir)
+    finally:
+        LOG.removeHandler(handler)
+        LOG.setLevel(level)
+        LOG.propagate = propagate
+        handler.close()
+
+
 def register(app: typer.Typer) -> None:
     """Add ``cobel resume`` to ``app``."""
 
@@ -40,16 +73,19 @@ def register(app: typer.Typer) -> None:
         from cobelrun.progress import progress_enabled
         from cobelrun.signals import Stopped
 
+        started = time.time()
         try:
             result = resume(run_dir, progress=progress_enabled())
         except CobelError as exc:
             fail(str(exc))
         except Stopped as exc:
+            log_launch(run_dir, started)
             typer.echo(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue "
                        f"with `cobel resume {run_dir}`", err=True)  # fmt: skip
             raise typer.Exit(REQUEUE_EXIT) from None
         except KeyboardInterrupt:
             fail("interrupted", EXIT_INTERRUPTED)
+        log_launch(run_dir, started)
         if not quiet:
             from cobelrun.commands.summary import print_run_summary
 

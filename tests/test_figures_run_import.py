@@ -159,6 +159,16 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("flag", [["--quick"], ["--labels", "dqn"], ["--no-build"]])
+def test_export_flags_are_refused_with_runs(sweep, tmp_path, capsys, flag):
+    """--quick (or --labels, --no-build) with --runs would be ignored: a quick sweep's runs would
+    write fig6a.csv, the full table's name; refused in one line, nothing written."""
+    assert data.main(["fig6a", "--runs", str(sweep), *flag, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"{flag[0]} cannot be combined with --runs" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
 def test_fig8_trend_counts_dead_layers_against_the_rise():
     trials = [0, 800, 1600, 2400]
     counts = {1: [0, 2, 5, 9], 2: [0, 1, 1, 3], 3: [3, 2, 1, 0], 4: [0, 0, 0, 0]}  # 4: dead

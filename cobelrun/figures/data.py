@@ -691,6 +691,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.runs:
         from cobelrun.figures.run_import import import_runs
 
+        ignored = [flag for flag, on in (("--quick", args.quick), ("--labels", args.labels),
+                                         ("--no-build", args.no_build)) if on]  # fmt: skip
+        if ignored:  # else a quick sweep's runs would write the full tables (fig6a.csv)
+            print(f"cobel: error: {', '.join(ignored)} cannot be combined with --runs, which "
+                  "reads the given runs as they are into NAME's tables (NAME_partial with "
+                  "--finished-only); write them elsewhere with --out DIR", file=sys.stderr)  # fmt: skip
+            return 2
+
         try:
             for path in import_runs(args.name, args.runs, out_dir=args.out,
                                     finished_only=args.finished_only):  # fmt: skip

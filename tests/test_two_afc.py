@@ -134,6 +134,18 @@ def test_phases_reverse_the_probabilities_and_a_new_run_restores_them():
         bad.check(env)
 
 
+def test_a_phase_naming_one_side_twice_is_refused_and_changes_nothing():
+    """``correct`` and ``0`` are the same side: a phase giving both (e.g. a ``+...rewards.0``
+    override added to the reversal's ``correct``) is refused, and a refused change sets none
+    of its probabilities."""
+    env = TwoAFCEnv(reward_probs=[0.8, 0.2])
+    with pytest.raises(ConfigError, match="name one side twice: 'correct' and '0'"):
+        env.apply_changes(rewards={"correct": 0.2, "incorrect": 0.8, 0: 0.5})
+    with pytest.raises(ConfigError, match="must be a number in"):
+        env.apply_changes(rewards={"correct": 0.3, "incorrect": 2.0})
+    assert env.reward_probs.tolist() == [0.8, 0.2]
+
+
 def test_recovery_simulates_and_fits_the_drawn_outcomes():
     """cobel recover's synthetic agents choose in the env itself: the table's rewards are the
     drawn outcomes (0 or 1, at the stated rates per phase), and the fit's likelihood is that of

@@ -126,6 +126,7 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
         if terminals or starts is not None:
             raise ConfigError("a two_afc phase changes only rewards "
                               "(correct/incorrect -> reward probability)")  # fmt: skip
+        probs: dict[int, tuple[str, float]] = {}  # side -> (key, p); all checked, then set
         for ref, p in (rewards or {}).items():
             key = str(ref)
             if key not in _SIDES:
@@ -134,7 +135,13 @@ class TwoAFCEnv(gym.Env[np.ndarray, int]):
             if isinstance(p, bool) or not isinstance(p, int | float) or not 0.0 <= p <= 1.0:
                 raise ConfigError(f"two_afc reward probability of {key!r} must be a number in "
                                   f"[0, 1], got {p!r}")  # fmt: skip
-            self.reward_probs[_SIDES[key]] = float(p)
+            side = _SIDES[key]
+            if side in probs:
+                raise ConfigError(f"two_afc rewards name one side twice: {probs[side][0]!r} and "
+                                  f"{key!r} (0 is correct, 1 is incorrect); give each once")  # fmt: skip
+            probs[side] = (key, float(p))
+        for side, (_, p) in probs.items():
+            self.reward_probs[side] = p
 
     def reset_world(self) -> None:
         """Restore the reward probabilities as built."""

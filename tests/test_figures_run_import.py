@@ -159,6 +159,15 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_run_given_twice_is_refused(sweep, tmp_path):
+    """A sweep and one of its jobs (or one folder twice) would count that run twice in every
+    mean: refused in one line, nothing written."""
+    for paths in ([sweep, sweep / "0"], [sweep / "1", sweep / "1"]):
+        with pytest.raises(CobelError, match=r"run folder .* is given twice"):
+            run_import.import_runs("fig6a", paths, out_dir=tmp_path / "o")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("flag", [["--quick"], ["--labels", "dqn"], ["--no-build"]])
 def test_export_flags_are_refused_with_runs(sweep, tmp_path, capsys, flag):
     """--quick (or --labels, --no-build) with --runs would be ignored: a quick sweep's runs would

@@ -138,6 +138,14 @@ def scan(paths: Sequence[Path]) -> tuple[list[RunInfo], list[dict[str, Any]]]:
                              "folder (manifest.json)")  # fmt: skip
     if not runs:
         raise CobelError("--runs: no runs found")
+    seen: dict[Path, RunInfo] = {}
+    for r in runs:  # a run counted twice would weigh twice in every mean
+        key = r.run_dir.resolve()
+        if key in seen:
+            raise CobelError(f"--runs: the run folder {r.run_dir} is given twice (as "
+                             f"{_describe(seen[key])} and {_describe(r)}); give each sweep or "
+                             "run folder once")  # fmt: skip
+        seen[key] = r
     return runs, sweeps
 
 

@@ -295,7 +295,14 @@ def rerun_config(run_dir: str | os.PathLike[str], overrides: Sequence[str] = ())
 
     folder = RunFolder(run_dir)
     if not folder.config.is_file():
-        raise CobelError(f"{folder.path} is not a run folder (no {RunFolder.CONFIG})")
+        from cobelrun.io.sweep_folder import SWEEP_FILE
+
+        hint = ""
+        if (folder.path / SWEEP_FILE).is_file():
+            hint = (f"; it is a sweep folder ({SWEEP_FILE}): give one of its job folders (e.g. "
+                    f"{folder.path / '0'}); the sweep's own `cobel run -m ...` command again "
+                    "resumes its stopped jobs")  # fmt: skip
+        raise CobelError(f"{folder.path} is not a run folder (no {RunFolder.CONFIG}){hint}")
     cfg = load_config(folder.config)
     parsed = _parse(_task_overrides(None, overrides))
     for o in parsed:

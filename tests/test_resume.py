@@ -242,3 +242,15 @@ def test_cobel_resume_logs_its_launch_in_the_run_log(
     assert "status completed" in log.split("resumed from its checkpoint")[1]
     again = cli("resume", str(folder))
     assert again.returncode == 2 and (folder / "cobel.log").read_text() == log
+
+
+def test_resume_of_a_sweep_folder_names_its_jobs(tmp_path: Path) -> None:
+    """``cobel resume SWEEP_DIR`` (a plausible slip: the sweep, not its job) says what to give."""
+    (tmp_path / "sweep.json").write_text("{}")
+    with pytest.raises(CobelError, match=r"not a run folder .*it is a sweep folder \(sweep.json\)"
+                       r": give one of its job folders"):  # fmt: skip
+        api.resume(tmp_path)
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    with pytest.raises(CobelError, match=r"not a run folder \(no config.yaml\)$"):
+        api.resume(plain)

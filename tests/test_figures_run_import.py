@@ -159,6 +159,13 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_folder_of_sweeps_names_them(sweep, tmp_path):
+    """A figure's sweeps folder (figures/sweeps/NAME, one sweep per label) is not a sweep: the
+    error names the sweeps inside to give instead."""
+    with pytest.raises(CobelError, match=rf"holds the sweeps {sweep.name} .*--runs {sweep}$"):
+        run_import.import_runs("fig6a", [sweep.parent], out_dir=tmp_path / "o")
+
+
 def test_a_run_given_twice_is_refused(sweep, tmp_path):
     """A sweep and one of its jobs (or one folder twice) would count that run twice in every
     mean: refused in one line, nothing written."""

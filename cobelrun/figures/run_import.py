@@ -134,8 +134,11 @@ def scan(paths: Sequence[Path]) -> tuple[list[RunInfo], list[dict[str, Any]]]:
         elif (path / "manifest.json").is_file():
             runs.append(run_info(path))
         else:
+            inner = sorted(p.name for p in path.iterdir() if (p / SWEEP_FILE).is_file())
+            hint = (f"; it holds the sweeps {', '.join(inner)} (a figure's labels): give "
+                    f"them, e.g. --runs {' '.join(str(path / n) for n in inner)}" if inner else "")  # fmt: skip
             raise CobelError(f"--runs {path}: neither a sweep folder (sweep.json) nor a run "
-                             "folder (manifest.json)")  # fmt: skip
+                             f"folder (manifest.json){hint}")  # fmt: skip
     if not runs:
         raise CobelError("--runs: no runs found")
     seen: dict[Path, RunInfo] = {}

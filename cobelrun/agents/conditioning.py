@@ -109,8 +109,42 @@ class _Conditioning(Agent):
         p = 1.0 / (1.0 + math.exp(-max(min(z, 700.0), -700.0)))
         return int(self.rng.random() < p)
 
+    def predict(self, observations: np.ndarray) -> np.ndarray:
+        """``[0, V]`` per observation (no-response and response preference)."""
+        v = self.value(observations)
+        return np.stack([np.zeros_like(v), v], axis=1)
 
-class RescorlaWagner(_Conditioning):
+
+class _SummedCues(_Conditioning):
+    """Trial-level models whose prediction is the summed strength ``w`` of the trial's cues
+    (Rescorla-Wagner, Pearce-Hall): ``V`` is read at the trial's start, the outcome summed over
+    its steps, the update made at its end (``end_trial``). ``w`` covers the first ``len(w)``
+    cues; :meth:`_counted` says which of them enter the compound."""
+
+    w: np.ndarray
+    _x: np.ndarray
+    _us: float
+
+    def _counted(self, x: np.ndarray) -> np.ndarray:
+        return x
+
+    def value(self, cues: np.ndarray) -> np.ndarray:
+        """``V`` of cue vectors (n, n_cues): the summed strengths of the cues in the compound."""
+        return self._counted(np.atleast_2d(np.asarray(cues, np.float64))[:, : len(self.w)]) @ self.w
+
+    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
+        self._x = self._counted(self.seq.trial_cues()[: len(self.w)].astype(np.float64))
+        self.prediction = float(self._x @ self.w)
+        self._us = 0.0
+
+    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
+        return self.respond(self.prediction if np.any(obs[: self.seq.n_cs]) else 0.0)
+
+    def observe(self, transition: Transition, learn: bool) -> None:
+        self._us += transition.reward
+
+
+class RescorlaWagner(_SummedCues):
     """Rescorla-Wagner (1972): trial-level learning from the summed prediction of a compound.
 
     Parameters
@@ -168,31 +202,13 @@ class RescorlaWagner(_Conditioning):
         return {"learning_rate": self.learning_rate, "asymptote": self.asymptote,
                 "context_cues": self.context_cues, "salience": self.alpha.tolist()}  # fmt: skip
 
-    def value(self, cues: np.ndarray) -> np.ndarray:
-        """``V`` of cue vectors (n, n_cues): the summed strengths of the cues in the compound."""
-        x = np.atleast_2d(np.asarray(cues, np.float64))[:, : len(self.w)]
-        if not self.context_cues:
-            x = x.copy()
-            x[:, self.seq.n_cs :] = 0.0
-        return x @ self.w
-
-    def predict(self, observations: np.ndarray) -> np.ndarray:
-        """``[0, V]`` per observation (no-response and response preference)."""
-        v = self.value(observations)
-        return np.stack([np.zeros_like(v), v], axis=1)
-
-    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
-        self._x = self.seq.trial_cues().astype(np.float64)
-        if not self.context_cues:
-            self._x[self.seq.n_cs :] = 0.0
-        self.prediction = float(self._x @ self.w)
-        self._us = 0.0
-
-    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
-        return self.respond(self.prediction if np.any(obs[: self.seq.n_cs]) else 0.0)
-
-    def observe(self, transition: Transition, learn: bool) -> None:
-        self._us += transition.reward
+    def _counted(self, x: np.ndarray) -> np.ndarray:
+        """The cues of ``x`` that enter the compound: the contexts only with ``context_cues``."""
+        if self.context_cues:
+            return x
+        x = x.copy()
+        x[..., self.seq.n_cs :] = 0.0
+        return x
 
     def end_trial(self, learn: bool) -> None:
         if learn:
@@ -209,7 +225,7 @@ class RescorlaWagner(_Conditioning):
         self.w[...] = arrays["w"]
 
 
-class PearceHall(_Conditioning):
+class PearceHall(_SummedCues):
     """The hybrid Rescorla-Wagner / Pearce-Hall model of attention in conditioning.
 
     The prediction is the summed strength of the trial's conditioned stimuli, as in
@@ -270,27 +286,6 @@ class PearceHall(_Conditioning):
         return {"learning_rate": self.learning_rate, "asymptote": self.asymptote,
                 "associability_rate": self.associability_rate,
                 "initial_associability": self.initial_associability}  # fmt: skip
-
-    def value(self, cues: np.ndarray) -> np.ndarray:
-        """``V`` of cue vectors (n, n_cues): the summed strengths of the conditioned stimuli."""
-        x = np.atleast_2d(np.asarray(cues, np.float64))[:, : len(self.w)]
-        return x @ self.w
-
-    def predict(self, observations: np.ndarray) -> np.ndarray:
-        """``[0, V]`` per observation (no-response and response preference)."""
-        v = self.value(observations)
-        return np.stack([np.zeros_like(v), v], axis=1)
-
-    def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
-        self._x = self.seq.trial_cues()[: self.seq.n_cs].astype(np.float64)
-        self.prediction = float(self._x @ self.w)
-        self._us = 0.0
-
-    def act(self, obs: Any, info: dict[str, Any], learn: bool) -> int:
-        return self.respond(self.prediction if np.any(obs[: self.seq.n_cs]) else 0.0)
-
-    def observe(self, transition: Transition, learn: bool) -> None:
-        self._us += transition.reward
 
     def end_trial(self, learn: bool) -> None:
         if not learn:
@@ -369,11 +364,6 @@ class TDConditioning(_Conditioning):
         x = np.atleast_2d(np.asarray(observations, np.float64)).copy()
         x[:, : self.seq.n_cs] = 0.0
         return x @ self.w
-
-    def predict(self, observations: np.ndarray) -> np.ndarray:
-        """``[0, V]`` per observation."""
-        v = self.value(observations)
-        return np.stack([np.zeros_like(v), v], axis=1)
 
     def begin_trial(self, obs: Any, info: dict[str, Any], learn: bool) -> None:
         self._e[:] = 0.0

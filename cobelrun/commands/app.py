@@ -337,8 +337,8 @@ def status_cmd(
     For a sweep, rebuilds its job index (SWEEP_DIR/jobs.csv) and exits 1 when a job is not done.
     """
     from rich.console import Console
-    from rich.table import Table
 
+    from cobelrun.commands.summary import sweep_table
     from cobelrun.io.run_folder import RunFolder
     from cobelrun.io.sweep_folder import SWEEP_FILE, job_rows, read_sweep, summary
 
@@ -357,12 +357,7 @@ def status_cmd(
     except CobelError as exc:
         fail(str(exc))
     console = Console()
-    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
-    table.add_column("job", justify="right")
-    for key in sweep["swept"]:
-        table.add_column(key, style="cyan")
-    table.add_column("status")
-    table.add_column("time \\[s]", justify="right")
+    table = sweep_table(sweep_dir, sweep["swept"])
     table.add_column("error", overflow="fold")
     for r in rows:
         if problems and r["status"] == "done":

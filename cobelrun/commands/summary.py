@@ -107,7 +107,6 @@ def print_run_summary(run_dir: str | Path) -> None:
 
 def print_sweep_summary(sweep_dir: str | Path) -> None:
     """Print a sweep's job table: swept values, status, wall time and objective."""
-    from rich.table import Table
 
     from cobelrun.commands.common import STATUS_STYLE
     from cobelrun.io.sweep_folder import job_rows, read_sweep
@@ -121,12 +120,7 @@ def print_sweep_summary(sweep_dir: str | Path) -> None:
         if m is not None and m.is_file():
             objectives[r["job"]] = _manifest(RunFolder(r["run_dir"])).get("objective")
     has_objective = any(v is not None for v in objectives.values())
-    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
-    table.add_column("job", justify="right")
-    for key in sweep["swept"]:
-        table.add_column(key, style="cyan")
-    table.add_column("status")
-    table.add_column("time \\[s]", justify="right")
+    table = sweep_table(sweep_dir, sweep["swept"])
     if has_objective:
         table.add_column("objective", justify="right")
     for r in rows:
@@ -200,3 +194,17 @@ def run_status(folder: RunFolder) -> None:
         typer.echo(f"  unreadable: {problem}")
     if status != "completed" or unreadable:
         raise typer.Exit(1)
+
+
+def sweep_table(sweep_dir: Path, swept: list[str]) -> Any:
+    """The rich table a sweep is listed in (``cobel status SWEEP``, a sweep's summary): a row
+    per job with its swept values, status and time; callers add their own last columns."""
+    from rich.table import Table
+
+    table = Table(title=f"sweep {sweep_dir}", title_justify="left", box=None)
+    table.add_column("job", justify="right")
+    for key in swept:
+        table.add_column(key, style="cyan")
+    table.add_column("status")
+    table.add_column("time \\[s]", justify="right")
+    return table

@@ -64,6 +64,10 @@ def main() -> None:
 
     cobelrun.signals.HOLD_AFTER_STOP = True  # a stopped run exits 130, whatever comes after
     argv = sys.argv[1:]
+    if _single_run(argv):
+        # a scheduler's SIGTERM/SIGUSR1/SIGUSR2 while Python imports and the config is composed
+        # stops the run at its first trial boundary (with a checkpoint: exit 75), not with 143
+        cobelrun.signals.hold_early()
     if argv[:1] == ["run"]:
         startup.pause_gc()  # until the job starts (hydra_app.job); see cobelrun.startup
     try:
@@ -71,6 +75,14 @@ def main() -> None:
     finally:
         startup.resume_gc()  # a run that ended before its job (a bad config, --help)
     exit_now(code)
+
+
+def _single_run(argv: list[str]) -> bool:
+    """``cobel run`` without ``-m`` (a sweep's launcher handles its own signals) or
+    ``cobel resume``."""
+    if argv[:1] == ["resume"]:
+        return True
+    return argv[:1] == ["run"] and not any(a in ("-m", "--multirun") for a in argv[1:])
 
 
 def _command(argv: list[str]) -> Any:

@@ -6,24 +6,58 @@ state half-changed wraps it in :func:`critical`: the recorder when it moves rows
 buffers, compiled agents around a kernel call (a signal landing inside numpy's generator
 ``ctypes`` accessors used to print a PCG64 error and corrupt the draw). A signal inside a
 critical section is raised when the section ends.
+
+A signal can arrive before any run has installed its guard: SLURM preempts a job, or sends its
+time-limit signal, while Python still imports and the config is being composed. The ``cobel``
+CLI therefore calls :func:`hold_early` first: SIGTERM, SIGUSR1 and SIGUSR2 are held, and the
+first guard installed afterwards acts on a held signal as if it had just arrived (a run with
+checkpoints stops at its first trial boundary with a checkpoint and exits 75). A second early
+signal ends the process at once, as without cobel.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
 from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["Interrupted", "SignalGuard", "Stopped", "critical"]
+__all__ = ["Interrupted", "SignalGuard", "Stopped", "critical", "hold_early"]
 
 _ACTIVE: SignalGuard | None = None
+#: signals that arrived before a guard was installed (:func:`hold_early`), oldest first
+_EARLY: list[int] = []
+#: the signals :func:`hold_early` holds: what a scheduler sends to stop or requeue a job
+EARLY_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGUSR1", "SIGUSR2")
+                      if hasattr(signal, n))  # fmt: skip
 
 #: Set by the ``cobel`` CLI: once a run was stopped, further SIGINT/SIGTERM are ignored until
 #: the process exits (so a late second Ctrl-C cannot turn exit code 130 into a kill). A
 #: library caller (notebook) keeps its own handlers back.
 HOLD_AFTER_STOP = False
+
+
+def _hold(signum: int, frame: Any) -> None:
+    if _EARLY:  # a second signal before any run started: the default action, now
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return
+    _EARLY.append(signum)
+
+
+def hold_early() -> None:
+    """Hold SIGTERM, SIGUSR1 and SIGUSR2 until a :class:`SignalGuard` is installed, which then
+    acts on the first one held. Main thread only (else nothing is held)."""
+    with contextlib.suppress(ValueError):
+        for sig in EARLY_SIGNALS:
+            signal.signal(sig, _hold)
+
+
+def early_signal() -> int | None:
+    """The signal held by :func:`hold_early` that no guard has taken yet (None: none)."""
+    return _EARLY[0] if _EARLY else None
 
 
 def critical() -> contextlib.AbstractContextManager[None]:
@@ -86,6 +120,13 @@ class SignalGuard:
             self._previous.clear()
         outer, _ACTIVE = _ACTIVE, self
         try:
+            if _EARLY and self._previous:  # held before this guard: act on it now
+                signum = _EARLY.pop(0)
+                _EARLY.clear()
+                if self.defer:  # stop at the first trial boundary, with a checkpoint
+                    self.stop_requested = signum
+                else:  # raised where the run can close its files: a critical section's end
+                    self._pending = signum
             yield self
         finally:
             _ACTIVE = outer

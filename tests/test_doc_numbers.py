@@ -176,3 +176,30 @@ def test_markers_in_code_are_text_and_bad_settings_fail_clearly(tmp_path):
     doc.write_text("<!-- data: t.csv; settings: N -->\n0.5\n")
     with pytest.raises(CobelError, match="settings must be numbers"):
         doc_numbers.check([doc], tmp_path)
+
+
+def test_a_number_from_another_row_of_the_table_fails(tmp_path):
+    """A table row labelled with numbers (``| 101-110 |``) is read against the table's rows of
+    that label: a value the table holds in another row fails."""
+    (tmp_path / "t.csv").write_text("measure,mean\nright_81_100,1.0\nright_101_110,0.6625\n"
+                                    "right_111_120,0.4875\n")  # fmt: skip
+    # p.csv has no row labelled 101-110: read whole (its 0.68 passes)
+    (tmp_path / "p.csv").write_text("trials,rate\n1-20,0.68\n")
+    doc = tmp_path / "page.md"
+    text = "<!-- data: t.csv p.csv -->\n| trials | rate | paper |\n| --- | --- | --- |\n{}\n"
+    doc.write_text(text.format("| 101-110 | 0.66 | 0.68 |"))
+    assert doc_numbers.check([doc], tmp_path) == []
+    doc.write_text(text.format("| 101-110 | 0.49 | 0.68 |"))  # 111-120's value
+    (problem,) = doc_numbers.check([doc], tmp_path)
+    assert "'0.49' in the row labelled '101-110' is in no row of t.csv with that label" in problem
+
+
+def test_a_number_moved_to_another_row_of_a_real_page_fails(tmp_path):
+    """fig6a.md's 36x36 column with one rate swapped for the next row's (both in fig6a.csv)."""
+    page = ROOT / "docs" / "figures" / "fig6a.md"
+    row = "| 101-110 | persists, then gradual extinction | 0.68 | 0.66 | 0.17 |"
+    assert row in page.read_text()
+    copy = tmp_path / "fig6a.md"
+    copy.write_text(page.read_text().replace(row, row.replace("0.66", "0.49")))
+    (problem,) = doc_numbers.check([copy], DATA)
+    assert "'0.49' in the row labelled '101-110'" in problem

@@ -15,6 +15,12 @@ read as numbers, and the numbers inside text cells and column names count too (s
 91-100`` is held by a measure named ``right_91_100``). Not read as numbers: inline code,
 link targets, HTML comments, ``Fig. 6B``-style references, dates and years, version numbers.
 
+**Rows.** A row of a markdown table whose first cell holds numbers (its label: ``| 101-110 |
+...``, ``| 0.8 / 0.2 |``) is read against the rows of the named tables whose text cells hold
+those numbers too (``right_101_110``, ``101-110``): each number of the row must be held by
+such a labelled row, so a number that drifted to another row's value fails although the table
+holds it. A named table with no row of that label is read whole, as above.
+
 ``<!-- data: none -->`` marks a table that holds no results: only a table of settings (its header
 starts ``| setting |``, e.g. a departures table) may carry it. :func:`check` returns one message
 per number no table holds, per marker naming a missing table, per ``none`` marker on anything
@@ -154,6 +160,34 @@ def table_values(path: Path) -> np.ndarray:
     return np.abs(np.asarray(values, dtype=float))
 
 
+def table_rows(path: Path) -> list[tuple[frozenset[float], np.ndarray]]:
+    """Each row of a CSV as (the numbers of its text cells: the row's labels, every number of
+    the row)."""
+    frame = pd.read_csv(path)
+    rows = []
+    for record in frame.itertuples(index=False):
+        labels: list[float] = []
+        values: list[float] = []
+        for cell in record:
+            if isinstance(cell, str):
+                labels += [v for _, v, _, _ in numbers(cell.replace("_", " "))]
+            elif pd.notna(cell) and isinstance(cell, int | float | np.number):
+                values.append(float(cell))
+        rows.append((frozenset(labels), np.abs(np.asarray(values + labels, dtype=float))))
+    return rows
+
+
+def row_label(line: str) -> tuple[list[float], str] | None:
+    """A markdown table row as (the numbers of its first cell, the text of the other cells);
+    None for other lines, a header's rule, and a row whose first cell holds no number."""
+    text = line.strip()
+    if not text.startswith("|") or set(text) <= set("|-: "):
+        return None
+    cells = text.strip("|").split("|")
+    label = [v for _, v, _, _ in numbers(cells[0])]
+    return (label, "|".join(cells[1:])) if label and len(cells) > 1 else None
+
+
 def held(value: float, half: float, percent: bool, pool: np.ndarray) -> bool:
     """Does a table value, rounded to the doc's last digit (``half`` a unit of it), read
     ``value``?"""
@@ -233,6 +267,35 @@ def check(
     ``allow`` list (page file name -> {number as written: why it needs no table}) holds."""
     problems = []
     cache: dict[str, np.ndarray] = {}
+    rows_cache: dict[str, list[tuple[frozenset[float], np.ndarray]]] = {}
+
+    def labelled(doc: Path, c: Covered) -> None:
+        """The rows of a covered markdown table against the tables' rows of the same label."""
+        for line in c.text.splitlines():
+            row = row_label(line)
+            if row is None:
+                continue
+            label, rest = row
+            pools, matched = [np.abs(np.asarray([*c.settings, *label], float))], []
+            for name in c.tables:
+                if not (data_dir / name).is_file():
+                    continue  # reported once by pool_of
+                if name not in rows_cache:
+                    rows_cache[name] = table_rows(data_dir / name)
+                same = [v for keys, v in rows_cache[name] if all(x in keys for x in label)]
+                if same:
+                    matched.append(name)
+                pools += same or [cache[name]]  # filled by pool_of
+            if not matched:
+                continue  # no table labels its rows so: read whole (above)
+            pool = np.concatenate(pools)
+            for shown, value, half, pct in numbers(rest):
+                if not held(value, half, pct, pool):
+                    problems.append(
+                        f"{doc}:{c.line}: {shown!r} in the row labelled "
+                        f"{line.strip().strip('|').split('|')[0].strip()!r} is in no row of "
+                        f"{', '.join(matched)} with that label"
+                    )
 
     def pool_of(doc: Path, line: int, tables: Iterable[str]) -> list[np.ndarray]:
         pools = []
@@ -256,11 +319,14 @@ def check(
             pool = np.concatenate(
                 [*pool_of(doc, c.line, c.tables), np.abs(np.asarray(c.settings, float))]
             )
+            before = len(problems)
             for shown, value, half, pct in numbers(c.text):
                 if not held(value, half, pct, pool):
                     problems.append(
                         f"{doc}:{c.line}: {shown!r} is in no table of {', '.join(c.tables)}"
                     )
+            if len(problems) == before:  # held by the tables: is it in its row's?
+                labelled(doc, c)
     for doc in pages:
         allowed = (allow or {}).get(doc.name, {})
         try:

@@ -65,6 +65,9 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
         assert row["right_181_200"] == pytest.approx(
             trials.loc[trials["trial"].between(181, 200), "response"].mean()
         )
+        block = trials[trials["trial"].between(181, 200)]
+        assert row["rewarded_181_200"] == pytest.approx((block["reward"] > 0).mean())
+        assert "rewarded_81_100" not in row  # acquisition: the right arm is the response
         assert row["steps"] == trials["steps"].sum() and row["trials"] == 200
         first_left = ext.loc[ext["response"] == 0, "trial"].min() - 100
         assert row["trials_to_extinction"] == first_left
@@ -74,7 +77,7 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
     summary = pd.read_csv(tmp_path / "out" / "fig6a.csv")
     assert (summary["task"] == "tmaze_extinction").all()
     summary = summary.set_index("measure")
-    for col in ("right_1_20", "right_101_110", "trials_to_extinction"):
+    for col in ("right_1_20", "right_101_110", "rewarded_181_200", "trials_to_extinction"):
         assert summary.loc[col, "mean"] == pytest.approx(per_run[col].mean(), rel=1e-5)
         assert summary.loc[col, "runs"] == 2
     prov = json.loads((tmp_path / "out" / "fig6a.provenance.json").read_text())

@@ -54,6 +54,8 @@ from cobelrun.errors import CobelError, allowed_list, suggest
 #: Fig. 6A's blocks of trials (as ``fig6a.csv``): acquisition 1-100, extinction 101-200
 FIG6A_BLOCKS = ((1, 20), (21, 40), (81, 100), (101, 110), (111, 120), (121, 140), (141, 160),
                 (161, 180), (181, 200))  # fmt: skip
+#: Fig. 6A's last acquisition trial: later blocks also get the share of rewarded trials
+FIG6A_SWITCH = 100
 
 
 @dataclass(frozen=True)
@@ -260,7 +262,8 @@ def provenance(
 
 
 def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
-    """Per run: the right-arm response rate per block of :data:`FIG6A_BLOCKS`, trials to
+    """Per run: the right-arm response rate per block of :data:`FIG6A_BLOCKS`, the share of
+    rewarded trials (the left arm's goal reached) per block after :data:`FIG6A_SWITCH`, trials to
     extinction (extinction trials until its first left choice; NaN if none), trials, steps,
     and the wall and CPU time of its run folder (all its runs)."""
     from cobelrun.figures.extinction import trials_to_extinction
@@ -277,6 +280,10 @@ def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
                                    "seed": info.seed, "run": int(run)}  # fmt: skip
             for lo, hi in FIG6A_BLOCKS:
                 row[f"right_{lo}_{hi}"] = t.loc[t["trial"].between(lo, hi), "response"].mean()
+            for lo, hi in FIG6A_BLOCKS:  # after the switch: the new (left) arm's reward
+                if lo > FIG6A_SWITCH:
+                    block = t["trial"].between(lo, hi)
+                    row[f"rewarded_{lo}_{hi}"] = float((t.loc[block, "reward"] > 0).mean())
             row["trials_to_extinction"] = trials_to_extinction(t)
             row["trials"] = int(t["trial"].max())
             row["steps"] = int(t["steps"].sum())
@@ -292,7 +299,7 @@ def fig6a_summary(per_run: pd.DataFrame, pooled_extinction: float) -> pd.DataFra
     the runs first falls below 0.5) and the share of runs that chose the left arm in
     extinction."""
     rows = []
-    for col in (c for c in per_run.columns if c.startswith("right_") or c in
+    for col in (c for c in per_run.columns if c.startswith(("right_", "rewarded_")) or c in
                 ("trials_to_extinction", "steps")):  # fmt: skip
         v = per_run[col].dropna()
         rows.append({"measure": col, "runs": len(v), "mean": v.mean(),

@@ -282,8 +282,12 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
                 raise ConfigError(
                     f"unknown key '{where}.{key}': {where} ({node['_target_']}) takes no arguments"
                 )
+            # a task's settings for its default agent stay when another agent is chosen
+            other = (f"; if a config (e.g. the task) sets it for another agent, drop it with "
+                     f"~{where}.{key}") if where == "agent" else ""  # fmt: skip
             raise ConfigError(
-                f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: {allowed_list(allowed)}"
+                f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: "
+                f"{allowed_list(allowed)}{other}"
             )
         if isinstance(value, Mapping) and "_target_" in value:
             validate_node(f"{where}.{key}", value)

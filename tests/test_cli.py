@@ -164,6 +164,11 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         (["agent=dynaq"], "unknown agent 'dynaq' (did you mean 'dyna_q'?)"),
         (["env=tmaze_papr"], "unknown env 'tmaze_papr' (did you mean 'tmaze_paper'?)"),
         (["agent.epsilonn=0.2"], "unknown key 'agent.epsilonn' (did you mean 'epsilon'?)"),
+        (  # the task's DQN settings under another agent: say how to drop them
+            ["task=two_afc", "agent=q_learning"],
+            "unknown key 'agent.batch_size'; allowed: 'epsilon', ",
+        ),
+        (["task=two_afc", "agent=q_learning"], "drop it with ~agent.batch_size"),
         (
             ["task.monitors.respons.states=[left]"],
             "unknown key 'task.monitors.respons.states': task.monitors has no 'respons' "

@@ -208,3 +208,20 @@ def test_trials_table_records_the_drawn_rewards(tmp_path):
     assert 0 < (~correct).sum() and 0 < correct.sum()
     _within_binomial(t["reward"].to_numpy()[correct], 0.7)
     _within_binomial(t["reward"].to_numpy()[~correct], 0.3)
+
+
+def test_the_docs_fit_example_is_what_its_recipe_gives(tmp_path, monkeypatch):
+    """docs/two_afc.md's recipe (the python block) makes afc.csv; `cobel fit` on it prints the
+    console block shown there, line for line."""
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "two_afc.md").read_text()
+    recipe = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    shown = re.search(r"```console\n\$ cobel fit (.*?)\n(.*?)```", doc, re.S)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(recipe, "two_afc.md", "exec"), {})  # the docs' own code, as a reader runs it
+    assert (tmp_path / "afc.csv").is_file()
+    result = CliRunner().invoke(app, ["fit", *shown.group(1).split()])
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines() == shown.group(2).strip().splitlines()

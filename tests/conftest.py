@@ -18,6 +18,15 @@ def cobel_exe() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "cobelrun.cli"]
 
 
+def start_cobel_run(args: list[str], out: Path, results: Path) -> subprocess.Popen:
+    """``cobel run ARGS hydra.run.dir=OUT --quiet`` as a real process (signals and exit codes
+    are what a test of it checks), its results under ``results``, pipes for stdout/stderr."""
+    env = {**os.environ, "COBEL_RESULTS": str(results)}
+    env.pop("HYDRA_FULL_ERROR", None)
+    return subprocess.Popen([*cobel_exe(), "run", *args, f"hydra.run.dir={out}", "--quiet"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
 def stop_on_call(
     monkeypatch: pytest.MonkeyPatch, cls: type, name: str, n: int, exc: type[BaseException]
 ) -> None:

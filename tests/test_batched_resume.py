@@ -194,20 +194,16 @@ def test_sigterm_to_a_batched_cli_run_exits_75_and_cobel_resume_finishes_it(
 ) -> None:
     """A real ``cobel run`` of a batched chunk sent SIGTERM mid-phase: checkpoint inside the
     chunk, exit 75; ``cobel resume`` then ends with the tables of the run without the stop."""
-    import subprocess
     import time
 
     from cobelrun.checkpoint import REQUEUE_EXIT
-    from tests.conftest import cobel_exe
+    from tests.conftest import start_cobel_run
 
     args = ["task=two_afc", "agent=dqn", *CHUNK, "task.protocol.phases.0.trials=400",
             "agent.net_arch=[16]", "agent.learning_starts=10",
             "task.record.flush_seconds=0.05", "task.checkpoint.every_minutes=30"]  # fmt: skip
     out = tmp_path / "run"
-    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
-    env.pop("HYDRA_FULL_ERROR", None)
-    proc = subprocess.Popen([*cobel_exe(), "run", *args, f"hydra.run.dir={out}", "--quiet"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = start_cobel_run(args, out, tmp_path)
     deadline = time.time() + 300
     # the chunk's first checkpoint (its start) is written once the signal guard is installed
     while time.time() < deadline and proc.poll() is None:

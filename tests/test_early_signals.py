@@ -18,7 +18,7 @@ import pytest
 
 from cobelrun import signals
 from cobelrun.checkpoint import REQUEUE_EXIT, read_header
-from tests.conftest import cobel_exe
+from tests.conftest import cobel_exe, start_cobel_run
 
 #: a small sequential DQN run with checkpoints on
 ARGS = ["task=two_afc", "agent=dqn", "task.runs=1", "task.batch_runs=false",
@@ -80,10 +80,7 @@ def test_a_second_early_signal_ends_the_process_at_once() -> None:
 
 def test_sigterm_before_the_run_starts_checkpoints_and_exits_75(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
-    env.pop("HYDRA_FULL_ERROR", None)
-    proc = subprocess.Popen([*cobel_exe(), "run", *ARGS, f"hydra.run.dir={out}", "--quiet"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = start_cobel_run(ARGS, out, tmp_path)
     deadline = time.time() + 60
     while time.time() < deadline and proc.poll() is None and not _catches(proc.pid, signal.SIGTERM):
         time.sleep(0.001)
@@ -96,6 +93,7 @@ def test_sigterm_before_the_run_starts_checkpoints_and_exits_75(tmp_path: Path) 
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["status"] == "interrupted" and manifest["checkpoints"]["written"] == 1
     assert 0 < read_header(out / "checkpoint.npz")["position"]["k"] < 30  # its first boundary
+    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
     again = subprocess.run([*cobel_exe(), "resume", str(out), "--quiet"], env=env,
                            capture_output=True, text=True, timeout=300)  # fmt: skip
     assert again.returncode == 0, again.stderr

@@ -276,8 +276,20 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def server(workdir: Path):
     port = free_port()
-    yield from web_command(["edit", "env=open_field", "-cd", str(workdir / "conf"), "--port",
-                            str(port), "--results", str(workdir / "results")], port, cwd=workdir)
+    yield from web_command(
+        [
+            "edit",
+            "env=open_field",
+            "-cd",
+            str(workdir / "conf"),
+            "--port",
+            str(port),
+            "--results",
+            str(workdir / "results"),
+        ],
+        port,
+        cwd=workdir,
+    )
 
 
 @pytest.fixture(scope="module")

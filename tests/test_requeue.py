@@ -17,7 +17,7 @@ import pytest
 
 from cobelrun import api, runner
 from cobelrun.checkpoint import REQUEUE_EXIT, read_header
-from tests.conftest import cobel_exe
+from tests.conftest import cobel_exe, start_cobel_run
 from tests.inprocess import cli  # noqa: F401 (fixture)
 
 #: a sequential DQN run long enough (~2 x 300 learning steps) to be stopped mid-phase
@@ -34,10 +34,7 @@ def tables(folder: Path) -> dict[str, pd.DataFrame]:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGUSR1])
 def test_signal_mid_phase_checkpoints_exits_75_and_resumes(tmp_path: Path, cli, sig) -> None:  # noqa: F811
     out = tmp_path / "run"
-    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
-    env.pop("HYDRA_FULL_ERROR", None)
-    proc = subprocess.Popen([*cobel_exe(), "run", *ARGS, f"hydra.run.dir={out}", "--quiet"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = start_cobel_run(ARGS, out, tmp_path)
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
         if (out / ".parts" / "trials").is_dir():  # the first trials were recorded
@@ -144,11 +141,8 @@ def test_sigkill_after_a_checkpoint_resumes_from_the_parts(tmp_path: Path, cli) 
     """SIGKILL (no chance to write anything): the tables are left in parts, past the last
     checkpoint; ``cobel resume`` takes the parts up to the checkpoint and finishes the run."""
     out = tmp_path / "run"
-    env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
-    env.pop("HYDRA_FULL_ERROR", None)
     args = [*ARGS, "task.checkpoint.every_trials=40"]
-    proc = subprocess.Popen([*cobel_exe(), "run", *args, f"hydra.run.dir={out}", "--quiet"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = start_cobel_run(args, out, tmp_path)
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
         if (out / "checkpoint.npz").is_file():

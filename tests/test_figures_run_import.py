@@ -68,6 +68,8 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
         block = trials[trials["trial"].between(181, 200)]
         assert row["rewarded_181_200"] == pytest.approx((block["reward"] > 0).mean())
         assert "rewarded_81_100" not in row  # acquisition: the right arm is the response
+        assert row["latency_181_200"] == pytest.approx(block["steps"].mean())
+        assert row["acquisition_steps"] == trials.loc[trials["trial"] <= 100, "steps"].sum()
         assert row["steps"] == trials["steps"].sum() and row["trials"] == 200
         first_left = ext.loc[ext["response"] == 0, "trial"].min() - 100
         assert row["trials_to_extinction"] == first_left
@@ -80,6 +82,11 @@ def test_fig6a_tables_are_the_runs_own_numbers(sweep, tmp_path):
     for col in ("right_1_20", "right_101_110", "rewarded_181_200", "trials_to_extinction"):
         assert summary.loc[col, "mean"] == pytest.approx(per_run[col].mean(), rel=1e-5)
         assert summary.loc[col, "runs"] == 2
+    assert summary.loc["lowest_right_81_100", "mean"] == per_run["right_81_100"].min()
+    assert (
+        summary.loc["runs_right_181_200_at_most_half", "mean"]
+        == (per_run["right_181_200"] <= 0.5).sum()
+    )
     prov = json.loads((tmp_path / "out" / "fig6a.provenance.json").read_text())
     assert prov["source"] == "run" and prov["runs_used"] == prov["runs_total"] == 2
     assert prov["seeds"] == [0, 1] and not prov["partial"] and prov["unfinished"] == []

@@ -263,7 +263,8 @@ def provenance(
 
 def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
     """Per run: the right-arm response rate per block of :data:`FIG6A_BLOCKS`, the share of
-    rewarded trials (the left arm's goal reached) per block after :data:`FIG6A_SWITCH`, trials to
+    rewarded trials (the left arm's goal reached) per block after :data:`FIG6A_SWITCH`, the mean
+    steps per trial per block (``latency_*``), the steps of the acquisition trials, trials to
     extinction (extinction trials until its first left choice; NaN if none), trials, steps,
     and the wall and CPU time of its run folder (all its runs)."""
     from cobelrun.figures.extinction import trials_to_extinction
@@ -284,6 +285,9 @@ def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
                 if lo > FIG6A_SWITCH:
                     block = t["trial"].between(lo, hi)
                     row[f"rewarded_{lo}_{hi}"] = float((t.loc[block, "reward"] > 0).mean())
+            for lo, hi in FIG6A_BLOCKS:  # mean steps per trial: time-outs (100) after the switch
+                row[f"latency_{lo}_{hi}"] = float(t.loc[t["trial"].between(lo, hi), "steps"].mean())
+            row["acquisition_steps"] = int(t.loc[t["trial"] <= FIG6A_SWITCH, "steps"].sum())
             row["trials_to_extinction"] = trials_to_extinction(t)
             row["trials"] = int(t["trial"].max())
             row["steps"] = int(t["steps"].sum())
@@ -296,11 +300,12 @@ def fig6a_runs(runs: Sequence[RunInfo]) -> pd.DataFrame:
 def fig6a_summary(per_run: pd.DataFrame, pooled_extinction: float) -> pd.DataFrame:
     """Per measure of ``per_run`` (the runs of one task): runs (with a value), mean, SD, SE,
     median; and the figure's extinction trial (``pooled_extinction``: where the mean rate over
-    the runs first falls below 0.5) and the share of runs that chose the left arm in
-    extinction."""
+    the runs first falls below 0.5), the share of runs that chose the left arm in extinction,
+    the lowest run's rate over trials 81-100 and the number of runs at or below 0.5 over trials
+    181-200 (these last four in ``mean``)."""
     rows = []
-    for col in (c for c in per_run.columns if c.startswith(("right_", "rewarded_")) or c in
-                ("trials_to_extinction", "steps")):  # fmt: skip
+    for col in (c for c in per_run.columns if c.startswith(("right_", "rewarded_", "latency_"))
+                or c in ("trials_to_extinction", "acquisition_steps", "steps")):  # fmt: skip
         v = per_run[col].dropna()
         rows.append({"measure": col, "runs": len(v), "mean": v.mean(),
                      "sd": v.std(ddof=1) if len(v) > 1 else np.nan,
@@ -312,6 +317,15 @@ def fig6a_summary(per_run: pd.DataFrame, pooled_extinction: float) -> pd.DataFra
     extinct = per_run["trials_to_extinction"].notna()
     rows.append({"measure": "share_of_runs_extinct", "runs": n, "mean": extinct.mean(),
                  "sd": np.nan, "se": np.nan, "median": np.nan})  # fmt: skip
+    # the acceptance's per-run reading: every run learnt (its lowest rate over trials 81-100),
+    # and how many runs extinguished (at most 0.5 over trials 181-200); counts in 'mean'
+    last = per_run[f"right_{FIG6A_BLOCKS[-1][0]}_{FIG6A_BLOCKS[-1][1]}"]
+    rows.append({"measure": "lowest_right_81_100", "runs": n,
+                 "mean": per_run["right_81_100"].min(), "sd": np.nan, "se": np.nan,
+                 "median": np.nan})  # fmt: skip
+    rows.append({"measure": "runs_right_181_200_at_most_half", "runs": n,
+                 "mean": int((last <= 0.5).sum()), "sd": np.nan, "se": np.nan,
+                 "median": np.nan})  # fmt: skip
     return pd.DataFrame(rows)
 
 

@@ -78,23 +78,41 @@ def test_a_second_early_signal_ends_the_process_at_once() -> None:
     assert proc.returncode == -signal.SIGTERM and "survived" not in proc.stdout
 
 
+def _signal_when_caught(proc: subprocess.Popen, sig: int) -> None:
+    """Send ``sig`` as soon as the process has a handler for it (cobel's first one)."""
+    deadline = time.time() + 60
+    while time.time() < deadline and proc.poll() is None and not _catches(proc.pid, sig):
+        time.sleep(0.001)
+    assert proc.poll() is None, proc.communicate()[1][-2000:]
+    proc.send_signal(sig)
+
+
 def test_sigterm_before_the_run_starts_checkpoints_and_exits_75(tmp_path: Path) -> None:
+    """``cobel run`` and then ``cobel resume``, each sent SIGTERM as soon as it can catch one
+    (before the run exists, before the resume has taken the folder): each stops at its first
+    trial boundary with a checkpoint and exits 75; a last ``cobel resume`` completes the run."""
     out = tmp_path / "run"
     proc = start_cobel_run(ARGS, out, tmp_path)
-    deadline = time.time() + 60
-    while time.time() < deadline and proc.poll() is None and not _catches(proc.pid, signal.SIGTERM):
-        time.sleep(0.001)
-    # the signal lands before the run exists: cobel's first handler, not the run's
-    assert proc.poll() is None and not (out / "manifest.json").exists()
-    proc.send_signal(signal.SIGTERM)
+    _signal_when_caught(proc, signal.SIGTERM)
+    assert not (out / "manifest.json").exists()  # it landed before the run started
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == REQUEUE_EXIT, err
     assert "checkpoint written" in err and "cobel resume" in err
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["status"] == "interrupted" and manifest["checkpoints"]["written"] == 1
-    assert 0 < read_header(out / "checkpoint.npz")["position"]["k"] < 30  # its first boundary
+    k = read_header(out / "checkpoint.npz")["position"]["k"]
+    assert 0 < k < 30  # its first boundary
+
     env = {**os.environ, "COBEL_RESULTS": str(tmp_path)}
-    again = subprocess.run([*cobel_exe(), "resume", str(out), "--quiet"], env=env,
-                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    resume = [*cobel_exe(), "resume", str(out), "--quiet"]
+    proc = subprocess.Popen(resume, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)  # fmt: skip
+    _signal_when_caught(proc, signal.SIGUSR1)
+    assert json.loads((out / "manifest.json").read_text())["status"] == "interrupted"
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == REQUEUE_EXIT, err
+    assert k < read_header(out / "checkpoint.npz")["position"]["k"] < 30  # one piece further
+
+    again = subprocess.run(resume, env=env, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert (out / ".done").is_file() and not (out / "checkpoint.npz").exists()

@@ -203,3 +203,30 @@ def test_a_number_moved_to_another_row_of_a_real_page_fails(tmp_path):
     copy.write_text(page.read_text().replace(row, row.replace("0.66", "0.49")))
     (problem,) = doc_numbers.check([copy], DATA)
     assert "'0.49' in the row labelled '101-110'" in problem
+
+
+def test_a_row_labelled_in_words_is_read_against_that_labels_rows(tmp_path):
+    """``| sr_td | ...`` against the rows with a text cell ``sr_td``: another agent's score
+    fails; a first cell naming a figure (README's rows) is no label."""
+    (tmp_path / "t.csv").write_text("design,agent,score\nreward,sr_td,0.95\nreward,dyna_q,0.8\n"
+                                    "transition,sr_td,0\nreward,Fig. 4,0.5\n")  # fmt: skip
+    doc = tmp_path / "page.md"
+    text = "<!-- data: t.csv -->\n| agent | reward | transition |\n| --- | --- | --- |\n{}\n"
+    doc.write_text(text.format("| `sr_td` | 0.95 | 0.00 |"))
+    assert doc_numbers.check([doc], tmp_path) == []
+    doc.write_text(text.format("| `sr_td` | 0.80 | 0.00 |"))  # dyna_q's score
+    (problem,) = doc_numbers.check([doc], tmp_path)
+    assert "'0.80' in the row labelled '`sr_td`' is in no row of t.csv" in problem
+    doc.write_text(text.format("| Fig. 4 | 0.80 | 0.00 |"))  # a figure's name: the whole table
+    assert doc_numbers.check([doc], tmp_path) == []
+
+
+def test_a_score_moved_to_another_agent_on_the_real_page_fails(tmp_path):
+    """revaluation.md with sr_td's reward score replaced by dyna_q (1)'s (both in the CSV)."""
+    page = ROOT / "docs" / "figures" / "revaluation.md"
+    row = "| sr_td | reward only | 0.95 | 0.00 | 0.00 |"
+    assert row in page.read_text()
+    copy = tmp_path / "revaluation.md"
+    copy.write_text(page.read_text().replace(row, row.replace("0.95", "0.80")))
+    (problem,) = doc_numbers.check([copy], DATA)
+    assert "'0.80' in the row labelled 'sr_td'" in problem

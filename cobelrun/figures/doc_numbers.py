@@ -15,11 +15,13 @@ read as numbers, and the numbers inside text cells and column names count too (s
 91-100`` is held by a measure named ``right_91_100``). Not read as numbers: inline code,
 link targets, HTML comments, ``Fig. 6B``-style references, dates and years, version numbers.
 
-**Rows.** A row of a markdown table whose first cell holds numbers (its label: ``| 101-110 |
-...``, ``| 0.8 / 0.2 |``) is read against the rows of the named tables whose text cells hold
-those numbers too (``right_101_110``, ``101-110``): each number of the row must be held by
-such a labelled row, so a number that drifted to another row's value fails although the table
-holds it. A named table with no row of that label is read whole, as above.
+**Rows.** A row of a markdown table is read against the rows of the named tables that carry
+its label (its first cell): a label with numbers (``| 101-110 | ...``) against the rows whose
+text cells hold those numbers (``right_101_110``, ``101-110``), a label in words (``| sr_td |
+...``) against the rows with a text cell equal to it (markup and case aside). Each number of
+the row must be held by such a row, so a number that drifted to another row's value fails
+although the table holds it. A named table with no row of that label is read whole, as above;
+a first cell naming a figure (README's ``| Fig. 4 |``) is no label.
 
 ``<!-- data: none -->`` marks a table that holds no results: only a table of settings (its header
 starts ``| setting |``, e.g. a departures table) may carry it. :func:`check` returns one message
@@ -160,32 +162,70 @@ def table_values(path: Path) -> np.ndarray:
     return np.abs(np.asarray(values, dtype=float))
 
 
-def table_rows(path: Path) -> list[tuple[frozenset[float], np.ndarray]]:
-    """Each row of a CSV as (the numbers of its text cells: the row's labels, every number of
-    the row)."""
+@dataclass(frozen=True)
+class TableRow:
+    """A CSV row as the doc check reads it."""
+
+    numbers: frozenset[float]  # the numbers inside its text cells (``right_101_110``: 101, 110)
+    texts: frozenset[str]  # its text cells, as :func:`label_text` writes them
+    values: np.ndarray  # every number of the row
+
+
+def label_text(text: str) -> str:
+    """A label as compared: without markup (``` ` ```, ``*``), trimmed, lower case."""
+    return re.sub(r"[`*]", "", text).strip().lower()
+
+
+def table_rows(path: Path) -> list[TableRow]:
+    """Each row of a CSV as a :class:`TableRow`."""
     frame = pd.read_csv(path)
     rows = []
     for record in frame.itertuples(index=False):
         labels: list[float] = []
         values: list[float] = []
+        texts = set()
         for cell in record:
             if isinstance(cell, str):
                 labels += [v for _, v, _, _ in numbers(cell.replace("_", " "))]
+                texts.add(label_text(cell))
             elif pd.notna(cell) and isinstance(cell, int | float | np.number):
                 values.append(float(cell))
-        rows.append((frozenset(labels), np.abs(np.asarray(values + labels, dtype=float))))
+        values_arr = np.abs(np.asarray(values + labels, dtype=float))
+        rows.append(TableRow(frozenset(labels), frozenset(texts), values_arr))
     return rows
 
 
-def row_label(line: str) -> tuple[list[float], str] | None:
-    """A markdown table row as (the numbers of its first cell, the text of the other cells);
-    None for other lines, a header's rule, and a row whose first cell holds no number."""
+@dataclass(frozen=True)
+class RowLabel:
+    """The first cell of a markdown table row, and the text of its other cells."""
+
+    shown: str  # as written
+    numbers: tuple[float, ...]  # its numbers (a numeric label: ``101-110``)
+    text: str  # :func:`label_text` of it (a word label: ``sr_td``), used when it has no number
+    rest: str
+
+    def matches(self, row: TableRow) -> bool:
+        if self.numbers:
+            return all(x in row.numbers for x in self.numbers)
+        return self.text in row.texts
+
+
+#: a first cell that names a figure (README's figure rows): a heading, not a row's label
+FIGURE_LABEL = re.compile(r"^fig(?:ure)?s?\.?\s*\d", re.I)
+
+
+def row_label(line: str) -> RowLabel | None:
+    """A markdown table row's label; None for other lines, a header's rule, a row with one
+    cell, an empty first cell and a first cell that names a figure."""
     text = line.strip()
     if not text.startswith("|") or set(text) <= set("|-: "):
         return None
     cells = text.strip("|").split("|")
-    label = [v for _, v, _, _ in numbers(cells[0])]
-    return (label, "|".join(cells[1:])) if label and len(cells) > 1 else None
+    first = cells[0].strip()
+    if len(cells) < 2 or not label_text(first) or FIGURE_LABEL.match(label_text(first)):
+        return None
+    found = tuple(v for _, v, _, _ in numbers(first))
+    return RowLabel(first, found, label_text(first), "|".join(cells[1:]))
 
 
 def held(value: float, half: float, percent: bool, pool: np.ndarray) -> bool:
@@ -267,34 +307,33 @@ def check(
     ``allow`` list (page file name -> {number as written: why it needs no table}) holds."""
     problems = []
     cache: dict[str, np.ndarray] = {}
-    rows_cache: dict[str, list[tuple[frozenset[float], np.ndarray]]] = {}
+    rows_cache: dict[str, list[TableRow]] = {}
 
     def labelled(doc: Path, c: Covered) -> None:
         """The rows of a covered markdown table against the tables' rows of the same label."""
         for line in c.text.splitlines():
-            row = row_label(line)
-            if row is None:
+            label = row_label(line)
+            if label is None:
                 continue
-            label, rest = row
-            pools, matched = [np.abs(np.asarray([*c.settings, *label], float))], []
+            pools = [np.abs(np.asarray([*c.settings, *label.numbers], float))]
+            matched = []
             for name in c.tables:
                 if not (data_dir / name).is_file():
                     continue  # reported once by pool_of
                 if name not in rows_cache:
                     rows_cache[name] = table_rows(data_dir / name)
-                same = [v for keys, v in rows_cache[name] if all(x in keys for x in label)]
+                same = [r.values for r in rows_cache[name] if label.matches(r)]
                 if same:
                     matched.append(name)
                 pools += same or [cache[name]]  # filled by pool_of
             if not matched:
                 continue  # no table labels its rows so: read whole (above)
             pool = np.concatenate(pools)
-            for shown, value, half, pct in numbers(rest):
+            for shown, value, half, pct in numbers(label.rest):
                 if not held(value, half, pct, pool):
                     problems.append(
-                        f"{doc}:{c.line}: {shown!r} in the row labelled "
-                        f"{line.strip().strip('|').split('|')[0].strip()!r} is in no row of "
-                        f"{', '.join(matched)} with that label"
+                        f"{doc}:{c.line}: {shown!r} in the row labelled {label.shown!r} is in "
+                        f"no row of {', '.join(matched)} with that label"
                     )
 
     def pool_of(doc: Path, line: int, tables: Iterable[str]) -> list[np.ndarray]:

@@ -254,3 +254,49 @@ def test_resume_of_a_sweep_folder_names_its_jobs(tmp_path: Path) -> None:
     plain.mkdir()
     with pytest.raises(CobelError, match=r"not a run folder \(no config.yaml\)$"):
         api.resume(plain)
+
+
+def test_status_of_a_stopped_run_says_how_far_it_got(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    cli: Any,  # noqa: F811
+) -> None:
+    """``cobel status RUN_DIR`` of an interrupted run: trials recorded of those planned and
+    where its checkpoint is (what ``cobel resume`` goes on from); none once it completed."""
+    from cobelrun.checkpoint import read_header
+
+    with monkeypatch.context() as m:
+        stop_at(m, 3)
+        first = cli("run", "task=tmaze_extinction", "task.runs=1", *FAST,
+                    "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12")  # fmt: skip
+    assert first.returncode != 0
+    (folder,) = [p.parent for p in (tmp_path / "results").rglob("checkpoint.npz")]
+    rows = len(pd.read_parquet(folder / "trials.parquet"))
+    pos = read_header(folder / "checkpoint.npz")["position"]
+    status = cli("status", str(folder))
+    assert status.returncode == 1
+    line = next(x for x in status.stdout.splitlines() if "progress:" in x)
+    assert f"{rows} of 24 trials ({100 * rows / 24:.1f} %)" in line
+    assert f"checkpoint: run 0, phase {pos['phase']} after {pos['k']} trials, 0 min ago" in line
+    assert cli("resume", str(folder), "--quiet").returncode == 0
+    assert "progress:" not in cli("status", str(folder)).stdout
+
+
+def test_progress_counts_a_running_runs_parts(tmp_path: Path) -> None:
+    """While a run runs its rows are in parts (a resumed run's first part holds the rows up to
+    its checkpoint): they are counted, not the stale table of an earlier launch."""
+    import pyarrow as pa
+
+    from cobelrun.commands.summary import run_progress
+    from cobelrun.io.run_folder import RunFolder
+
+    folder = RunFolder(tmp_path)
+    pd.DataFrame({"trial": range(1, 4)}).to_parquet(folder.table("trials"))  # earlier launch
+    folder.parts("trials").mkdir(parents=True)
+    for k, rows in enumerate((range(1, 6), range(6, 8))):
+        batch = pa.record_batch({"trial": pa.array(list(rows))})
+        with pa.OSFile(str(folder.parts("trials") / f"part-{k:06d}.arrow"), "wb") as sink:
+            with pa.ipc.new_file(sink, batch.schema) as writer:
+                writer.write_batch(batch)
+    assert run_progress(folder, {"runs": 2, "trials": 10}) == "7 of 20 trials (35.0 %)"
+    assert run_progress(folder, {}) == ""  # nothing planned to compare with

@@ -338,7 +338,7 @@ def status_cmd(
     """
     from rich.console import Console
 
-    from cobelrun.commands.summary import sweep_table
+    from cobelrun.commands.summary import job_progress, sweep_table
     from cobelrun.io.run_folder import RunFolder
     from cobelrun.io.sweep_folder import SWEEP_FILE, job_rows, read_sweep, summary
 
@@ -358,17 +358,20 @@ def status_cmd(
         fail(str(exc))
     console = Console()
     table = sweep_table(sweep_dir, sweep["swept"])
-    table.add_column("error", overflow="fold")
+    table.add_column("error / progress", overflow="fold")
     for r in rows:
         if problems and r["status"] == "done":
             continue
         dur = r["duration_s"]
+        note = "" if not isinstance(r["error"], str) else r["error"]
+        if not note and r["status"] in ("running", "interrupted"):
+            note = job_progress(Path(r["run_dir"]))
         table.add_row(
             str(r["job"]),
             *[str(r[k]) for k in sweep["swept"]],
             f"[{STATUS_STYLE[r['status']]}]{r['status']}[/]",
             "" if dur is None or dur != dur else f"{float(dur):.1f}",
-            "" if not isinstance(r["error"], str) else r["error"],
+            note,
         )
     console.print(table)
     counts = summary(rows)

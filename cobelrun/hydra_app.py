@@ -65,8 +65,8 @@ def job(cfg: DictConfig, task: Any = None) -> str:
         print(f"cobel: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Stopped as exc:  # a run with checkpoints, stopped by a signal: resumable
-        LOG.info("stopped by signal %s; checkpoint written", exc.signum)
-        print(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue with "
+        LOG.info("stopped by %s; checkpoint written", exc.signame)
+        print(f"cobel: stopped by {exc.signame}; checkpoint written; continue with "
               f"`cobel resume {run_dir}`", file=sys.stderr)  # fmt: skip
         sys.exit(REQUEUE_EXIT)
     except KeyboardInterrupt:
@@ -105,7 +105,9 @@ def log_end(run_dir: Path) -> None:
     if not folder.manifest.is_file():
         return
     manifest = json.loads(folder.manifest.read_text())
-    LOG.info("status %s, wall time %s s%s", manifest.get("status"), manifest.get("wall_time_s"),
+    wall = manifest.get("wall_time_s")  # an interrupted run records none
+    LOG.info("status %s%s%s", manifest.get("status"),
+             f", wall time {wall} s" if wall is not None else "",
              f", error {manifest['error']}" if manifest.get("error") else "")  # fmt: skip
     if "objective" in manifest:
         LOG.info("objective (%s) = %s", manifest.get("objective_name"), manifest["objective"])
@@ -170,7 +172,7 @@ def _sweep_job(cfg: DictConfig, run_dir: Path, sweep_dir: Path, num: int, fields
     except Stopped as exc:
         # stopped by a signal after writing its checkpoint: the next sweep command (or the
         # cluster's requeue) resumes it; under submitit its own preemption handler requeues
-        status(run_dir, "interrupted", error=f"stopped by signal {exc.signum}; checkpoint "
+        status(run_dir, "interrupted", error=f"stopped by {exc.signame}; checkpoint "
                "written (the sweep resumes it)", **fields)  # fmt: skip
         _hand_to_submitit(exc.signum)
         sweep.request_stop(sweep_dir, "a job was stopped")

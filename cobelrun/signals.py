@@ -29,6 +29,9 @@ __all__ = ["Interrupted", "SignalGuard", "Stopped", "critical", "hold_early"]
 _ACTIVE: SignalGuard | None = None
 #: signals that arrived before a guard was installed (:func:`hold_early`), oldest first
 _EARLY: list[int] = []
+#: the handlers :func:`hold_early` replaced, put back once a guard has taken over
+_ORIGINAL: dict[int, Any] = {}
+
 #: the signals :func:`hold_early` holds: what a scheduler sends to stop or requeue a job
 EARLY_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGUSR1", "SIGUSR2")
                       if hasattr(signal, n))  # fmt: skip
@@ -52,7 +55,23 @@ def hold_early() -> None:
     acts on the first one held. Main thread only (else nothing is held)."""
     with contextlib.suppress(ValueError):
         for sig in EARLY_SIGNALS:
-            signal.signal(sig, _hold)
+            previous = signal.signal(sig, _hold)
+            if previous is not _hold:
+                _ORIGINAL[sig] = previous
+
+
+def _release_early(taken: dict[int, Any]) -> None:
+    """A guard has taken over: the early signals it does not handle get their original
+    handlers back (a run without checkpoints leaves SIGUSR1/SIGUSR2 to their default), and
+    those it does handle are restored to the originals, not to the hold, when it ends."""
+    with contextlib.suppress(ValueError):
+        for sig, original in list(_ORIGINAL.items()):
+            if sig in taken:
+                if taken[sig] is _hold:
+                    taken[sig] = original
+            elif signal.getsignal(sig) is _hold:
+                signal.signal(sig, original)
+    _ORIGINAL.clear()
 
 
 def early_signal() -> int | None:
@@ -98,6 +117,11 @@ class SignalGuard:
         if self.defer and self.stop_requested is None:
             self.stop_requested = signum  # the run stops at its next trial boundary
             return
+        if self.defer and signum != signal.SIGINT:
+            # only a person's second Ctrl-C stops a deferring run at once: a scheduler's or a
+            # sweep launcher's SIGTERM (forwarded each second), SIGUSR1 and SIGUSR2 repeat the
+            # same request, which must still end in a checkpoint
+            return
         if self._depth:
             self._pending = signum
             return
@@ -127,6 +151,8 @@ class SignalGuard:
                     self.stop_requested = signum
                 else:  # raised where the run can close its files: a critical section's end
                     self._pending = signum
+            if self._previous:
+                _release_early(self._previous)
             yield self
         finally:
             _ACTIVE = outer
@@ -167,6 +193,14 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int = signal.SIGINT) -> None:
         super().__init__(f"received signal {signum}")
         self.signum = signum
+
+    @property
+    def signame(self) -> str:
+        """The signal's name (``SIGTERM``), or its number when it has none."""
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return str(self.signum)
 
 
 class Stopped(Interrupted):

@@ -43,6 +43,7 @@ def isolated_signals():
     saved = {s: signal.getsignal(s) for s in signals.EARLY_SIGNALS}
     yield
     signals._EARLY.clear()
+    signals._ORIGINAL.clear()
     for s, h in saved.items():
         signal.signal(s, h)
 
@@ -68,6 +69,33 @@ def test_a_held_signal_stops_a_run_without_checkpoints_where_it_can(isolated_sig
             with guard.critical():
                 pass
     assert info.value.signum == signal.SIGTERM
+
+
+def test_once_a_guard_took_over_the_hold_is_gone(isolated_signals) -> None:
+    """A run without checkpoints does not handle SIGUSR1/SIGUSR2: they get their original
+    handlers back when its guard is installed (not swallowed for the whole run), and the
+    signals a guard handles go back to the originals, not to the hold, when it ends."""
+    before = {s: signal.getsignal(s) for s in signals.EARLY_SIGNALS}
+    signals.hold_early()
+    guard = signals.SignalGuard()
+    with guard.installed():
+        assert signal.getsignal(signal.SIGUSR1) == before[signal.SIGUSR1]
+        assert signal.getsignal(signal.SIGTERM) == guard._handler
+    assert {s: signal.getsignal(s) for s in signals.EARLY_SIGNALS} == before
+
+
+def test_only_a_second_ctrl_c_stops_a_checkpointing_run_at_once(isolated_signals) -> None:
+    """Repeated SIGTERM/SIGUSR1 (a sweep's launcher forwards SIGTERM each second; a job in a
+    terminal also gets the Ctrl-C) are the same request: the run still stops at its boundary
+    with a checkpoint. A second SIGINT (a person's Ctrl-C) stops it at once."""
+    guard = signals.SignalGuard(defer=True)
+    with guard.installed():
+        os.kill(os.getpid(), signal.SIGINT)
+        for sig in (signal.SIGTERM, signal.SIGTERM, signal.SIGUSR1):
+            os.kill(os.getpid(), sig)
+        assert guard.stop_requested == signal.SIGINT
+        with pytest.raises(signals.Interrupted):
+            os.kill(os.getpid(), signal.SIGINT)
 
 
 def test_a_second_early_signal_ends_the_process_at_once() -> None:

@@ -80,7 +80,7 @@ def register(app: typer.Typer) -> None:
             fail(str(exc))
         except Stopped as exc:
             log_launch(run_dir, started)
-            typer.echo(f"cobel: stopped by signal {exc.signum}; checkpoint written; continue "
+            typer.echo(f"cobel: stopped by {exc.signame}; checkpoint written; continue "
                        f"with `cobel resume {run_dir}`", err=True)  # fmt: skip
             raise typer.Exit(REQUEUE_EXIT) from None
         except KeyboardInterrupt:

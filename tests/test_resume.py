@@ -276,8 +276,10 @@ def test_status_of_a_stopped_run_says_how_far_it_got(
     status = cli("status", str(folder))
     assert status.returncode == 1
     line = next(x for x in status.stdout.splitlines() if "progress:" in x)
-    assert f"{rows} of 24 trials ({100 * rows / 24:.1f} %)" in line
-    assert f"checkpoint: run 0, phase {pos['phase']} after {pos['k']} trials, 0 min ago" in line
+    assert f"{rows} of 24 trials recorded ({100 * rows / 24:.1f} %)" in line
+    name = ("acquisition", "extinction")[pos["phase"]]
+    assert (f"checkpoint: run 0, phase {name!r} ({pos['phase'] + 1} of 2) after {pos['k']} of "
+            "12 trials, 0 min ago") in line  # fmt: skip
     assert cli("resume", str(folder), "--quiet").returncode == 0
     assert "progress:" not in cli("status", str(folder)).stdout
 
@@ -298,5 +300,25 @@ def test_progress_counts_a_running_runs_parts(tmp_path: Path) -> None:
         with pa.OSFile(str(folder.parts("trials") / f"part-{k:06d}.arrow"), "wb") as sink:
             with pa.ipc.new_file(sink, batch.schema) as writer:
                 writer.write_batch(batch)
-    assert run_progress(folder, {"runs": 2, "trials": 10}) == "7 of 20 trials (35.0 %)"
+    assert run_progress(folder, {"runs": 2, "trials": 10}) == "7 of 20 trials recorded (35.0 %)"
     assert run_progress(folder, {}) == ""  # nothing planned to compare with
+
+
+def test_progress_of_a_batched_chunk_names_its_runs(tmp_path: Path) -> None:
+    """A batched chunk writes its rows at its end: its checkpoint says which runs it holds,
+    the phase by name and the trials done in it."""
+    from cobelrun.checkpoint import write_checkpoint
+    from cobelrun.commands.summary import run_progress
+    from cobelrun.io.run_folder import RunFolder
+
+    folder = RunFolder(tmp_path)
+    folder.config.write_text("task:\n  protocol:\n    phases:\n    - {name: learn, trials: 40}\n"
+                             "    - {name: test, trials: 10}\n")  # fmt: skip
+    header = {"config_hash": "x", "agent": None, "written_unix": 1000.0,
+              "position": {"run": 4, "phase": 1, "k": 3, "first": 41},
+              "batch": {"runs": [4, 5, 6, 7]}}  # fmt: skip
+    write_checkpoint(folder.checkpoint, header, {})
+    assert run_progress(folder, {"runs": 8, "trials": 50}, now=1000.0 + 7 * 60) == (
+        "checkpoint: runs 4-7 (a batched chunk), phase 'test' (2 of 2) after 3 of 10 trials, "
+        "7 min ago"
+    )

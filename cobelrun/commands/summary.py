@@ -224,13 +224,55 @@ def trials_recorded(folder: RunFolder) -> int | None:
     return None
 
 
-def run_progress(folder: RunFolder, manifest: dict[str, Any], now: float | None = None) -> str:
-    """A running or stopped run's progress: ``1,368 of 6,000 trials (22.8 %); checkpoint: run
-    0, phase 0 after 1,334 trials, 6 min ago``; '' when nothing tells. A batched chunk holds
-    its rows until its end: then the checkpoint tells more than the trials."""
-    import time
+def _phases(folder: RunFolder) -> list[tuple[str, int]]:
+    """(name, trials) of the run's protocol phases, from its config.yaml (read as plain data);
+    [] when it cannot be read."""
+    import yaml
 
+    try:
+        cfg = yaml.safe_load(folder.config.read_text(encoding="utf-8"))
+        phases = cfg["task"]["protocol"]["phases"]
+        return [(str(ph.get("name", i)), int(ph["trials"])) for i, ph in enumerate(phases)]
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError, AttributeError):
+        return []
+
+
+def _checkpoint_note(folder: RunFolder, now: float) -> str:
+    """Where a run's checkpoint is: ``checkpoint: run 0 (of 2), phase 'block_2' (2 of 4)
+    after 875 of 2,000 trials, 6 min ago``; for a batched chunk ``runs 0-19 (a batched
+    chunk)``."""
     from cobelrun.checkpoint import CheckpointError, read_header
+
+    try:
+        header = read_header(folder.checkpoint)
+        pos, written = header["position"], float(header["written_unix"])
+        run, phase, k = int(pos["run"]), int(pos["phase"]), int(pos["k"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
+        return "checkpoint: unreadable"
+    batch = header.get("batch") if isinstance(header.get("batch"), dict) else None
+    chunk = batch.get("runs") if batch else None
+    if isinstance(chunk, list) and len(chunk) > 1:
+        who = f"runs {chunk[0]}-{chunk[-1]} (a batched chunk)"
+    else:
+        who = f"run {run}"
+    phases = _phases(folder)
+    if 0 <= phase < len(phases):
+        name, trials = phases[phase]
+        where = f"phase {name!r} ({phase + 1} of {len(phases)}) after {k:,} of {trials:,} trials"
+    else:
+        where = f"phase {phase} after {k:,} trials"
+    ago = max(0.0, now - written) / 60
+    when = f"{ago:.0f} min ago" if ago < 120 else f"{ago / 60:.1f} h ago"
+    return f"checkpoint: {who}, {where}, {when}"
+
+
+def run_progress(folder: RunFolder, manifest: dict[str, Any], now: float | None = None) -> str:
+    """A running or stopped run's progress: ``1,368 of 6,000 trials recorded (22.8 %);
+    checkpoint: run 0, phase 'training' (1 of 1) after 1,334 of 6,000 trials, 6 min ago``;
+    '' when nothing tells. Run numbers are the tables' (from 0); the trials recorded may run
+    past the checkpoint (``cobel resume`` drops those and runs them again); a batched chunk
+    writes its rows at its end, so while it runs only its checkpoint tells."""
+    import time
 
     out = []
     done = trials_recorded(folder)
@@ -239,17 +281,9 @@ def run_progress(folder: RunFolder, manifest: dict[str, Any], now: float | None 
     except (TypeError, ValueError):
         total = 0
     if done is not None and total > 0:
-        out.append(f"{done:,} of {total:,} trials ({100 * done / total:.1f} %)")
+        out.append(f"{done:,} of {total:,} trials recorded ({100 * done / total:.1f} %)")
     if folder.checkpoint.is_file():
-        try:
-            header = read_header(folder.checkpoint)
-            pos, written = header["position"], float(header["written_unix"])
-            ago = max(0.0, (time.time() if now is None else now) - written) / 60
-            when = f"{ago:.0f} min ago" if ago < 120 else f"{ago / 60:.1f} h ago"
-            out.append(f"checkpoint: run {pos['run']}, phase {pos['phase']} after "
-                       f"{pos['k']:,} trials, {when}")  # fmt: skip
-        except (CheckpointError, KeyError, TypeError, ValueError):
-            out.append("checkpoint: unreadable")
+        out.append(_checkpoint_note(folder, time.time() if now is None else now))
     return "; ".join(out)
 
 

@@ -272,23 +272,26 @@ def validate_node(where: str, node: Mapping[str, Any], *, provided: Sequence[str
         if p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
         and n not in provided
     ]  # fmt: skip
-    for key, value in node.items():
-        if str(key).startswith("_"):
-            continue
-        if key not in params or key in provided:
-            if takes_kwargs:
-                continue
-            if not allowed:
-                raise ConfigError(
-                    f"unknown key '{where}.{key}': {where} ({node['_target_']}) takes no arguments"
-                )
-            # a task's settings for its default agent stay when another agent is chosen
+    unknown = [k for k in node if not str(k).startswith("_") and (k not in params or k in provided)]
+    if unknown and not takes_kwargs:
+        if not allowed:
+            raise ConfigError(f"unknown key '{where}.{unknown[0]}': {where} "
+                              f"({node['_target_']}) takes no arguments")  # fmt: skip
+        # a task's settings for its default agent stay when another agent is chosen: name
+        # them all at once, with the overrides that drop them
+        drop = " ".join(f"~{where}.{k}" for k in unknown)
+        if len(unknown) == 1:
             other = (f"; if a config (e.g. the task) sets it for another agent, drop it with "
-                     f"~{where}.{key}") if where == "agent" else ""  # fmt: skip
-            raise ConfigError(
-                f"unknown key '{where}.{key}'{suggest(key, allowed)}; allowed: "
-                f"{allowed_list(allowed)}{other}"
-            )
+                     f"{drop}") if where == "agent" else ""  # fmt: skip
+            raise ConfigError(f"unknown key '{where}.{unknown[0]}'{suggest(unknown[0], allowed)}"
+                              f"; allowed: {allowed_list(allowed)}{other}")  # fmt: skip
+        other = (f"; if a config (e.g. the task) sets them for another agent, drop them with "
+                 f"{drop}") if where == "agent" else ""  # fmt: skip
+        names = ", ".join(f"'{where}.{k}'" for k in unknown)
+        raise ConfigError(f"unknown keys {names}; allowed: {allowed_list(allowed)}{other}")
+    for key, value in node.items():
+        if str(key).startswith("_") or key not in params or key in provided:
+            continue  # unknown keys of a target that takes **kwargs: its own to check
         if isinstance(value, Mapping) and "_target_" in value:
             validate_node(f"{where}.{key}", value)
         elif value is None:

@@ -164,11 +164,18 @@ LAYOUT_UNKNOWN = "env.world.layout='#####\n#S.X#\n#####'"
         (["agent=dynaq"], "unknown agent 'dynaq' (did you mean 'dyna_q'?)"),
         (["env=tmaze_papr"], "unknown env 'tmaze_papr' (did you mean 'tmaze_paper'?)"),
         (["agent.epsilonn=0.2"], "unknown key 'agent.epsilonn' (did you mean 'epsilon'?)"),
-        (  # the task's DQN settings under another agent: say how to drop them
+        (  # the task's DQN settings under another agent: all of them, and how to drop them
             ["task=two_afc", "agent=q_learning"],
-            "unknown key 'agent.batch_size'; allowed: 'epsilon', ",
+            "unknown keys 'agent.batch_size', 'agent.learning_starts'; allowed: 'epsilon', ",
         ),
-        (["task=two_afc", "agent=q_learning"], "drop it with ~agent.batch_size"),
+        (
+            ["task=two_afc", "agent=q_learning"],
+            "drop them with ~agent.batch_size ~agent.learning_starts",
+        ),
+        (  # one key: with the suggestion
+            ["task=two_afc", "agent=q_learning", "~agent.batch_size"],
+            "unknown key 'agent.learning_starts' (did you mean 'learning_rate'?); allowed: ",
+        ),
         (
             ["task.monitors.respons.states=[left]"],
             "unknown key 'task.monitors.respons.states': task.monitors has no 'respons' "

@@ -230,3 +230,22 @@ def test_a_score_moved_to_another_agent_on_the_real_page_fails(tmp_path):
     copy.write_text(page.read_text().replace(row, row.replace("0.95", "0.80")))
     (problem,) = doc_numbers.check([copy], DATA)
     assert "'0.80' in the row labelled 'sr_td'" in problem
+
+
+def test_a_mixed_label_and_every_drift_of_a_block_are_reported_on_their_lines(tmp_path):
+    """``| sr_dyna (1) |`` is read as the rows of sr_dyna with a 1 in them (replay budget 1);
+    a row's drift is reported on its own line even when another number of the block is in no
+    table at all."""
+    page = ROOT / "docs" / "figures" / "revaluation.md"
+    text = page.read_text()
+    row = "| sr_dyna (1) | reward with too little replay | 1.00 | 0.00 | 0.00 |"
+    other = "| q_learning | none | 0.00 | 0.00 | 0.00 |"
+    assert row in text and other in text
+    line = text.splitlines().index(row) + 1
+    copy = tmp_path / "revaluation.md"
+    copy.write_text(text.replace(row, row.replace("1.00", "0.80")).replace(other, other.replace(
+        "| 0.00 | 0.00 | 0.00 |", "| 0.777 | 0.00 | 0.00 |")))  # fmt: skip
+    problems = doc_numbers.check([copy], DATA)
+    assert any("'0.777' is in no table" in p for p in problems), problems
+    assert any(p.startswith(f"{copy}:{line}: '0.80' in the row labelled 'sr_dyna (1)'")
+               for p in problems), problems  # fmt: skip

@@ -18,10 +18,13 @@ link targets, HTML comments, ``Fig. 6B``-style references, dates and years, vers
 **Rows.** A row of a markdown table is read against the rows of the named tables that carry
 its label (its first cell): a label with numbers (``| 101-110 | ...``) against the rows whose
 text cells hold those numbers (``right_101_110``, ``101-110``), a label in words (``| sr_td |
-...``) against the rows with a text cell equal to it (markup and case aside). Each number of
-the row must be held by such a row, so a number that drifted to another row's value fails
-although the table holds it. A named table with no row of that label is read whole, as above;
-a first cell naming a figure (README's ``| Fig. 4 |``) is no label.
+...``) against the rows with a text cell equal to it (markup and case aside), a mixed label
+(``| dyna_q (1) |``) against the rows with a text cell equal to its words and its numbers in any
+cell (``replay_budget`` 1). Each number of the row must be held by such a row (any of its
+cells: a drift to its SD or median, or to another measure of the same label, still passes),
+so a number that drifted to another row's value fails although the table holds it. A named
+table with no row of that label (the paper's numbers, a table of scalars) is read whole, as
+above; a first cell naming a figure (README's ``| Fig. 4 |``) is no label.
 
 ``<!-- data: none -->`` marks a table that holds no results: only a table of settings (its header
 starts ``| setting |``, e.g. a departures table) may carry it. :func:`check` returns one message
@@ -201,13 +204,21 @@ class RowLabel:
 
     shown: str  # as written
     numbers: tuple[float, ...]  # its numbers (a numeric label: ``101-110``)
-    text: str  # :func:`label_text` of it (a word label: ``sr_td``), used when it has no number
+    text: str  # :func:`label_text` of it (a word label: ``sr_td``)
+    words: str  # its text without the numbers (``dyna_q (1)``: ``dyna_q``)
     rest: str
 
-    def matches(self, row: TableRow) -> bool:
-        if self.numbers:
-            return all(x in row.numbers for x in self.numbers)
-        return self.text in row.texts
+    def matches(self, row: TableRow, *, words: bool) -> bool:
+        """Does ``row`` carry this label? ``words``: a mixed label (``dyna_q (1)``) is read
+        as its words plus its numbers anywhere in the row (``agent`` dyna_q, ``replay_budget``
+        1); else as its numbers in the row's text cells (``right_101_110``)."""
+        if not self.numbers:
+            return self.text in row.texts
+        if words and self.words:
+            return self.words in row.texts and all(
+                np.any(np.isclose(row.values, x)) for x in self.numbers
+            )
+        return all(x in row.numbers for x in self.numbers)
 
 
 #: a first cell that names a figure (README's figure rows): a heading, not a row's label
@@ -225,7 +236,9 @@ def row_label(line: str) -> RowLabel | None:
     if len(cells) < 2 or not label_text(first) or FIGURE_LABEL.match(label_text(first)):
         return None
     found = tuple(v for _, v, _, _ in numbers(first))
-    return RowLabel(first, found, label_text(first), "|".join(cells[1:]))
+    words = label_text(NUMBER.sub(" ", first)).strip(" ()[],;:-")
+    words = re.sub(r"\s+", " ", words)
+    return RowLabel(first, found, label_text(first), words, "|".join(cells[1:]))
 
 
 def held(value: float, half: float, percent: bool, pool: np.ndarray) -> bool:
@@ -310,30 +323,35 @@ def check(
     rows_cache: dict[str, list[TableRow]] = {}
 
     def labelled(doc: Path, c: Covered) -> None:
-        """The rows of a covered markdown table against the tables' rows of the same label."""
-        for line in c.text.splitlines():
+        """The rows of a covered markdown table against the tables' rows of the same label
+        (the tables that carry it) and the tables that carry no such label, read whole."""
+        for i, line in enumerate(c.text.splitlines()):
             label = row_label(line)
             if label is None:
                 continue
-            pools = [np.abs(np.asarray([*c.settings, *label.numbers], float))]
-            matched = []
-            for name in c.tables:
-                if not (data_dir / name).is_file():
-                    continue  # reported once by pool_of
+            tables = [n for n in c.tables if (data_dir / n).is_file()]  # others: pool_of says
+            for name in tables:
                 if name not in rows_cache:
                     rows_cache[name] = table_rows(data_dir / name)
-                same = [r.values for r in rows_cache[name] if label.matches(r)]
-                if same:
-                    matched.append(name)
-                pools += same or [cache[name]]  # filled by pool_of
+            # a mixed label (``dyna_q (1)``) by its words when a table has a row of them
+            words = bool(label.numbers and label.words) and any(
+                label.words in r.texts for n in tables for r in rows_cache[n]
+            )
+            same = {n: [r.values for r in rows_cache[n] if label.matches(r, words=words)]
+                    for n in tables}  # fmt: skip
+            matched = [n for n in tables if same[n]]
             if not matched:
                 continue  # no table labels its rows so: read whole (above)
-            pool = np.concatenate(pools)
+            # a table that does not carry the label (the paper's numbers, a table of scalars)
+            # is read whole: its numbers may sit in any labelled row
+            pool = np.concatenate([np.abs(np.asarray([*c.settings, *label.numbers], float)),
+                                   *(v for n in matched for v in same[n]),
+                                   *(cache[n] for n in tables if not same[n])])  # fmt: skip
             for shown, value, half, pct in numbers(label.rest):
                 if not held(value, half, pct, pool):
                     problems.append(
-                        f"{doc}:{c.line}: {shown!r} in the row labelled {label.shown!r} is in "
-                        f"no row of {', '.join(matched)} with that label"
+                        f"{doc}:{c.line + i}: {shown!r} in the row labelled {label.shown!r} is "
+                        f"in no row of {', '.join(matched)} with that label"
                     )
 
     def pool_of(doc: Path, line: int, tables: Iterable[str]) -> list[np.ndarray]:
@@ -358,14 +376,12 @@ def check(
             pool = np.concatenate(
                 [*pool_of(doc, c.line, c.tables), np.abs(np.asarray(c.settings, float))]
             )
-            before = len(problems)
             for shown, value, half, pct in numbers(c.text):
                 if not held(value, half, pct, pool):
                     problems.append(
                         f"{doc}:{c.line}: {shown!r} is in no table of {', '.join(c.tables)}"
                     )
-            if len(problems) == before:  # held by the tables: is it in its row's?
-                labelled(doc, c)
+            labelled(doc, c)  # and each table row against its label's rows
     for doc in pages:
         allowed = (allow or {}).get(doc.name, {})
         try:

@@ -185,7 +185,7 @@ def run_status(folder: RunFolder) -> None:
         f"{folder.path}: {shown}" + (f" ({manifest['error']})" if manifest.get("error") else "")
     )
     for table, rows in repaired.get("tables", {}).items():
-        typer.echo(f"  repaired {folder.table(table).name}: {rows} rows kept")
+        typer.echo(f"  repaired {folder.table(table).name}: {rows:,} rows kept")
     if repaired.get("mcap"):
         typer.echo(f"  repaired {folder.mcap.name}: summary rewritten, complete messages kept")
     readable = [t for t in tables if t not in unreadable]

@@ -245,6 +245,7 @@ def _chart_points(driver) -> int:
 
 
 def test_sweep_curves_by_a_hue_chosen_in_the_page(server: str, browser) -> None:
+    from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.common.by import By
 
     browser.get(server + "/sweep?p=sweep")
@@ -259,12 +260,15 @@ def test_sweep_curves_by_a_hue_chosen_in_the_page(server: str, browser) -> None:
     option.click()
     deadline = time.monotonic() + 90  # the figure is drawn on the server (a loaded CI core)
     while time.monotonic() < deadline:  # redrawn: one curve over both values
-        img = browser.find_element(By.CSS_SELECTOR, ".cobel-sweep-figure img")
-        if (
-            img.get_attribute("src") not in ("", first)
-            and "(none)" in browser.find_element(By.CSS_SELECTOR, ".cobel-hue").text
-        ):
-            break
+        try:
+            img = browser.find_element(By.CSS_SELECTOR, ".cobel-sweep-figure img")
+            if (
+                img.get_attribute("src") not in ("", first)
+                and "(none)" in browser.find_element(By.CSS_SELECTOR, ".cobel-hue").text
+            ):
+                break
+        except StaleElementReferenceException:  # the page replaced it while we read it
+            pass
         time.sleep(0.2)
     else:
         raise AssertionError("the sweep figure was not redrawn after choosing --hue (none)")

@@ -218,6 +218,18 @@ def test_batched_runs_resume_at_their_chunk(
     assert_same_tables(ref, folder)
 
 
+def _stopped_cli_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cli: Any) -> Path:  # noqa: F811
+    """A ``cobel run`` of two 12-trial phases stopped after its 3rd piece, with a checkpoint:
+    its folder."""
+    with monkeypatch.context() as m:
+        stop_at(m, 3)
+        first = cli("run", "task=tmaze_extinction", "task.runs=1", *FAST,
+                    "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12")  # fmt: skip
+    assert first.returncode != 0
+    (folder,) = [p.parent for p in (tmp_path / "results").rglob("checkpoint.npz")]
+    return folder
+
+
 def test_cobel_resume_logs_its_launch_in_the_run_log(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
@@ -228,12 +240,7 @@ def test_cobel_resume_logs_its_launch_in_the_run_log(
     sidecars' ``launches``); a refused resume writes nothing to it."""
     from cobelrun.figures.run_import import launches
 
-    with monkeypatch.context() as m:
-        stop_at(m, 3)
-        first = cli("run", "task=tmaze_extinction", "task.runs=1", *FAST,
-                    "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12")  # fmt: skip
-    assert first.returncode != 0
-    (folder,) = [p.parent for p in (tmp_path / "results").rglob("checkpoint.npz")]
+    folder = _stopped_cli_run(tmp_path, monkeypatch, cli)
     assert len(launches(folder)) == 1
     resumed = cli("resume", str(folder), "--quiet")
     assert resumed.returncode == 0, resumed.stderr
@@ -265,12 +272,7 @@ def test_status_of_a_stopped_run_says_how_far_it_got(
     where its checkpoint is (what ``cobel resume`` goes on from); none once it completed."""
     from cobelrun.checkpoint import read_header
 
-    with monkeypatch.context() as m:
-        stop_at(m, 3)
-        first = cli("run", "task=tmaze_extinction", "task.runs=1", *FAST,
-                    "task.protocol.phases.0.trials=12", "task.protocol.phases.1.trials=12")  # fmt: skip
-    assert first.returncode != 0
-    (folder,) = [p.parent for p in (tmp_path / "results").rglob("checkpoint.npz")]
+    folder = _stopped_cli_run(tmp_path, monkeypatch, cli)
     rows = len(pd.read_parquet(folder / "trials.parquet"))
     pos = read_header(folder / "checkpoint.npz")["position"]
     status = cli("status", str(folder))

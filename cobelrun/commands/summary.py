@@ -212,7 +212,9 @@ def trials_recorded(folder: RunFolder) -> int | None:
         if parts:
             rows = 0
             for path in parts:
-                with pa.OSFile(str(path), "rb") as src:
+                # memory-mapped: counting reads the batches' lengths, allocates no copy of a
+                # part (a stranger's folder may hold a huge one)
+                with pa.memory_map(str(path), "r") as src:
                     reader = pa.ipc.open_file(src)
                     rows += sum(reader.get_batch(i).num_rows
                                 for i in range(reader.num_record_batches))  # fmt: skip
